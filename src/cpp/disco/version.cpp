@@ -1,0 +1,5 @@
+#include "disco/version.hpp"
+
+namespace disco {
+const char* core_version() { return DISCO_VERSION; }
+}  // namespace disco

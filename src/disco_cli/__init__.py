@@ -1,0 +1,33 @@
+"""disco: LiDAR loop closure with DiSCO rotation-invariant signatures and yaw.
+
+The public API is imported lazily so that `import disco_cli` (and `disco --help`)
+stays fast: torch and the compiled core load only when first used.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("disco-cli")
+except PackageNotFoundError:  # running from a source tree without an install
+    __version__ = "0+unknown"
+
+# public name -> module that defines it
+_LAZY = {
+    "BEVConfig": "disco_cli.bev",
+    "polar_bev": "disco_cli.bev",
+    "polar_bev_batch": "disco_cli.bev",
+    "read_scan": "disco_cli.readers",
+    "DiscoError": "disco_cli.errors",
+    "ScanReadError": "disco_cli.errors",
+}
+
+__all__ = ["__version__", *_LAZY]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'disco_cli' has no attribute {name!r}")

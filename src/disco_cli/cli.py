@@ -1,0 +1,76 @@
+"""The `disco` command line: one Typer app.
+
+Each subcommand lives in `disco_cli/commands/<name>.py` and is registered below.
+Command modules import only typer at module level; numpy, torch and the compiled
+core are imported inside the command functions so that `disco --help` is instant.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Annotated
+
+import typer
+
+# from disco_cli.commands import <name>   (one import per command)
+
+app = typer.Typer(
+    name="disco",
+    help="LiDAR loop closure: which place in my map is this scan, and how am I turned?",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+# -- registration: one line per command ------------------------------------
+# app.command("<name>", rich_help_panel="...")(<name>.<function>)
+
+
+def _print_version(value: bool) -> None:
+    if not value:
+        return
+    from disco_cli import __version__
+
+    try:
+        from disco_cli import _core
+    except ImportError as exc:
+        typer.echo(f"disco {__version__}: the compiled core cannot load ({exc}); reinstall disco", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"disco {__version__} (core {_core.__version__})")
+    raise typer.Exit(0)
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option("--version", callback=_print_version, is_eager=True, help="Print the version and check the install."),
+    ] = False,
+) -> None:
+    """LiDAR loop closure: which place in my map is this scan, and how am I turned?"""
+
+
+def main() -> None:
+    """Console entry point: clean exits on Ctrl-C and on a closed pipe (`| head`)."""
+    from disco_cli.console import error
+    from disco_cli.errors import DiscoError
+
+    try:
+        app()
+    except DiscoError as exc:  # commands catch these; this is the safety net
+        error(str(exc))
+        sys.exit(1)
+    except KeyboardInterrupt:
+        error("interrupted")
+        sys.exit(130)
+    except BrokenPipeError:
+        # The reader went away (`disco query ... | head`): stop quietly.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        sys.exit(0)
+
+
+if __name__ == "__main__":
+    main()
