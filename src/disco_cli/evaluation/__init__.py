@@ -1,0 +1,1 @@
+"""Evaluation: metrics (pure NumPy), reports and plots."""
