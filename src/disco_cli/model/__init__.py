@@ -1,0 +1,90 @@
+"""The DiSCO network, signatures, yaw, checkpoints and the model registry.
+
+`load_model(name_or_path)` returns an object with the protocol of docs/architecture.md:
+`name`, `bev_config`, `fingerprint`, `config_dict()`, `embed(bevs) -> (signatures,
+features)`, `yaw(query_features, match_features) -> degrees`, `rerank_candidates`.
+
+Names: `default` (the shipped weights), `spectral` (training-free, no torch needed),
+`scancontext` (the Scan Context baseline); anything else is a checkpoint path, in this
+project's layout or in the layout of the authors' DiSCO-pytorch release.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from disco_cli.errors import ModelError
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.pt"
+
+
+def _spectral(device: str) -> Any:
+    from disco_cli.model.spectral import SpectralModel
+
+    return SpectralModel()
+
+
+def _scancontext(device: str) -> Any:
+    module = importlib.import_module("disco_cli.scancontext")
+    return module.ScanContextModel()
+
+
+def _default(device: str) -> Any:
+    if not DEFAULT_WEIGHTS.is_file():
+        raise ModelError(f"{DEFAULT_WEIGHTS}: no shipped weights yet; use --model spectral")
+    return load_checkpoint_model(DEFAULT_WEIGHTS, device=device, name="default")
+
+
+# The model registry: name -> factory(device). A checkpoint path is the fallback.
+MODELS: dict[str, Callable[[str], Any]] = {
+    "default": _default,
+    "spectral": _spectral,
+    "scancontext": _scancontext,
+}
+
+
+def load_model(name_or_path: str | Path = "default", device: str = "cpu") -> Any:
+    """A model by registry name or checkpoint path; ModelError naming the file on failure."""
+    key = str(name_or_path)
+    if key in MODELS:
+        return MODELS[key](device)
+    return load_checkpoint_model(Path(key), device=device)
+
+
+def load_checkpoint_model(path: str | Path, device: str = "cpu", name: str | None = None) -> Any:
+    """A DiscoModel from a checkpoint file of either supported layout."""
+    from disco_cli.model.authors import is_authors_checkpoint, model_from_authors
+    from disco_cli.model.checkpoint import FORMAT, read_checkpoint
+
+    path = Path(path)
+    ckpt = read_checkpoint(path, device="cpu")
+    if ckpt.get("format") == FORMAT:
+        return model_from_checkpoint(ckpt, path, device=device, name=name)
+    if is_authors_checkpoint(ckpt):
+        return model_from_authors(ckpt, path, device=device, name=name)
+    keys = ", ".join(sorted(map(str, ckpt))[:5])
+    raise ModelError(f"{path}: unknown checkpoint layout (top-level keys: {keys})")
+
+
+def model_from_checkpoint(
+    ckpt: dict[str, Any], path: str | Path, device: str = "cpu", name: str | None = None
+) -> Any:
+    from disco_cli.bev import BEVConfig
+    from disco_cli.model.disco import DiscoModel, build_net
+
+    try:
+        model_config = dict(ckpt["model_config"])
+        bev_config = BEVConfig.from_dict(dict(ckpt["bev_config"]))
+        net = build_net(model_config)
+        net.load_state_dict(ckpt["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ModelError(f"{path}: damaged checkpoint ({reason[:200]})") from None
+    return DiscoModel(net, bev_config, model_config, name=name or Path(path).stem, device=device)
+
+
+__all__ = ["MODELS", "DEFAULT_WEIGHTS", "load_model", "load_checkpoint_model"]

@@ -1,0 +1,48 @@
+"""Checkpoints: plain dicts of tensors, numbers and strings that load with weights_only=True.
+
+Layout (`format` = "disco-cli/1"):
+    state_dict     the DiscoNet weights (U-Net and the yaw softmax)
+    bev_config     BEVConfig.to_dict()
+    model_config   {"in_channels", "width", "norm", "circular", "sigmoid", "crop"}
+    command        the training command line, as a string
+    train_state    optional: epoch, step, optimizer and RNG state (for `--resume`)
+    metrics        optional: validation figures at save time
+Configs are stored as plain dicts, never dataclasses, so that loading an untrusted file
+cannot run code.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from disco_cli.errors import ModelError
+
+FORMAT = "disco-cli/1"
+
+
+def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
+    """Write a checkpoint atomically (a crash mid-write leaves the old file intact)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"format": FORMAT, **payload}, tmp)
+    os.replace(tmp, path)
+
+
+def read_checkpoint(path: str | Path, device: str = "cpu") -> dict[str, Any]:
+    """The raw checkpoint dict; ModelError naming the file when it is missing or unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"{path}: no such model file (names: default, spectral, scancontext)")
+    try:
+        ckpt = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # torch raises many kinds for a corrupt or foreign file
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ModelError(f"{path}: not a readable model checkpoint ({reason[:200]})") from None
+    if not isinstance(ckpt, dict):
+        raise ModelError(f"{path}: not a model checkpoint (holds a {type(ckpt).__name__})")
+    return ckpt

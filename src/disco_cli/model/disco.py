@@ -1,0 +1,101 @@
+"""A learned DiSCO model: the U-Net F_cnn in torch, signatures and yaw in numpy."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any
+
+import numpy as np
+import torch
+
+from disco_cli.model.signature import DEFAULT_CROP, signatures
+from disco_cli.model.unet import DiscoNet
+from disco_cli.model.yaw import estimate_yaw
+
+# Scans per forward pass at inference: large enough to amortize, small enough for memory.
+_BATCH = 64
+
+
+def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
+    return {
+        "in_channels": int(in_channels),
+        "width": int(width),
+        "norm": True,
+        "circular": True,
+        "sigmoid": False,
+        "crop": list(DEFAULT_CROP),
+    }
+
+
+def build_net(model_config: dict[str, Any]) -> DiscoNet:
+    return DiscoNet(
+        in_channels=int(model_config["in_channels"]),
+        width=int(model_config["width"]),
+        norm=bool(model_config.get("norm", True)),
+        circular=bool(model_config.get("circular", True)),
+        sigmoid=bool(model_config.get("sigmoid", False)),
+    )
+
+
+def weights_hash(state_dict: dict[str, torch.Tensor], config: dict[str, Any]) -> str:
+    h = hashlib.sha256(json.dumps(config, sort_keys=True).encode())
+    for key in sorted(state_dict):
+        h.update(key.encode())
+        h.update(state_dict[key].detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+class DiscoModel:
+    """Model protocol of docs/architecture.md over a DiscoNet."""
+
+    rerank_candidates = 0
+
+    def __init__(
+        self,
+        net: DiscoNet,
+        bev_config: Any,
+        model_config: dict[str, Any],
+        name: str = "disco",
+        device: str = "cpu",
+    ):
+        self.net = net.to(device).eval()
+        self.device = device
+        self.bev_config = bev_config
+        self.model_config = dict(model_config)
+        self.crop = tuple(int(c) for c in self.model_config.get("crop", DEFAULT_CROP))
+        self.name = name
+        self.fingerprint = weights_hash(self.net.state_dict(), self.config_dict())
+
+    def config_dict(self) -> dict[str, Any]:
+        return {
+            "model": self.name,
+            "kind": "disco",
+            "model_config": self.model_config,
+            "bev_config": self.bev_config.to_dict(),
+        }
+
+    @torch.no_grad()
+    def features(self, bevs: np.ndarray) -> np.ndarray:
+        b = np.asarray(bevs, dtype=np.float32)
+        if b.ndim != 4:
+            raise ValueError(f"bevs must be [B, H, R, S], got shape {b.shape}")
+        if b.shape[1] != self.model_config["in_channels"]:
+            raise ValueError(
+                f"model {self.name} expects {self.model_config['in_channels']} BEV heights, "
+                f"got {b.shape[1]}"
+            )
+        out = []
+        for i in range(0, len(b), _BATCH):
+            x = torch.from_numpy(b[i : i + _BATCH]).to(self.device)
+            out.append(self.net(x).float().cpu().numpy())
+        if not out:
+            return np.zeros((0,) + b.shape[2:], np.float32)
+        return np.concatenate(out)
+
+    def embed(self, bevs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        feats = self.features(bevs)
+        return signatures(feats, self.crop), feats
+
+    def yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
+        return estimate_yaw(query_features, match_features)

@@ -1,0 +1,58 @@
+"""Place signatures: |FFT2| of the polar feature image, centre low-pass crop, flattened.
+
+A rotation of the sensor rolls the polar feature image along the sector axis, and the
+magnitude of a Fourier spectrum does not see a circular shift, so the signature is
+rotation invariant. Only the low-frequency centre is kept (the paper's LPF-1024 is
+32 x 32): it holds the coarse layout of the place and drops high-frequency noise.
+
+Signatures are L2-normalized. The quadruplet margins (0.5, 0.2) are meant for squared
+distances on the unit sphere, and normalizing removes the dependence on how many points a
+sensor returns (a 16-beam and a 64-beam scan of one place then compare).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.fft
+
+DEFAULT_CROP = (32, 32)
+
+
+def crop_size(rings: int, sectors: int, crop: tuple[int, int] = DEFAULT_CROP) -> tuple[int, int]:
+    """The crop actually used for a feature image of rings x sectors (never larger than it)."""
+    return min(int(crop[0]), rings), min(int(crop[1]), sectors)
+
+
+def _window(n: int, c: int) -> slice:
+    # After fftshift the zero frequency sits at index n // 2; centre the crop on it.
+    start = n // 2 - c // 2
+    return slice(start, start + c)
+
+
+def signatures(features: np.ndarray, crop: tuple[int, int] = DEFAULT_CROP, workers: int = -1) -> np.ndarray:
+    """Signatures [B, cr * cs] float32 of feature images [B, R, S] (or one [R, S])."""
+    g = np.asarray(features, dtype=np.float32)
+    if g.ndim == 2:
+        g = g[None]
+    if g.ndim != 3:
+        raise ValueError(f"features must be [B, R, S], got shape {g.shape}")
+    b, r, s = g.shape
+    cr, cs = crop_size(r, s, crop)
+    spec = scipy.fft.fft2(g, axes=(1, 2), workers=workers)
+    spec = scipy.fft.fftshift(spec, axes=(1, 2))[:, _window(r, cr), _window(s, cs)]
+    sig = np.abs(spec).reshape(b, -1).astype(np.float32)
+    norm = np.linalg.norm(sig, axis=1, keepdims=True)
+    return sig / np.maximum(norm, 1e-12)
+
+
+def signatures_torch(features: Any, crop: tuple[int, int] = DEFAULT_CROP) -> Any:
+    """The same signatures as `signatures`, differentiable, for training ([B, R, S] tensor)."""
+    import torch
+
+    b, r, s = features.shape
+    cr, cs = crop_size(r, s, crop)
+    spec = torch.fft.fftshift(torch.fft.fft2(features.float()), dim=(1, 2))
+    mag = spec[:, _window(r, cr), _window(s, cs)].abs().reshape(b, -1)
+    return torch.nn.functional.normalize(mag, dim=1, eps=1e-12)

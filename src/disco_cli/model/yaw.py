@@ -1,0 +1,99 @@
+"""Yaw by phase correlation along the sector axis of two polar feature images.
+
+For every ring, the normalized cross-power spectrum of the two rows (FFT along sectors)
+is transformed back; the rings' curves are averaged into one correlation curve over the
+circular sector shift. Its peak is the shift that best aligns the two scans.
+
+Sign convention (docs/architecture.md): if the query scan is the match scan rotated by
++a degrees, the query BEV is the match BEV rolled by +a / (360 / S) sectors, the curve
+peaks at that shift, and the returned yaw is -a (the heading of the query sensor in the
+match's frame, the yaw of T_match<-query).
+
+Inference uses numpy/scipy (argmax and a parabolic sub-bin fit, batched over the K
+candidates); training uses the torch version with the paper's learnable softmax.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.fft
+
+# Relative floor of the cross-power normalization: keeps empty rings and empty
+# frequencies from turning into pure noise when divided by their own magnitude.
+_EPS_REL = 1e-3
+
+
+def wrap_deg(angle: np.ndarray | float) -> np.ndarray:
+    """Angles wrapped into (-180, 180]."""
+    a = np.mod(np.asarray(angle, dtype=np.float64) + 180.0, 360.0) - 180.0
+    return np.where(a <= -180.0, a + 360.0, a)
+
+
+def shift_to_yaw(shift: np.ndarray | float, sectors: int) -> np.ndarray:
+    """Yaw in degrees of a query whose BEV is the match's rolled by `shift` sectors."""
+    return wrap_deg(-np.asarray(shift, dtype=np.float64) * 360.0 / sectors)
+
+
+def correlation_curves(query: np.ndarray, matches: np.ndarray, workers: int = 1) -> np.ndarray:
+    """Phase-correlation curves [K, S] of query [R, S] against matches [K, R, S]."""
+    q = np.asarray(query, dtype=np.float32)
+    m = np.asarray(matches, dtype=np.float32)
+    if m.ndim == 2:
+        m = m[None]
+    if q.ndim != 2 or m.ndim != 3 or m.shape[1:] != q.shape:
+        raise ValueError(f"query [R, S] and matches [K, R, S] must agree: {q.shape} vs {m.shape}")
+    fq = scipy.fft.rfft(q, axis=-1, workers=workers)
+    fm = scipy.fft.rfft(m, axis=-1, workers=workers)
+    cross = fq[None] * np.conj(fm)
+    mag = np.abs(cross)
+    floor = _EPS_REL * mag.max(axis=(1, 2), keepdims=True) + 1e-12
+    curves = scipy.fft.irfft(cross / (mag + floor), n=q.shape[-1], axis=-1, workers=workers)
+    return curves.mean(axis=1)
+
+
+def peak_shift(curves: np.ndarray) -> np.ndarray:
+    """Sub-bin peak positions [K] of circular curves [K, S] (argmax + parabola)."""
+    k, s = curves.shape
+    idx = np.argmax(curves, axis=1)
+    rows = np.arange(k)
+    c0 = curves[rows, idx]
+    cm = curves[rows, (idx - 1) % s]
+    cp = curves[rows, (idx + 1) % s]
+    denom = cm - 2.0 * c0 + cp
+    safe = np.where(np.abs(denom) > 1e-12, denom, -1.0)
+    offset = np.where(np.abs(denom) > 1e-12, 0.5 * (cm - cp) / safe, 0.0)
+    return idx + np.clip(offset, -0.5, 0.5)
+
+
+def estimate_yaw(query: np.ndarray, matches: np.ndarray) -> np.ndarray:
+    """Yaw [K] in degrees, (-180, 180], of the query relative to each match."""
+    curves = correlation_curves(query, matches)
+    return shift_to_yaw(peak_shift(curves), curves.shape[1]).astype(np.float32)
+
+
+# -- differentiable version (training) ----------------------------------------
+
+
+def correlation_curves_torch(query: Any, match: Any) -> Any:
+    """Phase-correlation curves [B, S] of paired feature images [B, R, S] (torch)."""
+    import torch
+
+    fq = torch.fft.rfft(query.float(), dim=-1)
+    fm = torch.fft.rfft(match.float(), dim=-1)
+    cross = fq * torch.conj(fm)
+    mag = cross.abs()
+    floor = _EPS_REL * mag.amax(dim=(1, 2), keepdim=True).detach() + 1e-12
+    curves = torch.fft.irfft(cross / (mag + floor), n=query.shape[-1], dim=-1)
+    return curves.mean(dim=1)
+
+
+def expected_shift_torch(prob: Any) -> Any:
+    """Circular expectation of the shift under p(delta) [B, S], in sectors (-S/2, S/2]."""
+    import torch
+
+    s = prob.shape[-1]
+    ang = torch.arange(s, device=prob.device, dtype=prob.dtype) * (2 * torch.pi / s)
+    mean = torch.atan2((prob * torch.sin(ang)).sum(-1), (prob * torch.cos(ang)).sum(-1))
+    return mean * s / (2 * torch.pi)
