@@ -1,0 +1,154 @@
+"""Scan readers: one module per file format, chosen here.
+
+`read_scan(path)` returns the points of one LiDAR scan as a float32 `N x 4`
+array (x, y, z, intensity; intensity 0 where the format has none), and
+`list_scans(path)` expands a file or a folder into the scan files it holds.
+Every bad file raises `ScanReadError(path, reason)`, never another exception.
+
+The format comes from `format=` when given, else from the file: `.bin` under a
+folder named `velodyne_sync` is NCLT, any other `.bin` is KITTI (MulRan uses
+the same layout), and `.npy`, `.pcd`, `.ply` are what they say.
+
+This module imports no numpy, so that a command can import the format names
+at its top and `disco --help` stays instant; a format module is imported the
+first time a scan of that format is read.
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from disco_cli.errors import ScanReadError
+
+if TYPE_CHECKING:
+    import numpy as np
+
+__all__ = ["FORMATS", "ScanFormat", "guess_format", "list_scans", "natural_key", "read_scan"]
+
+
+@dataclass(frozen=True)
+class ScanFormat:
+    """One registered format: its name, file extensions and reader module."""
+
+    name: str
+    extensions: tuple[str, ...]
+    module: str  # imported on first use; must define `read(path: Path) -> np.ndarray`
+    description: str
+
+    def reader(self) -> Callable[[Path], np.ndarray]:
+        return importlib.import_module(self.module).read
+
+
+# The registry: every format disco reads, in the order `--format` lists them.
+FORMATS: dict[str, ScanFormat] = {
+    "kitti": ScanFormat(
+        "kitti", (".bin",), "disco_cli.readers.kitti",
+        "KITTI / MulRan .bin: float32 x, y, z, intensity",
+    ),
+    "nclt": ScanFormat(
+        "nclt", (".bin",), "disco_cli.readers.nclt",
+        "NCLT velodyne_sync .bin: uint16 x, y, z (5 mm, -100 m), uint8 intensity, laser",
+    ),
+    "npy": ScanFormat("npy", (".npy",), "disco_cli.readers.npy", "NumPy .npy: N x 3 or N x 4"),
+    "pcd": ScanFormat("pcd", (".pcd",), "disco_cli.readers.pcd", "PCL .pcd: ascii or binary"),
+    "ply": ScanFormat("ply", (".ply",), "disco_cli.readers.ply", "PLY: ascii or binary"),
+}
+
+# The folder name that marks a .bin as NCLT rather than KITTI.
+_NCLT_FOLDER = "velodyne_sync"
+# Folder layouts searched first, in order: DIR/velodyne/*.bin (KITTI, MulRan
+# after extraction) and DIR/velodyne_sync/*.bin (NCLT).
+_SCAN_SUBFOLDERS = ("velodyne", _NCLT_FOLDER)
+
+
+def _format_by_name(name: str, path: Path) -> ScanFormat:
+    try:
+        return FORMATS[name.lower()]
+    except KeyError:
+        known = ", ".join(FORMATS)
+        raise ScanReadError(path, f"unknown scan format {name!r} (known: {known})") from None
+
+
+def guess_format(path: str | Path) -> str:
+    """The format name of a scan file from its extension and folder."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext == ".bin":
+        return "nclt" if path.parent.name == _NCLT_FOLDER else "kitti"
+    for fmt in FORMATS.values():
+        if ext in fmt.extensions:
+            return fmt.name
+    known = ", ".join(sorted({e for f in FORMATS.values() for e in f.extensions}))
+    raise ScanReadError(
+        path, f"cannot tell the scan format from {ext or 'no extension'!r} "
+        f"(known: {known}); pass the format explicitly"
+    )
+
+
+def read_scan(path: str | Path, format: str | None = None) -> np.ndarray:
+    """The points of one scan as float32 `N x 4` (x, y, z, intensity).
+
+    A KITTI .bin is returned as read by `np.fromfile` (no copy). Raises
+    `ScanReadError` for a missing, truncated, misaligned, empty or unparsable file.
+    """
+    path = Path(path)
+    fmt = _format_by_name(format, path) if format else FORMATS[guess_format(path)]
+    if not path.exists():
+        raise ScanReadError(path, "no such file")
+    if not path.is_file():
+        raise ScanReadError(path, "not a file")
+    return fmt.reader()(path)
+
+
+def natural_key(path: str | Path) -> tuple:
+    """Sort key that orders numbers by value: 2.bin before 10.bin."""
+    parts = re.split(r"(\d+)", Path(path).name)
+    # re.split puts text at even and digit runs at odd positions, so keys compare
+    # like with like; the full name breaks ties between 7.bin and 007.bin.
+    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)) + (Path(path).name,)
+
+
+def list_scans(path: str | Path, format: str | None = None) -> list[Path]:
+    """The scan files at `path`, in natural order.
+
+    A file gives itself. A folder gives `DIR/velodyne/*.bin` (or
+    `DIR/velodyne_sync/*.bin`) when that exists, else its own files with a scan
+    extension (of `format` when given). Raises `ScanReadError` when the path is
+    missing or holds no scans, or when a folder mixes formats and none was given.
+    """
+    path = Path(path)
+    fmt = _format_by_name(format, path) if format else None
+    if path.is_file():
+        return [path]
+    if not path.exists():
+        raise ScanReadError(path, "no such file or folder")
+    if not path.is_dir():
+        raise ScanReadError(path, "not a file or folder")
+
+    for sub in _SCAN_SUBFOLDERS:
+        folder = path / sub
+        if folder.is_dir() and (fmt is None or ".bin" in fmt.extensions):
+            found = [p for p in folder.iterdir() if p.suffix.lower() == ".bin" and p.is_file()]
+            if found:
+                return sorted(found, key=natural_key)
+
+    extensions = set(fmt.extensions) if fmt else {e for f in FORMATS.values() for e in f.extensions}
+    found = [p for p in path.iterdir() if p.suffix.lower() in extensions and p.is_file()]
+    if not found:
+        wanted = ", ".join(sorted(extensions))
+        raise ScanReadError(path, f"no scan files ({wanted}) in this folder or in velodyne/")
+    if fmt is None:
+        # One folder, one format: a folder with both x.bin and x.ply is usually
+        # two copies of the same scans, and reading both would count each twice.
+        present = sorted({p.suffix.lower() for p in found})
+        if len(present) > 1:
+            raise ScanReadError(
+                path, f"the folder holds several scan formats ({', '.join(present)}); "
+                "pass the format to choose one"
+            )
+    return sorted(found, key=natural_key)

@@ -1,0 +1,399 @@
+"""Scan readers: every format round-trips tiny files written here with struct and
+NumPy (independently of the readers), bad files raise ScanReadError naming the
+file, folders expand in natural order, and the real scans agree across formats."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from disco_cli.errors import DiscoError, ScanReadError
+from disco_cli.readers import FORMATS, guess_format, list_scans, natural_key, read_scan
+
+# Five points with distinct, exactly representable coordinates and intensities.
+XYZI = np.array(
+    [
+        [1.5, -2.25, 0.5, 0.125],
+        [10.0, 20.0, -1.75, 0.5],
+        [-3.0, 4.0, 2.0, 1.0],
+        [0.0, 0.0, 0.0, 0.0],
+        [-60.5, 33.25, -0.25, 0.75],
+    ],
+    dtype=np.float32,
+)
+
+
+def _assert_points(points: np.ndarray, xyz: np.ndarray, intensity: np.ndarray | None) -> None:
+    assert points.dtype == np.float32
+    assert points.shape == (len(xyz), 4)
+    np.testing.assert_array_equal(points[:, :3], xyz.astype(np.float32))
+    expected_i = np.zeros(len(xyz), np.float32) if intensity is None else intensity
+    np.testing.assert_array_equal(points[:, 3], expected_i.astype(np.float32))
+
+
+# -- KITTI ---------------------------------------------------------------------
+
+
+def test_kitti_round_trip_and_no_copy(tmp_path: Path) -> None:
+    path = tmp_path / "000007.bin"
+    path.write_bytes(b"".join(struct.pack("<4f", *row) for row in XYZI.tolist()))
+    points = read_scan(path)
+    _assert_points(points, XYZI[:, :3], XYZI[:, 3])
+    # Returned as np.fromfile(...).reshape(-1, 4) gives it: a view of the file's
+    # buffer, C-contiguous, never a converted copy.
+    assert points.base is not None and points.base.shape == (XYZI.size,)
+    assert points.flags.c_contiguous
+
+
+def test_explicit_format_overrides_the_extension(tmp_path: Path) -> None:
+    path = tmp_path / "scan.dat"
+    XYZI.tofile(path)
+    _assert_points(read_scan(path, format="kitti"), XYZI[:, :3], XYZI[:, 3])
+    with pytest.raises(ScanReadError, match="scan.dat"):
+        read_scan(path)  # unknown extension, no format
+
+
+# -- NCLT ----------------------------------------------------------------------
+
+
+def test_nclt_round_trip_with_scale_and_offset(tmp_path: Path) -> None:
+    folder = tmp_path / "2012-01-08" / "velodyne_sync"
+    folder.mkdir(parents=True)
+    # raw counts -> metres: raw * 0.005 - 100, by hand.
+    raw = [(20000, 20000, 20000, 7, 3), (20200, 19800, 20001, 255, 31), (0, 65535, 21000, 0, 0)]
+    metres = np.array(
+        [[0.0, 0.0, 0.0], [1.0, -1.0, 0.005], [-100.0, 227.675, 5.0]], dtype=np.float64
+    )
+    path = folder / "1326030975726043.bin"
+    path.write_bytes(b"".join(struct.pack("<HHHBB", *r) for r in raw))
+    assert guess_format(path) == "nclt"
+    points = read_scan(path)
+    assert points.dtype == np.float32 and points.shape == (3, 4)
+    np.testing.assert_allclose(points[:, :3], metres, atol=1e-5)
+    np.testing.assert_array_equal(points[:, 3], [7, 255, 0])
+    # Outside velodyne_sync the same bytes are read as KITTI only when they fit
+    # 16-byte records, so the folder decides, and `format=` decides over both.
+    other = tmp_path / "scan.bin"
+    other.write_bytes(path.read_bytes() + b"\0" * 8)
+    assert guess_format(other) == "kitti"
+    np.testing.assert_allclose(read_scan(other, format="nclt")[:3, :3], metres, atol=1e-5)
+
+
+# -- NumPy ---------------------------------------------------------------------
+
+
+def test_npy_n_by_4_and_n_by_3(tmp_path: Path) -> None:
+    np.save(tmp_path / "a.npy", XYZI.astype(np.float64))
+    _assert_points(read_scan(tmp_path / "a.npy"), XYZI[:, :3], XYZI[:, 3])
+    np.save(tmp_path / "b.npy", XYZI[:, :3])
+    _assert_points(read_scan(tmp_path / "b.npy"), XYZI[:, :3], None)
+
+
+def test_npy_structured_array(tmp_path: Path) -> None:
+    fields = [("intensity", "<f4"), ("z", "<f8"), ("x", "<f4"), ("y", "<f4")]
+    rec = np.zeros(len(XYZI), dtype=fields)
+    for i, name in enumerate("xyz"):
+        rec[name] = XYZI[:, i]
+    rec["intensity"] = XYZI[:, 3]
+    np.save(tmp_path / "s.npy", rec)
+    _assert_points(read_scan(tmp_path / "s.npy"), XYZI[:, :3], XYZI[:, 3])
+
+
+@pytest.mark.parametrize(
+    "array, reason",
+    [
+        (np.zeros((5, 2), np.float32), "shape"),
+        (np.zeros((2, 5, 4), np.float32), "shape"),
+        (np.array([["a", "b", "c"]]), "dtype"),
+        (np.zeros((0, 4), np.float32), "no points"),
+        (np.full((3, 3), np.nan), "finite"),
+    ],
+)
+def test_npy_bad_arrays(tmp_path: Path, array: np.ndarray, reason: str) -> None:
+    path = tmp_path / "bad.npy"
+    np.save(path, array)
+    with pytest.raises(ScanReadError, match=reason) as info:
+        read_scan(path)
+    assert str(path) in str(info.value)
+
+
+def test_npy_object_array_is_refused_without_unpickling(tmp_path: Path) -> None:
+    path = tmp_path / "obj.npy"
+    np.save(path, np.array([object()] * 3, dtype=object), allow_pickle=True)
+    with pytest.raises(ScanReadError, match="obj.npy"):
+        read_scan(path)
+
+
+# -- PCD -----------------------------------------------------------------------
+
+
+def _pcd_header(fields, sizes, types, counts, n, data) -> bytes:
+    lines = [
+        "# .PCD v0.7 - Point Cloud Data file format",
+        "VERSION 0.7",
+        "FIELDS " + " ".join(fields),
+        "SIZE " + " ".join(map(str, sizes)),
+        "TYPE " + " ".join(types),
+        "COUNT " + " ".join(map(str, counts)),
+        f"WIDTH {n}",
+        "HEIGHT 1",
+        "VIEWPOINT 0 0 0 1 0 0 0",
+        f"POINTS {n}",
+        f"DATA {data}",
+    ]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def test_pcd_ascii(tmp_path: Path) -> None:
+    # Fields out of order, an rgb field to skip and intensity as an integer.
+    head = _pcd_header(["z", "rgb", "y", "x", "intensity"], [4, 4, 4, 4, 2], "F F F F U".split(),
+                       [1] * 5, len(XYZI), "ascii")
+    body = "".join(f"{z} 0.0 {y} {x} {int(i * 8)}\n" for x, y, z, i in XYZI.tolist())
+    (tmp_path / "a.pcd").write_bytes(head + body.encode())
+    _assert_points(read_scan(tmp_path / "a.pcd"), XYZI[:, :3], XYZI[:, 3] * 8)
+
+
+def test_pcd_binary_with_count_padding_and_doubles(tmp_path: Path) -> None:
+    # x as double, a 3-wide normal field (COUNT 3), a 1-byte padding field `_`,
+    # y, z as float, intensity as float; records packed, little-endian.
+    head = _pcd_header(["x", "normal", "_", "y", "z", "intensity"], [8, 4, 1, 4, 4, 4],
+                       "F F U F F F".split(), [1, 3, 1, 1, 1, 1], len(XYZI), "binary")
+    body = b"".join(
+        struct.pack("<d3fB3f", x, 9.0, 9.0, 9.0, 0xAB, y, z, i) for x, y, z, i in XYZI.tolist()
+    )
+    (tmp_path / "b.pcd").write_bytes(head + body)
+    _assert_points(read_scan(tmp_path / "b.pcd"), XYZI[:, :3], XYZI[:, 3])
+
+
+def test_pcd_binary_without_intensity_drops_nan_points(tmp_path: Path) -> None:
+    # An organized cloud: missing returns are NaN and carry no geometry.
+    rows = XYZI[:, :3].tolist() + [[float("nan")] * 3]
+    head = _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], len(rows), "binary")
+    body = b"".join(struct.pack("<3f", *r) for r in rows)
+    (tmp_path / "n.pcd").write_bytes(head + body)
+    _assert_points(read_scan(tmp_path / "n.pcd"), XYZI[:, :3], None)
+
+
+def test_pcd_integer_coordinates(tmp_path: Path) -> None:
+    head = _pcd_header(["x", "y", "z"], [2, 4, 1], "I I U".split(), [1, 1, 1], 2, "binary")
+    body = struct.pack("<hiB", -300, 70000, 5) + struct.pack("<hiB", 12, -1, 255)
+    (tmp_path / "i.pcd").write_bytes(head + body)
+    expected = np.array([[-300, 70000, 5], [12, -1, 255]])
+    _assert_points(read_scan(tmp_path / "i.pcd"), expected, None)
+
+
+def test_pcd_bad_files(tmp_path: Path) -> None:
+    head = _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 3, "binary")
+    cases = {
+        "truncated.pcd": head + struct.pack("<3f", 1, 2, 3) * 2 + b"\0\0",
+        "compressed.pcd": head.replace(b"DATA binary", b"DATA binary_compressed") + b"\0" * 40,
+        "noxyz.pcd": _pcd_header(["a", "b"], [4, 4], "F F".split(), [1, 1], 1, "ascii") + b"1 2\n",
+        "badtype.pcd": _pcd_header(["x", "y", "z"], [3, 4, 4], "F F F".split(), [1, 1, 1], 1,
+                                   "ascii") + b"1 2 3\n",
+        "zero.pcd": _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 0, "ascii"),
+        "shortascii.pcd": _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 2,
+                                      "ascii") + b"1 2 3\n4 5\n",
+        "words.pcd": _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 1,
+                                 "ascii") + b"1 two 3\n",
+        "garbage.pcd": bytes(range(256)) * 8,
+        "empty.pcd": b"",
+    }
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ScanReadError) as info:
+            read_scan(tmp_path / name)
+        assert str(tmp_path / name) in str(info.value), name
+    with pytest.raises(ScanReadError, match="binary_compressed is not supported"):
+        read_scan(tmp_path / "compressed.pcd")
+
+
+# -- PLY -----------------------------------------------------------------------
+
+
+def _ply_header(fmt: str, elements: list[tuple[str, int, list[str]]]) -> bytes:
+    lines = ["ply", f"format {fmt} 1.0", "comment written by test_readers"]
+    for name, count, props in elements:
+        lines.append(f"element {name} {count}")
+        lines += [f"property {p}" for p in props]
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode()
+
+
+def test_ply_ascii_with_other_elements(tmp_path: Path) -> None:
+    # A camera element before the vertices and faces after: both skipped.
+    head = _ply_header("ascii", [
+        ("camera", 1, ["float px", "float py"]),
+        ("vertex", len(XYZI), ["uchar red", "float x", "float y", "float z", "float reflectance"]),
+        ("face", 1, ["list uchar int vertex_indices"]),
+    ])
+    body = "0.5 0.25\n" + "".join(f"200 {x} {y} {z} {i}\n" for x, y, z, i in XYZI.tolist())
+    body += "3 0 1 2\n"
+    (tmp_path / "a.ply").write_bytes(head + body.encode())
+    _assert_points(read_scan(tmp_path / "a.ply"), XYZI[:, :3], XYZI[:, 3])
+
+
+def test_ply_binary_little_endian_with_lists_before_vertices(tmp_path: Path) -> None:
+    # A list element before the vertices can only be skipped by reading its counts.
+    head = _ply_header("binary_little_endian", [
+        ("tag", 2, ["list uchar int ids", "short k"]),
+        ("vertex", len(XYZI), ["double x", "double y", "float z", "ushort ring", "float intensity"]),
+        ("face", 1, ["list uchar int vertex_indices"]),
+    ])
+    tags = struct.pack("<B3ih", 3, 1, 2, 3, -4) + struct.pack("<Bh", 0, 5)
+    verts = b"".join(struct.pack("<ddfHf", x, y, z, 17, i) for x, y, z, i in XYZI.tolist())
+    faces = struct.pack("<B3i", 3, 0, 1, 2)
+    (tmp_path / "b.ply").write_bytes(head + tags + verts + faces)
+    _assert_points(read_scan(tmp_path / "b.ply"), XYZI[:, :3], XYZI[:, 3])
+
+
+def test_ply_binary_vertex_with_a_list_property(tmp_path: Path) -> None:
+    head = _ply_header("binary_big_endian", [
+        ("vertex", len(XYZI), ["float x", "list uchar float extra", "float y", "float z"]),
+    ])
+    verts = b"".join(
+        struct.pack(">fB", x, k % 3) + struct.pack(f">{k % 3}f", *([7.0] * (k % 3)))
+        + struct.pack(">ff", y, z)
+        for k, (x, y, z, _) in enumerate(XYZI.tolist())
+    )
+    (tmp_path / "l.ply").write_bytes(head + verts)
+    _assert_points(read_scan(tmp_path / "l.ply"), XYZI[:, :3], None)
+
+
+def test_ply_bad_files(tmp_path: Path) -> None:
+    xyz = ["float x", "float y", "float z"]
+    good_head = _ply_header("binary_little_endian", [("vertex", 3, xyz)])
+    cases = {
+        "truncated.ply": good_head + struct.pack("<3f", 1, 2, 3) * 2,
+        "noz.ply": _ply_header("ascii", [("vertex", 1, ["float x", "float y"])]) + b"1 2\n",
+        "novertex.ply": _ply_header("ascii", [("face", 0, ["list uchar int i"])]),
+        "zero.ply": _ply_header("ascii", [("vertex", 0, ["float x", "float y", "float z"])]),
+        "badtype.ply": _ply_header("ascii", [("vertex", 1, ["float16 x", "float y", "float z"])]),
+        "shortascii.ply": _ply_header("ascii", [("vertex", 2, ["float x", "float y", "float z"])])
+        + b"1 2 3\n",
+        "words.ply": _ply_header("ascii", [("vertex", 1, ["float x", "float y", "float z"])])
+        + b"1 2 three\n",
+        "noend.ply": b"ply\nformat ascii 1.0\nelement vertex 1\n",
+        "garbage.ply": b"\x00\xff" * 500,
+        "empty.ply": b"",
+        "listtrunc.ply": _ply_header("binary_little_endian", [
+            ("vertex", 2, ["float x", "float y", "float z", "list uchar float e"]),
+        ]) + struct.pack("<3fB", 1, 2, 3, 200),
+    }
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ScanReadError) as info:
+            read_scan(tmp_path / name)
+        assert str(tmp_path / name) in str(info.value), name
+
+
+# -- bad .bin and missing files ----------------------------------------------------
+
+
+@pytest.mark.parametrize("fmt, record", [("kitti", 16), ("nclt", 8)])
+def test_bin_misaligned_empty_and_missing(tmp_path: Path, fmt: str, record: int) -> None:
+    cases = {"misaligned.bin": b"\1" * (3 * record + 5), "empty.bin": b""}
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ScanReadError) as info:
+            read_scan(tmp_path / name, format=fmt)
+        assert str(info.value).startswith(str(tmp_path / name) + ": ")
+    with pytest.raises(ScanReadError, match="multiple of the 16-byte record"):
+        read_scan(tmp_path / "misaligned.bin")
+    with pytest.raises(ScanReadError, match="no such file"):
+        read_scan(tmp_path / "absent.bin", format=fmt)
+
+
+def test_every_format_refuses_a_missing_file_and_unknown_format(tmp_path: Path) -> None:
+    for name, fmt in FORMATS.items():
+        with pytest.raises(ScanReadError, match="no such file"):
+            read_scan(tmp_path / f"absent{fmt.extensions[0]}", format=name)
+    with pytest.raises(ScanReadError, match="unknown scan format 'las'"):
+        read_scan(tmp_path / "x.bin", format="las")
+    # A folder is not a scan file.
+    with pytest.raises(ScanReadError, match="not a file"):
+        read_scan(tmp_path, format="kitti")
+    assert issubclass(ScanReadError, DiscoError)
+
+
+# -- folders and natural order ----------------------------------------------------
+
+
+def test_natural_key_orders_numbers_by_value() -> None:
+    names = ["10.bin", "2.bin", "1.bin", "scan_10_b.pcd", "scan_9_b.pcd", "scan_9_a.pcd", "a.bin"]
+    ordered = sorted(names, key=natural_key)
+    assert ordered == ["1.bin", "2.bin", "10.bin", "a.bin", "scan_9_a.pcd", "scan_9_b.pcd",
+                       "scan_10_b.pcd"]
+
+
+def test_list_scans_layouts(tmp_path: Path) -> None:
+    # DIR/velodyne/*.bin wins over files at the top of DIR.
+    seq = tmp_path / "seq"
+    (seq / "velodyne").mkdir(parents=True)
+    for i in (10, 2, 1):
+        XYZI.tofile(seq / "velodyne" / f"{i}.bin")
+    (seq / "velodyne" / "notes.txt").write_text("not a scan")
+    (seq / "poses.npy").write_bytes(b"")
+    assert [p.name for p in list_scans(seq)] == ["1.bin", "2.bin", "10.bin"]
+    # A file gives itself, whatever it holds.
+    assert list_scans(seq / "velodyne" / "2.bin") == [seq / "velodyne" / "2.bin"]
+
+    # Files at the top of DIR, filtered by extension and format.
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    for name in ("s11.pcd", "s3.pcd", "readme.md"):
+        (flat / name).write_text("x")
+    assert [p.name for p in list_scans(flat)] == ["s3.pcd", "s11.pcd"]
+    assert [p.name for p in list_scans(flat, format="pcd")] == ["s3.pcd", "s11.pcd"]
+    with pytest.raises(ScanReadError, match="no scan files"):
+        list_scans(flat, format="ply")
+
+    # NCLT's velodyne_sync folder.
+    nclt = tmp_path / "2012-01-08"
+    (nclt / "velodyne_sync").mkdir(parents=True)
+    (nclt / "velodyne_sync" / "100.bin").write_bytes(b"\0" * 8)
+    scans = list_scans(nclt)
+    assert [p.name for p in scans] == ["100.bin"] and guess_format(scans[0]) == "nclt"
+
+
+def test_list_scans_errors(tmp_path: Path) -> None:
+    with pytest.raises(ScanReadError, match="no such file or folder") as info:
+        list_scans(tmp_path / "nowhere")
+    assert "nowhere" in str(info.value)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ScanReadError, match="no scan files"):
+        list_scans(tmp_path / "empty")
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    (mixed / "a.bin").write_bytes(b"")
+    (mixed / "a.ply").write_bytes(b"")
+    with pytest.raises(ScanReadError, match="several scan formats"):
+        list_scans(mixed)
+    assert [p.name for p in list_scans(mixed, format="ply")] == ["a.ply"]
+
+
+# -- real scans ---------------------------------------------------------------------
+
+
+def test_real_kitti_scan(realdata: Path) -> None:
+    path = realdata / "kitti00" / "velodyne" / "000000.bin"
+    points = read_scan(path)
+    assert points.shape == (path.stat().st_size // 16, 4)
+    # An HDL-64E on a car: returns out to tens of metres, reflectance in [0, 1],
+    # the ground about 1.7 m below the sensor.
+    r = np.hypot(points[:, 0], points[:, 1])
+    assert 100_000 < len(points) < 130_000
+    assert r.max() > 50 and 0.0 <= points[:, 3].min() and points[:, 3].max() <= 1.0
+    assert -2.0 < np.median(points[:, 2]) < 0.0
+    assert [p.name for p in list_scans(realdata / "kitti00")][:3] == [
+        "000000.bin", "000001.bin", "000002.bin"]
+
+
+@pytest.mark.parametrize("name", ["source", "target"])
+def test_real_ply_agrees_with_its_bin_conversion(realdata: Path, name: str) -> None:
+    ply = read_scan(realdata / "hdl32_pair" / f"{name}.ply")
+    bin_ = read_scan(realdata / "hdl32_pair" / f"{name}.bin")
+    assert len(ply) > 60_000
+    np.testing.assert_array_equal(ply[:, :3], bin_[:, :3])
