@@ -1,0 +1,472 @@
+"""The map database: one SQLite file (WAL journal) of scan signatures, features and poses.
+
+Layout (format version 1):
+
+- `meta(key, value)`: `format_version`, `disco_version`, `model_name`, `fingerprint`,
+  `model_config` and `bev_config` (JSON), `signature_dim`, `feature_shape` (JSON),
+  `feature_dtype`.
+- `scans(id, path, time, x, y, z, yaw, signature, features, feature_scale)`: one row
+  per scan, `id` in insertion order (1, 2, ...), `path` as the user gave it (unique),
+  time and pose NULL when unknown, `signature` float32 little-endian, `features`
+  float16 little-endian divided by `feature_scale` (the largest magnitude, so that
+  float16 neither overflows nor loses small features).
+
+Every append is one transaction, so a crash or Ctrl-C leaves every finished batch and
+nothing half-written; readers opened meanwhile see a consistent state (WAL). A new
+database is written to a hidden temporary file and renamed into place only when its
+first batch is committed, so no half-initialized file is ever left at the target.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from disco_cli.errors import DatabaseError
+
+__all__ = ["FORMAT_VERSION", "Database", "ModelInfo", "ScanBatch", "MatchRows"]
+
+FORMAT_VERSION = 1
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+_SIG_DTYPE = np.dtype("<f4")
+_FEAT_DTYPE = np.dtype("<f2")
+
+_SCHEMA = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE scans (
+    id INTEGER PRIMARY KEY,
+    path TEXT NOT NULL UNIQUE,
+    time REAL,
+    x REAL, y REAL, z REAL, yaw REAL,
+    signature BLOB NOT NULL,
+    features BLOB NOT NULL,
+    feature_scale REAL NOT NULL
+);
+"""
+_SCAN_COLUMNS = {
+    "id", "path", "time", "x", "y", "z", "yaw", "signature", "features", "feature_scale",
+}
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What a database records about the model that built it; another model is refused."""
+
+    name: str
+    fingerprint: str
+    model_config: dict
+    bev_config: dict
+
+    @classmethod
+    def of(cls, model: Any) -> ModelInfo:
+        return cls(
+            name=str(model.name),
+            fingerprint=str(model.fingerprint),
+            model_config=_jsonable(model.config_dict()),
+            bev_config=_jsonable(model.bev_config.to_dict()),
+        )
+
+
+def _jsonable(d: dict) -> dict:
+    # A round trip through JSON so that comparisons see what the database stores.
+    return json.loads(json.dumps(d, sort_keys=True, default=_json_default))
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serializable: {type(value).__name__}")
+
+
+@dataclass
+class ScanBatch:
+    """Scans to append: `poses` is `[B, 4]` (x, y, z, yaw rad) and `times` `[B]`, NaN = unknown."""
+
+    paths: list[str]
+    signatures: np.ndarray
+    features: np.ndarray
+    poses: np.ndarray | None = None
+    times: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        b = len(self.paths)
+        self.signatures = np.asarray(self.signatures, dtype=np.float32)
+        self.features = np.asarray(self.features, dtype=np.float32)
+        if self.signatures.ndim != 2 or len(self.signatures) != b:
+            raise ValueError(f"signatures must be [{b}, D], got {self.signatures.shape}")
+        if self.features.ndim < 2 or len(self.features) != b:
+            raise ValueError(f"features must be [{b}, ...], got {self.features.shape}")
+        if self.poses is None:
+            self.poses = np.full((b, 4), np.nan)
+        self.poses = np.asarray(self.poses, dtype=np.float64)
+        if self.poses.shape != (b, 4):
+            raise ValueError(f"poses must be [{b}, 4], got {self.poses.shape}")
+        if self.times is None:
+            self.times = np.full(b, np.nan)
+        self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
+        if self.times.shape != (b,):
+            raise ValueError(f"times must be [{b}], got {self.times.shape}")
+
+
+@dataclass
+class MatchRows:
+    """Stored data of some scans, in the order asked for."""
+
+    ids: np.ndarray
+    paths: list[str]
+    poses: np.ndarray  # [K, 4] x, y, z, yaw (rad), NaN = unknown
+    features: np.ndarray  # [K, ...] float32
+
+
+def _none_if_nan(v: float) -> float | None:
+    return None if not np.isfinite(v) else float(v)
+
+
+def _encode_features(f: np.ndarray) -> tuple[bytes, float]:
+    scale = float(np.max(np.abs(f))) if f.size else 0.0
+    if not np.isfinite(scale):
+        raise ValueError("features are not finite")
+    if scale == 0.0:
+        scale = 1.0
+    return (f / scale).astype(_FEAT_DTYPE).tobytes(), scale
+
+
+class Database:
+    """An open map database. Use `Database.open(path)` or `Database.create(path, ...)`."""
+
+    def __init__(self, path: Path, conn: sqlite3.Connection, meta: dict[str, str]):
+        self.path = path
+        self._conn = conn
+        self.meta = meta
+        self.format_version = int(meta["format_version"])
+        self.model = ModelInfo(
+            name=meta["model_name"],
+            fingerprint=meta["fingerprint"],
+            model_config=json.loads(meta["model_config"]),
+            bev_config=json.loads(meta["bev_config"]),
+        )
+        self.signature_dim = int(meta["signature_dim"])
+        self.feature_shape = tuple(int(v) for v in json.loads(meta["feature_shape"]))
+
+    # -- opening --------------------------------------------------------------
+
+    @classmethod
+    def open(cls, path: str | Path, writable: bool = False) -> Database:
+        """Open an existing database; raise `DatabaseError` naming the problem otherwise."""
+        path = Path(path)
+        if not path.exists():
+            raise DatabaseError(path, "no such database")
+        if not path.is_file():
+            raise DatabaseError(path, "not a file")
+        try:
+            with open(path, "rb") as fh:
+                head = fh.read(len(_SQLITE_MAGIC))
+        except OSError as exc:
+            raise DatabaseError(path, f"cannot read ({exc.strerror or exc})") from None
+        if not head:
+            raise DatabaseError(path, "empty file, not a disco database")
+        if head != _SQLITE_MAGIC:
+            raise DatabaseError(path, "not a disco database (not an SQLite file)")
+        conn = _connect(path, writable)
+        try:
+            meta = _read_meta(path, conn)
+            _check_scans_table(path, conn)
+        except BaseException:
+            conn.close()
+            raise
+        if writable:
+            conn.execute("PRAGMA journal_mode=WAL")
+        return cls(path, conn, meta)
+
+    @classmethod
+    def create(
+        cls, path: str | Path, model: ModelInfo, first: ScanBatch, disco_version: str = ""
+    ) -> Database:
+        """Create a new database holding `first` (which must not be empty).
+
+        The file appears at `path` only once its first batch is committed: it is built
+        under a temporary name and renamed into place.
+        """
+        path = Path(path)
+        if path.exists():
+            raise DatabaseError(path, "already exists")
+        if not first.paths:
+            raise ValueError("the first batch of a new database must not be empty")
+        if not disco_version:
+            from disco_cli import __version__ as disco_version
+        tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+        meta = {
+            "format_version": str(FORMAT_VERSION),
+            "disco_version": disco_version,
+            "model_name": model.name,
+            "fingerprint": model.fingerprint,
+            "model_config": json.dumps(model.model_config, sort_keys=True),
+            "bev_config": json.dumps(model.bev_config, sort_keys=True),
+            "signature_dim": str(first.signatures.shape[1]),
+            "feature_shape": json.dumps(list(first.features.shape[1:])),
+            "feature_dtype": "float16",
+        }
+        try:
+            tmp.unlink(missing_ok=True)
+            conn = sqlite3.connect(tmp)
+            try:
+                with conn:
+                    for stmt in _SCHEMA.strip().split(";"):
+                        if stmt.strip():
+                            conn.execute(stmt)
+                    conn.executemany("INSERT INTO meta VALUES (?, ?)", sorted(meta.items()))
+                cls(path, conn, meta).append(first)
+            finally:
+                conn.close()
+            # Another build may have created the target meanwhile: never overwrite it.
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                raise DatabaseError(path, "already exists") from None
+            except OSError:
+                if path.exists():
+                    raise DatabaseError(path, "already exists") from None
+                os.replace(tmp, path)
+            tmp.unlink(missing_ok=True)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return cls.open(path, writable=True)
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> Database:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- checks -----------------------------------------------------------------
+
+    def check_model(self, model: ModelInfo) -> None:
+        """Refuse a model or BEV configuration other than the one that built this database."""
+        mine = self.model
+        if model.name != mine.name or model.fingerprint != mine.fingerprint:
+            raise DatabaseError(
+                self.path,
+                f"built with model '{mine.name}' (fingerprint {mine.fingerprint[:12]}), "
+                f"not '{model.name}' (fingerprint {model.fingerprint[:12]}); "
+                "use the same model or build a new database",
+            )
+        if model.bev_config != mine.bev_config:
+            diff = sorted(
+                k for k in set(model.bev_config) | set(mine.bev_config)
+                if model.bev_config.get(k) != mine.bev_config.get(k)
+            )
+            raise DatabaseError(
+                self.path, f"built with another BEV configuration (differs in {', '.join(diff)})"
+            )
+
+    def check_batch_shapes(self, batch: ScanBatch) -> None:
+        if batch.signatures.shape[1] != self.signature_dim:
+            raise DatabaseError(
+                self.path,
+                f"holds {self.signature_dim}-dim signatures, got {batch.signatures.shape[1]}",
+            )
+        if tuple(batch.features.shape[1:]) != self.feature_shape:
+            raise DatabaseError(
+                self.path, f"holds features {self.feature_shape}, got {batch.features.shape[1:]}"
+            )
+
+    # -- writing ----------------------------------------------------------------
+
+    def append(self, batch: ScanBatch) -> None:
+        """Append one batch of scans in one transaction (all or nothing)."""
+        if not batch.paths:
+            return
+        self.check_batch_shapes(batch)
+        rows = []
+        for i, p in enumerate(batch.paths):
+            feats, scale = _encode_features(batch.features[i])
+            x, y, z, yaw = (_none_if_nan(v) for v in batch.poses[i])
+            rows.append((
+                str(p), _none_if_nan(batch.times[i]), x, y, z, yaw,
+                batch.signatures[i].astype(_SIG_DTYPE).tobytes(), feats, scale,
+            ))
+        try:
+            with self._conn:
+                self._conn.executemany(
+                    "INSERT INTO scans (path, time, x, y, z, yaw, signature, features, "
+                    "feature_scale) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    rows,
+                )
+        except sqlite3.IntegrityError as exc:
+            raise DatabaseError(self.path, f"cannot append: {exc}") from None
+        except sqlite3.Error as exc:
+            raise DatabaseError(self.path, f"cannot write: {exc}") from None
+
+    # -- reading ----------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return int(self._conn.execute("SELECT COUNT(*) FROM scans").fetchone()[0])
+
+    def paths(self) -> list[str]:
+        """Every stored path, in id order."""
+        return [r[0] for r in self._conn.execute("SELECT path FROM scans ORDER BY id")]
+
+    def has_poses(self) -> bool:
+        row = self._conn.execute("SELECT 1 FROM scans WHERE x IS NOT NULL LIMIT 1").fetchone()
+        return row is not None
+
+    def signatures(self) -> tuple[np.ndarray, np.ndarray]:
+        """`(ids [N] int64, signatures [N, D] float32)`, in id order, read into one matrix."""
+        n = len(self)
+        if n == 0:
+            raise DatabaseError(self.path, "the database is empty")
+        ids = np.empty(n, dtype=np.int64)
+        sigs = np.empty((n, self.signature_dim), dtype=np.float32)
+        nbytes = self.signature_dim * _SIG_DTYPE.itemsize
+        cur = self._conn.execute("SELECT id, signature FROM scans ORDER BY id")
+        i = 0
+        while rows := cur.fetchmany(4096):
+            for rid, blob in rows:
+                if i >= n:
+                    break
+                if len(blob) != nbytes:
+                    raise DatabaseError(self.path, f"scan {rid}: signature has a wrong size")
+                ids[i] = rid
+                sigs[i] = np.frombuffer(blob, dtype=_SIG_DTYPE)
+                i += 1
+        return ids[:i], sigs[:i]
+
+    def poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """`(poses [N, 4] x, y, z, yaw rad, times [N])` in id order, NaN where unknown."""
+        rows = self._conn.execute("SELECT x, y, z, yaw, time FROM scans ORDER BY id").fetchall()
+        arr = np.array(rows, dtype=np.float64).reshape(-1, 5)  # None -> nan
+        return arr[:, :4], arr[:, 4]
+
+    def rows(self, ids: Sequence[int] | np.ndarray) -> MatchRows:
+        """Paths, poses and features of the scans `ids`, in that order (only those rows)."""
+        ids = [int(i) for i in np.asarray(ids).reshape(-1)]
+        found: dict[int, tuple] = {}
+        for chunk in range(0, len(ids), 500):
+            part = sorted(set(ids[chunk:chunk + 500]))
+            marks = ",".join("?" * len(part))
+            for row in self._conn.execute(
+                f"SELECT id, path, x, y, z, yaw, features, feature_scale FROM scans "
+                f"WHERE id IN ({marks})",
+                part,
+            ):
+                found[row[0]] = row
+        missing = [i for i in ids if i not in found]
+        if missing:
+            raise DatabaseError(self.path, f"no scan with id {missing[0]}")
+        feats = np.empty((len(ids), *self.feature_shape), dtype=np.float32)
+        nfeat = int(np.prod(self.feature_shape))
+        poses = np.full((len(ids), 4), np.nan)
+        paths = []
+        for k, i in enumerate(ids):
+            _, path, x, y, z, yaw, blob, scale = found[i]
+            if len(blob) != nfeat * _FEAT_DTYPE.itemsize:
+                raise DatabaseError(self.path, f"scan {i}: features have a wrong size")
+            feats[k] = np.frombuffer(blob, dtype=_FEAT_DTYPE).reshape(self.feature_shape) * scale
+            poses[k] = [np.nan if v is None else v for v in (x, y, z, yaw)]
+            paths.append(path)
+        return MatchRows(np.asarray(ids, dtype=np.int64), paths, poses, feats)
+
+    def existing(self, paths: Iterable[str]) -> set[str]:
+        """Which of `paths` are stored already (for resuming a build)."""
+        stored = set(r[0] for r in self._conn.execute("SELECT path FROM scans"))
+        return {p for p in paths if p in stored}
+
+    def size_bytes(self) -> int:
+        total = 0
+        for suffix in ("", "-wal", "-shm"):
+            p = Path(str(self.path) + suffix)
+            if p.exists():
+                total += p.stat().st_size
+        return total
+
+    def check(self) -> list[str]:
+        """`PRAGMA integrity_check` plus the size and finiteness of every blob; problems found."""
+        problems = [
+            r[0] for r in self._conn.execute("PRAGMA integrity_check") if r[0] != "ok"
+        ]
+        nsig = self.signature_dim * _SIG_DTYPE.itemsize
+        nfeat = int(np.prod(self.feature_shape)) * _FEAT_DTYPE.itemsize
+        cur = self._conn.execute(
+            "SELECT id, path, signature, features, feature_scale FROM scans ORDER BY id"
+        )
+        for rid, path, sig, feat, scale in cur:
+            if not isinstance(sig, bytes) or len(sig) != nsig:
+                problems.append(f"scan {rid} ({path}): signature is not {nsig} bytes")
+            elif not np.isfinite(np.frombuffer(sig, dtype=_SIG_DTYPE)).all():
+                problems.append(f"scan {rid} ({path}): signature is not finite")
+            if not isinstance(feat, bytes) or len(feat) != nfeat:
+                problems.append(f"scan {rid} ({path}): features are not {nfeat} bytes")
+            elif not np.isfinite(np.frombuffer(feat, dtype=_FEAT_DTYPE)).all():
+                problems.append(f"scan {rid} ({path}): features are not finite")
+            if not (isinstance(scale, float) and np.isfinite(scale) and scale > 0):
+                problems.append(f"scan {rid} ({path}): bad feature scale {scale!r}")
+        return problems
+
+
+def _connect(path: Path, writable: bool) -> sqlite3.Connection:
+    mode = "rw" if writable or os.access(path, os.W_OK) else "ro"
+    try:
+        conn = sqlite3.connect(f"file:{path}?mode={mode}", uri=True, timeout=30.0)
+        conn.execute("PRAGMA busy_timeout=30000")
+    except sqlite3.Error as exc:
+        raise DatabaseError(path, f"cannot open ({exc})") from None
+    return conn
+
+
+def _read_meta(path: Path, conn: sqlite3.Connection) -> dict[str, str]:
+    try:
+        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    except sqlite3.DatabaseError as exc:
+        raise DatabaseError(path, f"corrupt or not an SQLite database ({exc})") from None
+    if "meta" not in tables or "scans" not in tables:
+        raise DatabaseError(path, "not a disco database (no meta/scans tables)")
+    try:
+        meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+    except sqlite3.DatabaseError as exc:
+        raise DatabaseError(path, f"corrupt database ({exc})") from None
+    if "format_version" not in meta:
+        raise DatabaseError(path, "not a disco database (no format version)")
+    try:
+        version = int(meta["format_version"])
+    except ValueError:
+        raise DatabaseError(path, f"bad format version {meta['format_version']!r}") from None
+    if version > FORMAT_VERSION:
+        raise DatabaseError(
+            path,
+            f"database format version {version} is newer than this disco supports "
+            f"({FORMAT_VERSION}); upgrade disco",
+        )
+    needed = ("model_name", "fingerprint", "model_config", "bev_config", "signature_dim",
+              "feature_shape")
+    missing = [k for k in needed if k not in meta]
+    if missing:
+        raise DatabaseError(path, f"corrupt database: meta lacks {', '.join(missing)}")
+    try:
+        json.loads(meta["model_config"]), json.loads(meta["bev_config"])
+        json.loads(meta["feature_shape"]), int(meta["signature_dim"])
+    except (ValueError, TypeError):
+        raise DatabaseError(path, "corrupt database: unreadable meta values") from None
+    return meta
+
+
+def _check_scans_table(path: Path, conn: sqlite3.Connection) -> None:
+    try:
+        cols = {r[1] for r in conn.execute("PRAGMA table_info(scans)")}
+    except sqlite3.DatabaseError as exc:
+        raise DatabaseError(path, f"corrupt database ({exc})") from None
+    missing = _SCAN_COLUMNS - cols
+    if missing:
+        raise DatabaseError(path, f"not a disco database (scans lacks {', '.join(sorted(missing))})")

@@ -1,0 +1,181 @@
+"""The SQLite map database: round trips, compact features, refusals, transactions."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from disco_cli.database import FORMAT_VERSION, Database, ModelInfo, ScanBatch
+from disco_cli.errors import DatabaseError
+
+INFO = ModelInfo("spectral", "abc123", {"dim": 16}, {"rings": 4, "sectors": 8})
+
+
+def _batch(start: int, n: int, rng: np.random.Generator, dim: int = 16) -> ScanBatch:
+    poses = rng.normal(size=(n, 4))
+    poses[0] = np.nan  # one scan without a pose
+    return ScanBatch(
+        paths=[f"scans/{i:06d}.bin" for i in range(start, start + n)],
+        signatures=rng.normal(size=(n, dim)).astype(np.float32),
+        features=rng.normal(scale=300.0, size=(n, 4, 8)).astype(np.float32),
+        poses=poses,
+        times=np.arange(start, start + n) * 0.1,
+    )
+
+
+def test_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    a, b = _batch(0, 5, rng), _batch(5, 3, rng)
+    db = Database.create(tmp_path / "map.db", INFO, a)
+    db.append(b)
+    db.close()
+    db = Database.open(tmp_path / "map.db")
+    assert len(db) == 8
+    assert db.model == INFO
+    assert db.format_version == FORMAT_VERSION
+    assert db.paths() == a.paths + b.paths
+    ids, sigs = db.signatures()
+    np.testing.assert_array_equal(ids, np.arange(1, 9))
+    np.testing.assert_array_equal(sigs, np.concatenate([a.signatures, b.signatures]))
+    poses, times = db.poses()
+    np.testing.assert_array_equal(poses, np.concatenate([a.poses, b.poses]))
+    np.testing.assert_allclose(times, np.concatenate([a.times, b.times]))
+    rows = db.rows([7, 2])
+    assert rows.paths == [b.paths[1], a.paths[1]]
+    want = np.stack([b.features[1], a.features[1]])
+    # float16 keeps 11 significant bits: relative error <= 2^-11 of the largest magnitude.
+    scale = np.abs(want).reshape(2, -1).max(1)[:, None, None]
+    assert np.all(np.abs(rows.features - want) <= scale * 2.0**-11)
+    assert db.has_poses()
+    assert db.check() == []
+    assert db.existing(["scans/000003.bin", "nope.bin"]) == {"scans/000003.bin"}
+
+
+def test_features_are_float16_on_disk(tmp_path: Path) -> None:
+    db = Database.create(tmp_path / "m.db", INFO, _batch(0, 2, np.random.default_rng(1)))
+    blob = db._conn.execute("SELECT features FROM scans LIMIT 1").fetchone()[0]
+    assert len(blob) == 4 * 8 * 2
+
+
+def test_create_refuses_existing(tmp_path: Path) -> None:
+    path = tmp_path / "m.db"
+    path.write_bytes(b"x")
+    with pytest.raises(DatabaseError, match="already exists"):
+        Database.create(path, INFO, _batch(0, 1, np.random.default_rng(0)))
+    assert path.read_bytes() == b"x"
+
+
+def test_failed_first_batch_leaves_no_file(tmp_path: Path) -> None:
+    bad = _batch(0, 2, np.random.default_rng(0))
+    bad.paths[1] = bad.paths[0]  # UNIQUE violation inside the first transaction
+    with pytest.raises(DatabaseError):
+        Database.create(tmp_path / "m.db", INFO, bad)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_batch_is_rolled_back(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    db = Database.create(tmp_path / "m.db", INFO, _batch(0, 3, rng))
+    with pytest.raises(DatabaseError):
+        db.append(_batch(2, 3, rng))  # 000002 is stored already
+    assert len(db) == 3
+    with pytest.raises(DatabaseError, match="16-dim"):
+        db.append(_batch(10, 2, rng, dim=8))
+    assert len(db) == 3
+
+
+def test_reader_sees_only_committed_batches(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    writer = Database.create(tmp_path / "m.db", INFO, _batch(0, 2, rng))
+    reader = Database.open(tmp_path / "m.db")
+    writer._conn.execute("BEGIN")
+    writer._conn.execute(
+        "INSERT INTO scans (path, signature, features, feature_scale) VALUES ('x', x'00', x'00', 1)"
+    )
+    assert len(reader) == 2  # the open transaction is invisible
+    writer._conn.rollback()
+    writer.append(_batch(2, 1, rng))
+    assert len(reader) == 3
+
+
+def test_check_model(tmp_path: Path) -> None:
+    db = Database.create(tmp_path / "m.db", INFO, _batch(0, 1, np.random.default_rng(0)))
+    db.check_model(INFO)
+    with pytest.raises(DatabaseError, match="model 'spectral'.*not 'default'"):
+        db.check_model(ModelInfo("default", "abc123", {}, INFO.bev_config))
+    with pytest.raises(DatabaseError, match="fingerprint"):
+        db.check_model(ModelInfo("spectral", "zzz", {}, INFO.bev_config))
+    with pytest.raises(DatabaseError, match="BEV configuration.*rings"):
+        db.check_model(ModelInfo("spectral", "abc123", {}, {"rings": 5, "sectors": 8}))
+
+
+def test_open_bad_files(tmp_path: Path) -> None:
+    with pytest.raises(DatabaseError, match="no such database"):
+        Database.open(tmp_path / "missing.db")
+    empty = tmp_path / "empty.db"
+    empty.write_bytes(b"")
+    with pytest.raises(DatabaseError, match="empty file"):
+        Database.open(empty)
+    text = tmp_path / "text.db"
+    text.write_text("hello world, not a database at all\n")
+    with pytest.raises(DatabaseError, match="not an SQLite file"):
+        Database.open(text)
+    other = tmp_path / "other.db"
+    with sqlite3.connect(other) as conn:
+        conn.execute("CREATE TABLE t (a)")
+    with pytest.raises(DatabaseError, match="not a disco database"):
+        Database.open(other)
+    corrupt = tmp_path / "corrupt.db"
+    Database.create(corrupt, INFO, _batch(0, 50, np.random.default_rng(0))).close()
+    data = bytearray(corrupt.read_bytes())
+    data[100:4096] = b"\xff" * (4096 - 100)  # wreck the schema page
+    corrupt.write_bytes(bytes(data))
+    with pytest.raises(DatabaseError, match="corrupt|not a disco"):
+        Database.open(corrupt)
+
+
+def test_newer_format_refused(tmp_path: Path) -> None:
+    path = tmp_path / "m.db"
+    Database.create(path, INFO, _batch(0, 1, np.random.default_rng(0))).close()
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE meta SET value=? WHERE key='format_version'", (str(FORMAT_VERSION + 1),))
+    with pytest.raises(DatabaseError, match=f"version {FORMAT_VERSION + 1} is newer"):
+        Database.open(path)
+
+
+def test_empty_database_refused_for_search(tmp_path: Path) -> None:
+    path = tmp_path / "m.db"
+    Database.create(path, INFO, _batch(0, 2, np.random.default_rng(0))).close()
+    with sqlite3.connect(path) as conn:
+        conn.execute("DELETE FROM scans")
+    with pytest.raises(DatabaseError, match="empty"):
+        Database.open(path).signatures()
+
+
+def test_check_finds_bad_blobs(tmp_path: Path) -> None:
+    path = tmp_path / "m.db"
+    Database.create(path, INFO, _batch(0, 3, np.random.default_rng(0))).close()
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE scans SET signature = x'0000' WHERE id = 2")
+        nan = np.full(16, np.nan, np.float32).tobytes()
+        conn.execute("UPDATE scans SET signature = ? WHERE id = 3", (nan,))
+    problems = Database.open(path).check()
+    assert len(problems) == 2
+    assert "scan 2" in problems[0] and "bytes" in problems[0]
+    assert "scan 3" in problems[1] and "finite" in problems[1]
+
+
+def test_meta_holds_configs_as_json(tmp_path: Path) -> None:
+    path = tmp_path / "m.db"
+    Database.create(path, INFO, _batch(0, 1, np.random.default_rng(0))).close()
+    with sqlite3.connect(path) as conn:
+        meta = dict(conn.execute("SELECT key, value FROM meta"))
+        mode = conn.execute("PRAGMA journal_mode").fetchone()[0]
+    assert json.loads(meta["bev_config"]) == INFO.bev_config
+    assert json.loads(meta["model_config"]) == INFO.model_config
+    assert meta["model_name"] == "spectral" and meta["fingerprint"] == "abc123"
+    assert mode == "wal"

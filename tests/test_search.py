@@ -1,0 +1,76 @@
+"""Exact search: the same rows and distances as a plain float64 NumPy brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from disco_cli.search import SignatureIndex
+
+
+def _truth(sigs: np.ndarray, q: np.ndarray, k: int, allowed: np.ndarray | None = None):
+    d = np.sqrt(((sigs.astype(np.float64) - q.astype(np.float64)) ** 2).sum(1))
+    if allowed is not None:
+        d = np.where(allowed, d, np.inf)
+    order = np.argsort(d, kind="stable")
+    order = order[np.isfinite(d[order])][:k]
+    return order, d[order]
+
+
+@pytest.mark.parametrize("n,dim,k", [(1, 8, 1), (50, 16, 5), (2000, 64, 10), (500, 256, 500)])
+def test_search_equals_brute_force(n: int, dim: int, k: int) -> None:
+    rng = np.random.default_rng(n + dim)
+    sigs = rng.normal(size=(n, dim)).astype(np.float32)
+    queries = rng.normal(size=(7, dim)).astype(np.float32)
+    rows, dists = SignatureIndex(sigs).search(queries, k)
+    for i, q in enumerate(queries):
+        want_rows, want_d = _truth(sigs, q, k)
+        np.testing.assert_array_equal(rows[i, : len(want_rows)], want_rows)
+        np.testing.assert_allclose(dists[i, : len(want_d)], want_d, rtol=1e-12)
+        assert (rows[i, len(want_rows):] == -1).all()
+
+
+def test_near_ties_with_large_common_offset() -> None:
+    # Signatures like spectra: a large shared component and tiny differences, where the
+    # float32 expansion ||q||^2 - 2 q.d + ||d||^2 alone misorders rows.
+    rng = np.random.default_rng(3)
+    base = rng.uniform(50, 100, size=512).astype(np.float32)
+    sigs = (base + rng.normal(scale=1e-2, size=(3000, 512))).astype(np.float32)
+    queries = (base + rng.normal(scale=1e-2, size=(5, 512))).astype(np.float32)
+    rows, dists = SignatureIndex(sigs).search(queries, 10)
+    for i, q in enumerate(queries):
+        want_rows, want_d = _truth(sigs, q, 10)
+        np.testing.assert_array_equal(rows[i], want_rows)
+        np.testing.assert_allclose(dists[i], want_d, rtol=1e-12)
+
+
+def test_exact_duplicates_tie_break_by_row() -> None:
+    sigs = np.zeros((6, 4), np.float32)
+    sigs[[1, 4]] = 1.0
+    rows, dists = SignatureIndex(sigs).search(np.ones(4, np.float32), 3)
+    np.testing.assert_array_equal(rows, [1, 4, 0])
+    np.testing.assert_allclose(dists, [0.0, 0.0, 2.0])
+
+
+def test_limit_and_exclude_mask() -> None:
+    rng = np.random.default_rng(1)
+    sigs = rng.normal(size=(300, 32)).astype(np.float32)
+    queries = rng.normal(size=(4, 32)).astype(np.float32)
+    limit = np.array([0, 3, 100, 300])
+    exclude = rng.random((4, 300)) < 0.5
+    rows, dists = SignatureIndex(sigs).search(queries, 5, limit=limit, exclude=exclude)
+    for i, q in enumerate(queries):
+        allowed = (np.arange(300) < limit[i]) & ~exclude[i]
+        want_rows, want_d = _truth(sigs, q, 5, allowed)
+        np.testing.assert_array_equal(rows[i, : len(want_rows)], want_rows)
+        np.testing.assert_allclose(dists[i, : len(want_d)], want_d, rtol=1e-12)
+        assert (rows[i, len(want_rows):] == -1).all()
+        assert np.isinf(dists[i, len(want_rows):]).all()
+
+
+def test_rejects_bad_shapes() -> None:
+    index = SignatureIndex(np.zeros((3, 4), np.float32))
+    with pytest.raises(ValueError):
+        index.search(np.zeros((2, 5), np.float32), 1)
+    with pytest.raises(ValueError):
+        SignatureIndex(np.full((2, 2), np.nan, np.float32))
