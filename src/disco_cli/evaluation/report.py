@@ -1,0 +1,130 @@
+"""Evaluation reports: metrics.json, curves.json, a Markdown summary and the terminal output.
+
+`metrics.json` holds the figures (fractions in [0, 1], yaw errors in degrees, counts,
+and under "run" what was evaluated and how); `curves.json` the curves behind them
+(precision-recall, recall@N, unseen-place rejection, the yaw errors); `summary.md` the
+same figures as a table a person reads. PNG plots come from `plots.py`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from disco_cli.evaluation.metrics import Evaluation
+
+# The figures shown on the terminal and in the summary, in this order, with their labels.
+FIGURES = [
+    ("recall@1", "Recall@1"),
+    ("recall@1%", "Recall@1%"),
+    ("auc", "PR AUC"),
+    ("f1_max", "F1max"),
+    ("recall@100%precision", "Recall @ 100% precision"),
+    ("yaw_err_mean_deg", "Yaw error mean [deg]"),
+    ("yaw_err_std_deg", "Yaw error std [deg]"),
+    ("yaw_err_median_deg", "Yaw error median [deg]"),
+    ("num_queries", "Queries"),
+    ("num_queries_with_match", "Queries with a true match"),
+    ("num_database", "Database scans"),
+    ("num_correct_top1", "Correct top-1"),
+]
+
+
+def _finite(values: np.ndarray) -> list[float | None]:
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(values, dtype=np.float64)]
+
+
+def curves_dict(ev: Evaluation) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "pr": {
+            "threshold": _finite(ev.pr.thresholds),
+            "precision": _finite(ev.pr.precision),
+            "recall": _finite(ev.pr.recall),
+        },
+        "recall_at_n": _finite(ev.recall_curve),
+        "yaw_errors_deg": _finite(ev.yaw_errors),
+    }
+    if ev.rejection is not None:
+        out["rejection"] = {
+            "threshold": _finite(ev.rejection.thresholds),
+            "rejection": _finite(ev.rejection.rejection),
+            "recall": _finite(ev.rejection.recall),
+        }
+    return out
+
+
+def format_value(key: str, value: Any) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    if isinstance(value, int):
+        return str(value)
+    if key.endswith("_deg"):
+        return f"{value:.2f}"
+    return f"{100.0 * value:.2f} %"
+
+
+def rows(metrics: dict[str, Any]) -> list[tuple[str, str, Any]]:
+    """(key, label, value) for each figure the run has."""
+    return [(key, label, metrics[key]) for key, label in FIGURES if key in metrics]
+
+
+def markdown_summary(metrics: dict[str, Any], run: dict[str, Any], plots: list[str]) -> str:
+    lines = [f"# disco evaluation: {metrics.get('protocol', '')}", ""]
+    for key, value in run.items():
+        lines.append(f"- {key}: `{value}`")
+    lines += ["", "| figure | value |", "| --- | ---: |"]
+    lines += [f"| {label} | {format_value(key, value)} |" for key, label, value in rows(metrics)]
+    recalls = metrics.get("recall@N") or []
+    if recalls:
+        shown = [1, 5, 10, 25]
+        cells = [f"@{n}: {format_value('r', recalls[n - 1])}" for n in shown if n <= len(recalls)]
+        lines += ["", "Recall@N: " + ", ".join(cells)]
+    if plots:
+        lines += [""] + [f"![{Path(p).stem}]({Path(p).name})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(directory: Path, ev: Evaluation, run: dict[str, Any]) -> list[Path]:
+    """Write metrics.json, curves.json, summary.md and the plots into `directory`."""
+    from disco_cli.evaluation import plots
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    metrics = dict(ev.metrics)
+    metrics["run"] = run
+    written = [directory / "metrics.json", directory / "curves.json"]
+    written[0].write_text(json.dumps(metrics, indent=2) + "\n")
+    written[1].write_text(json.dumps(curves_dict(ev)) + "\n")
+    pngs = plots.write_plots(directory, ev, title=str(run.get("model", "")))
+    summary = directory / "summary.md"
+    summary.write_text(markdown_summary(ev.metrics, run, [str(p) for p in pngs]))
+    return written + [summary] + pngs
+
+
+def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
+    """The figures on stdout: a rich table, `metric<TAB>value` lines, or one JSON object."""
+    from disco_cli.console import OutputFormat, resolve_format
+
+    fmt = resolve_format(fmt)
+    if fmt is OutputFormat.jsonl:
+        sys.stdout.write(json.dumps(metrics) + "\n")
+    elif fmt is OutputFormat.tsv:
+        out = ["metric\tvalue"]
+        out += [f"{key}\t{'' if v is None else v}" for key, _, v in rows(metrics)]
+        sys.stdout.write("\n".join(out) + "\n")
+    else:
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=title, title_justify="left")
+        table.add_column("figure")
+        table.add_column("value", justify="right")
+        for key, label, value in rows(metrics):
+            table.add_row(label, format_value(key, value))
+        Console(highlight=False).print(table)
+    sys.stdout.flush()
