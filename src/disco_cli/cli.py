@@ -14,6 +14,7 @@ from typing import Annotated
 import typer
 
 # from disco_cli.commands import <name>   (one import per command)
+from disco_cli.commands import evaluate
 
 app = typer.Typer(
     name="disco",
@@ -26,6 +27,8 @@ app = typer.Typer(
 
 # -- registration: one line per command ------------------------------------
 # app.command("<name>", rich_help_panel="...")(<name>.<function>)
+app.command("eval", rich_help_panel="Evaluate")(evaluate.evaluate)
+app.command("eval-loops", rich_help_panel="Evaluate")(evaluate.evaluate_loops)
 
 
 def _print_version(value: bool) -> None:
