@@ -239,7 +239,8 @@ def test_ply_binary_little_endian_with_lists_before_vertices(tmp_path: Path) -> 
     # A list element before the vertices can only be skipped by reading its counts.
     head = _ply_header("binary_little_endian", [
         ("tag", 2, ["list uchar int ids", "short k"]),
-        ("vertex", len(XYZI), ["double x", "double y", "float z", "ushort ring", "float intensity"]),
+        ("vertex", len(XYZI),
+         ["double x", "double y", "float z", "ushort ring", "float intensity"]),
         ("face", 1, ["list uchar int vertex_indices"]),
     ])
     tags = struct.pack("<B3ih", 3, 1, 2, 3, -4) + struct.pack("<Bh", 0, 5)

@@ -15,6 +15,7 @@ import typer
 
 # from disco_cli.commands import <name>   (one import per command)
 from disco_cli.commands import evaluate
+from disco_cli.commands import bev
 
 app = typer.Typer(
     name="disco",
@@ -29,6 +30,7 @@ app = typer.Typer(
 # app.command("<name>", rich_help_panel="...")(<name>.<function>)
 app.command("eval", rich_help_panel="Evaluate")(evaluate.evaluate)
 app.command("eval-loops", rich_help_panel="Evaluate")(evaluate.evaluate_loops)
+app.command("bev", rich_help_panel="Inspect")(bev.bev)
 
 
 def _print_version(value: bool) -> None:

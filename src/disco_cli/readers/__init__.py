@@ -20,6 +20,7 @@ import importlib
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -28,7 +29,7 @@ from disco_cli.errors import ScanReadError
 if TYPE_CHECKING:
     import numpy as np
 
-__all__ = ["FORMATS", "ScanFormat", "guess_format", "list_scans", "natural_key", "read_scan"]
+__all__ = ["FORMATS", "FormatName", "ScanFormat", "guess_format", "list_scans", "natural_key", "read_scan"]
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,9 @@ FORMATS: dict[str, ScanFormat] = {
     "ply": ScanFormat("ply", (".ply",), "disco_cli.readers.ply", "PLY: ascii or binary"),
 }
 
+# The format names as a str Enum, for a command's `--format` choices.
+FormatName = Enum("FormatName", {name: name for name in FORMATS}, type=str)  # type: ignore[misc]
+
 # The folder name that marks a .bin as NCLT rather than KITTI.
 _NCLT_FOLDER = "velodyne_sync"
 # Folder layouts searched first, in order: DIR/velodyne/*.bin (KITTI, MulRan
@@ -67,6 +71,8 @@ _SCAN_SUBFOLDERS = ("velodyne", _NCLT_FOLDER)
 
 
 def _format_by_name(name: str, path: Path) -> ScanFormat:
+    if isinstance(name, Enum):
+        name = name.value
     try:
         return FORMATS[name.lower()]
     except KeyError:
