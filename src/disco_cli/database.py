@@ -189,7 +189,12 @@ class Database:
 
     @classmethod
     def create(
-        cls, path: str | Path, model: ModelInfo, first: ScanBatch, disco_version: str = ""
+        cls,
+        path: str | Path,
+        model: ModelInfo,
+        first: ScanBatch,
+        disco_version: str = "",
+        extra_meta: dict[str, str] | None = None,
     ) -> Database:
         """Create a new database holding `first` (which must not be empty).
 
@@ -214,6 +219,7 @@ class Database:
             "signature_dim": str(first.signatures.shape[1]),
             "feature_shape": json.dumps(list(first.features.shape[1:])),
             "feature_dtype": "float16",
+            **(extra_meta or {}),
         }
         try:
             tmp.unlink(missing_ok=True)

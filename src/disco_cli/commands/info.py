@@ -1,0 +1,65 @@
+"""`disco info`: what a map database holds, and (`--check`) whether it is sound."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from disco_cli.console import OutputFormat, handle_errors, stderr
+
+
+def _size(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024  # type: ignore[assignment]
+    return str(n)
+
+
+@handle_errors
+def info(
+    db_path: Annotated[Path, typer.Argument(help="The map database.", show_default=False)],
+    check: Annotated[
+        bool, typer.Option("--check", help="Also run SQLite's integrity check and check the size "
+                           "and values of every stored signature and feature block.")
+    ] = False,
+    fmt: Annotated[
+        Optional[OutputFormat], typer.Option("--format", help="table, tsv or jsonl; default: a "
+                                             "table on a terminal, TSV in a pipe.")
+    ] = None,
+) -> None:
+    """Show a map database's scans, model, configuration and size."""
+    import json
+
+    from disco_cli.console import RowWriter
+    from disco_cli.database import Database
+
+    with Database.open(db_path) as db:
+        rows = [
+            ("scans", len(db)),
+            ("model", db.model.name),
+            ("fingerprint", db.model.fingerprint),
+            ("model_source", db.meta.get("model_source", "")),
+            ("signature_dim", db.signature_dim),
+            ("feature_shape", " x ".join(map(str, db.feature_shape)) + " float16"),
+            ("poses", "yes" if db.has_poses() else "no"),
+            ("format_version", db.format_version),
+            ("disco_version", db.meta.get("disco_version", "")),
+            ("size", _size(db.size_bytes())),
+            ("model_config", json.dumps(db.model.model_config, sort_keys=True)),
+            ("bev_config", json.dumps(db.model.bev_config, sort_keys=True)),
+        ]
+        problems = db.check() if check else []
+        if check:
+            rows.append(("check", "ok" if not problems else f"{len(problems)} problems"))
+    RowWriter(["field", "value"], fmt, title=str(db_path)).write(
+        {"field": k, "value": v} for k, v in rows
+    )
+    for p in problems[:20]:
+        stderr.print(f"[bold red]problem:[/] {db_path}: {p}", soft_wrap=True)
+    if len(problems) > 20:
+        stderr.print(f"... and {len(problems) - 20} more")
+    if problems:
+        raise typer.Exit(1)

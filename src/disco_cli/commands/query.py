@@ -1,0 +1,190 @@
+"""`disco query`: the best matches of scans in a map database, with their yaw.
+
+Queries stream: each scan's matches are written and flushed as soon as they are
+ready, so `find . -name '*.bin' | disco query - --db map.db | head` works. A scan
+that cannot be read gets one error line on stderr; the others go on, and the exit
+status is 1 at the end.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Optional
+
+import typer
+
+from disco_cli.console import OutputFormat, error, fail, handle_errors
+from disco_cli.readers import FormatName
+
+if TYPE_CHECKING:
+    from disco_cli.database import Database
+
+COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
+PANEL_OUT = "Output"
+PANEL_FILTER = "Filters"
+PANEL_RUN = "Running"
+
+
+def open_for_model(db_path: Path, model: str | None, device: str) -> tuple[Database, Any]:
+    """The database and the model it was built with (`model` overrides the stored name,
+    e.g. a checkpoint path); refuses a model other than the database's."""
+    from disco_cli.database import Database, ModelInfo
+    from disco_cli.errors import DatabaseError
+    from disco_cli.model import MODELS, load_model
+
+    db = Database.open(db_path)
+    name = model or db.meta.get("model_source") or db.model.name
+    if model is None and name not in MODELS and not Path(name).is_file():
+        raise DatabaseError(
+            db_path, f"built with the checkpoint model '{db.model.name}'; pass --model PATH"
+        )
+    net = load_model(name, device=device)
+    db.check_model(ModelInfo.of(net))
+    return db, net
+
+
+@handle_errors
+def query(
+    scans: Annotated[
+        list[str],
+        typer.Argument(help="Scan files, or - to read scan paths from stdin (one per line).",
+                       show_default=False),
+    ],
+    db_path: Annotated[
+        Path, typer.Option("--db", "-d", help="The map database (from disco build-db).")
+    ] = Path("map.db"),
+    topk: Annotated[
+        int, typer.Option("--topk", "-k", min=1, max=10000, help="Matches per query.")
+    ] = 10,
+    fmt: Annotated[
+        Optional[OutputFormat], typer.Option("--format", help="table, tsv or jsonl; default: a "
+                                             "table on a terminal, TSV in a pipe.",
+                                             rich_help_panel=PANEL_OUT)
+    ] = None,
+    exclude_radius: Annotated[
+        Optional[float], typer.Option("--exclude-radius", min=0.0, help="Drop matches whose "
+                                      "stored pose is within this many metres (x, y) of the "
+                                      "query's pose (needs --query-poses).",
+                                      rich_help_panel=PANEL_FILTER)
+    ] = None,
+    query_poses: Annotated[
+        Optional[Path], typer.Option("--query-poses", help="KITTI poses of the query scans: row i "
+                                     "for the i-th scan, or by frame number in the file name.",
+                                     rich_help_panel=PANEL_FILTER)
+    ] = None,
+    calib: Annotated[
+        Optional[Path], typer.Option("--calib", help="KITTI calib.txt for --query-poses.",
+                                     rich_help_panel=PANEL_FILTER)
+    ] = None,
+    max_distance: Annotated[
+        Optional[float], typer.Option("--max-distance", min=0.0, help="Drop matches with a "
+                                      "signature distance above this.",
+                                      rich_help_panel=PANEL_FILTER)
+    ] = None,
+    model: Annotated[
+        Optional[str], typer.Option("--model", "-m", help="The model; default: the one that "
+                                    "built the database (needed for checkpoint paths).",
+                                    rich_help_panel=PANEL_RUN)
+    ] = None,
+    scan_format: Annotated[
+        Optional[FormatName], typer.Option("--scan-format", help="Scan format; default: from "
+                                           "the extension and folder.", rich_help_panel=PANEL_RUN)
+    ] = None,
+    workers: Annotated[
+        int, typer.Option("--workers", min=1, max=64, help="Threads reading and voxelizing scans.",
+                          rich_help_panel=PANEL_RUN)
+    ] = 2,
+    device: Annotated[
+        str, typer.Option("--device", help="cpu or cuda (for the network).", rich_help_panel=PANEL_RUN)
+    ] = "cpu",
+) -> None:
+    """Find the places in a map database that scans were taken at, and the yaw to each."""
+    import numpy as np
+
+    from disco_cli.console import RowWriter
+    from disco_cli.errors import DiscoError, PoseFileError
+    from disco_cli.pipeline import embed_stream, frame_rows, load_stream, pose_rows, stdin_paths
+    from disco_cli.search import SignatureIndex, match_queries
+
+    if exclude_radius is not None and query_poses is None:
+        raise fail("--exclude-radius needs --query-poses")
+    if device not in ("cpu", "cuda"):
+        raise fail(f"--device must be cpu or cuda, not {device!r}")
+    db, net = open_for_model(db_path, model, device)
+    ids, sigs = db.signatures()
+    index = SignatureIndex(sigs)
+    db_xy = None
+    q_rows = None
+    if exclude_radius is not None:
+        from disco_cli.poses import read_kitti_poses
+
+        db_xy = db.poses()[0][:, :2]
+        q_rows = pose_rows(read_kitti_poses(query_poses, calib))
+
+    def paths():
+        for s in scans:
+            if s == "-":
+                yield from stdin_paths()
+            else:
+                yield s
+
+    n_args = None if "-" in scans else len(scans)
+    writer = RowWriter(COLUMNS, fmt)
+    failed = 0
+    loaded = load_stream(paths(), net.bev_config, workers=workers, prefetch=2 * workers,
+                         scan_format=scan_format.value if scan_format is not None else None)
+    try:
+        for chunk in embed_stream(loaded, net, batch=1):
+            for item in chunk.errors:
+                error(str(item.error))
+                failed += 1
+            for j, item in enumerate(chunk.items):
+                exclude = None
+                try:
+                    if q_rows is not None:
+                        exclude = _exclusion(item.index, item.path, q_rows, n_args, db_xy,
+                                             exclude_radius, str(query_poses))
+                except PoseFileError as exc:
+                    error(str(exc))
+                    failed += 1
+                    continue
+                try:
+                    matches = match_queries(
+                        index, ids, db, net, chunk.signatures[j:j + 1], chunk.features[j:j + 1],
+                        topk, exclude=exclude, max_distance=max_distance,
+                    )[0]
+                except DiscoError as exc:
+                    error(str(exc))
+                    failed += 1
+                    continue
+                writer.write(
+                    [
+                        {"query": item.path, "rank": m.rank, "match": m.path,
+                         "match_id": m.match_id, "distance": m.distance, "yaw_deg": m.yaw_deg}
+                        for m in matches
+                    ],
+                    title=item.path,
+                )
+    finally:
+        loaded.close()
+        db.close()
+    if failed:
+        raise typer.Exit(1)
+
+
+def _exclusion(
+    index: int, path: str, q_rows: Any, n_args: int | None, db_xy: Any, radius: float, source: str
+) -> Any:
+    import numpy as np
+
+    from disco_cli.errors import PoseFileError
+    from disco_cli.pipeline import frame_rows
+
+    if n_args is not None and n_args == len(q_rows):
+        row = index
+    else:
+        row = int(frame_rows([path], len(q_rows), source)[0])
+    if row >= len(q_rows):
+        raise PoseFileError(f"{source}: no pose for query {path}")
+    d = np.hypot(db_xy[:, 0] - q_rows[row, 0], db_xy[:, 1] - q_rows[row, 1])
+    return d <= radius  # unknown stored poses give NaN: never excluded

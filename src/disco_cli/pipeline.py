@@ -1,0 +1,207 @@
+"""Scans in, signatures out: reading and voxelizing overlapped with the network.
+
+A feeder thread takes scan paths as they come (a list, or stdin line by line) and
+hands each to a small pool of worker threads that read it and build its polar BEV
+(both release the GIL in their heavy parts). The consumer gets the loaded scans in
+input order, as soon as each is ready, and runs the network on them in the calling
+thread, one batch at a time, while the pool already loads the next scans.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from disco_cli.errors import DiscoError, ScanReadError
+
+__all__ = ["Loaded", "Embedded", "load_stream", "embed_stream", "load_bev"]
+
+_END = object()
+
+
+@dataclass
+class Loaded:
+    """One scan after reading and voxelizing: `bev` or `error` is set."""
+
+    index: int  # position in the input
+    path: str  # as given
+    bev: np.ndarray | None = None
+    error: DiscoError | None = None
+
+
+@dataclass
+class Embedded:
+    """A batch of embedded scans (input order), and the scans that failed before it."""
+
+    items: list[Loaded]
+    signatures: np.ndarray  # [B, D] float32
+    features: np.ndarray  # [B, ...] float32
+    errors: list[Loaded] = field(default_factory=list)
+
+
+def load_bev(path: str, bev_config: Any, scan_format: str | None = None) -> np.ndarray:
+    """Read one scan and voxelize it; `ScanReadError` when it is unreadable or holds
+    no point inside the BEV's range."""
+    from disco_cli.bev import polar_bev
+    from disco_cli.readers import read_scan
+
+    points = read_scan(path, scan_format)
+    try:
+        bev = polar_bev(points, bev_config)
+    except DiscoError:
+        raise
+    except (ValueError, TypeError) as exc:
+        raise ScanReadError(path, f"cannot voxelize ({exc})") from None
+    if not np.any(bev):
+        raise ScanReadError(path, f"no points in range ({len(points)} points, none in the BEV)")
+    return bev
+
+
+def _load_one(index: int, path: str, bev_config: Any, scan_format: str | None) -> Loaded:
+    try:
+        return Loaded(index, path, bev=load_bev(path, bev_config, scan_format))
+    except DiscoError as exc:
+        return Loaded(index, path, error=exc)
+    except (OSError, MemoryError) as exc:
+        return Loaded(index, path, error=ScanReadError(path, f"cannot read ({exc})"))
+
+
+def load_stream(
+    paths: Iterable[str],
+    bev_config: Any,
+    workers: int = 2,
+    prefetch: int = 8,
+    scan_format: str | None = None,
+) -> Iterator[Loaded]:
+    """Loaded scans in input order, each as soon as it (and those before it) are ready.
+
+    `paths` is consumed on a feeder thread, so a slow producer (stdin) never holds back
+    results that are ready already. At most `prefetch` scans are in flight.
+    """
+    workers = max(1, int(workers))
+    pending: queue.Queue = queue.Queue(maxsize=max(1, prefetch))
+    stop = threading.Event()
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="disco-load")
+
+    def put(item: Any) -> bool:
+        while not stop.is_set():
+            try:
+                pending.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def feed() -> None:
+        try:
+            for i, p in enumerate(paths):
+                if stop.is_set():
+                    return
+                fut = pool.submit(_load_one, i, str(p), bev_config, scan_format)
+                if not put(fut):
+                    return
+        except BaseException as exc:  # e.g. stdin went away: the consumer re-raises it
+            put(exc)
+            return
+        put(_END)
+
+    # A daemon thread: a feeder blocked on stdin must never keep the process alive.
+    feeder = threading.Thread(target=feed, name="disco-feed", daemon=True)
+    feeder.start()
+    try:
+        while True:
+            item = pending.get()
+            if item is _END:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            fut: Future = item
+            yield fut.result()
+    finally:
+        stop.set()
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
+def embed_stream(loaded: Iterable[Loaded], model: Any, batch: int) -> Iterator[Embedded]:
+    """Group loaded scans into batches of up to `batch` and run the model on each.
+
+    Failed scans travel in `errors` of the next batch yielded (a batch may be empty
+    of items when only errors are pending), so the caller sees each failure before any
+    scan that came after it is embedded.
+    """
+    batch = max(1, int(batch))
+    items: list[Loaded] = []
+    for item in loaded:
+        if item.error is not None:
+            if items:
+                yield _embed(items, model)
+                items = []
+            yield Embedded([], np.empty((0, 0), np.float32), np.empty((0, 0), np.float32), [item])
+            continue
+        items.append(item)
+        if len(items) >= batch:
+            yield _embed(items, model)
+            items = []
+    if items:
+        yield _embed(items, model)
+
+
+def _embed(items: list[Loaded], model: Any) -> Embedded:
+    bevs = np.stack([it.bev for it in items]).astype(np.float32, copy=False)
+    sigs, feats = model.embed(bevs)
+    sigs = np.ascontiguousarray(np.asarray(sigs, dtype=np.float32))
+    feats = np.ascontiguousarray(np.asarray(feats, dtype=np.float32))
+    for it in items:
+        it.bev = None  # let the BEVs go now that they are embedded
+    return Embedded(items, sigs, feats)
+
+
+# -- inputs: folders, files and stdin ------------------------------------------
+
+
+def stdin_paths() -> Iterator[str]:
+    """Scan paths from stdin, one per line, read lazily (blank lines skipped)."""
+    import sys
+
+    for line in sys.stdin:
+        line = line.strip()
+        if line:
+            yield line
+
+
+def frame_rows(paths: list[str], n_rows: int, source: str) -> np.ndarray:
+    """Which row of a per-frame file (poses, times) belongs to each scan.
+
+    Row i for the i-th scan when the counts agree; otherwise the frame number in each
+    scan's name (KITTI `000123.bin` is row 123). `PoseFileError` when neither fits.
+    """
+    from pathlib import Path
+
+    from disco_cli.errors import PoseFileError
+
+    if len(paths) == n_rows:
+        return np.arange(n_rows)
+    rows = []
+    for p in paths:
+        stem = Path(p).stem
+        if not stem.isdigit() or int(stem) >= n_rows:
+            raise PoseFileError(
+                f"{source}: {n_rows} rows for {len(paths)} scans, and {p} has no frame "
+                "number within it"
+            )
+        rows.append(int(stem))
+    return np.asarray(rows, dtype=np.int64)
+
+
+def pose_rows(T: np.ndarray) -> np.ndarray:
+    """`[N, 4, 4]` poses as `[N, 4]` rows of x, y, z, yaw (radians)."""
+    from disco_cli.poses import xy_yaw
+
+    x, y, yaw = xy_yaw(np.asarray(T))
+    return np.stack([x, y, np.asarray(T)[:, 2, 3], yaw], axis=1)
