@@ -237,3 +237,20 @@ def test_colormap_and_upscale() -> None:
     assert rgb[2].tolist() == [33, 144, 141]  # the middle anchor
     big = upscale(np.arange(6, dtype=np.uint8).reshape(2, 3), 2)
     assert big.tolist() == [[0, 0, 1, 1, 2, 2]] * 2 + [[3, 3, 4, 4, 5, 5]] * 2
+
+
+def test_console_entry_point_prints_one_line_for_a_bad_file(tmp_path: Path) -> None:
+    # Through `python -m disco_cli.cli` (the `disco` script's main()), not CliRunner.
+    import subprocess
+    import sys
+
+    bad = tmp_path / "garbage.ply"
+    bad.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n2\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "disco_cli.cli", "bev", str(bad), "-o", str(tmp_path / "o.png")],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(bad) in lines[0] and "no property 'y'" in lines[0]
+    assert proc.stdout == ""

@@ -398,3 +398,68 @@ def test_real_ply_agrees_with_its_bin_conversion(realdata: Path, name: str) -> N
     bin_ = read_scan(realdata / "hdl32_pair" / f"{name}.bin")
     assert len(ply) > 60_000
     np.testing.assert_array_equal(ply[:, :3], bin_[:, :3])
+
+
+# -- random layouts -------------------------------------------------------------------
+
+_PCD_TYPES = [("F", 4, "f"), ("F", 8, "d"), ("U", 1, "B"), ("U", 2, "H"), ("I", 2, "h"),
+              ("I", 4, "i"), ("U", 4, "I"), ("I", 8, "q")]
+
+
+def test_pcd_and_ply_binary_random_layouts(tmp_path: Path) -> None:
+    """x, y, z, intensity among extra fields of random types, counts and order; the
+    expected values are written with struct, field by field."""
+    hypothesis = pytest.importorskip("hypothesis")
+    st = hypothesis.strategies
+
+    @hypothesis.settings(max_examples=40, deadline=None)
+    @hypothesis.given(data=st.data())
+    def check(data) -> None:
+        n = data.draw(st.integers(1, 6))
+        extras = data.draw(st.integers(0, 3))
+        names = ["x", "y", "z"] + (["intensity"] if data.draw(st.booleans()) else [])
+        names += [f"extra{k}" for k in range(extras)]
+        names = data.draw(st.permutations(names))
+        kinds = {name: data.draw(st.sampled_from(_PCD_TYPES)) for name in names}
+        counts = {name: 1 if name in ("x", "y", "z", "intensity") else data.draw(st.integers(1, 3))
+                  for name in names}
+        # Small integers fit every type, signed or not.
+        values = {name: data.draw(st.lists(st.integers(0, 100), min_size=n * counts[name],
+                                           max_size=n * counts[name])) for name in names}
+        expected = np.zeros((n, 4))
+        for col, name in enumerate(["x", "y", "z", "intensity"]):
+            if name in values:
+                expected[:, col] = values[name]
+
+        rows = []
+        for i in range(n):
+            row = b""
+            for name in names:
+                c = counts[name]
+                row += struct.pack("<" + kinds[name][2] * c, *values[name][i * c : (i + 1) * c])
+            rows.append(row)
+        head = _pcd_header(names, [kinds[m][1] for m in names], [kinds[m][0] for m in names],
+                           [counts[m] for m in names], n, "binary")
+        (tmp_path / "r.pcd").write_bytes(head + b"".join(rows))
+        np.testing.assert_array_equal(read_scan(tmp_path / "r.pcd"), expected.astype(np.float32))
+
+        # The same records as PLY vertices: a list property stands in for COUNT > 1.
+        ply_type = {"f": "float", "d": "double", "B": "uchar", "H": "ushort", "h": "short",
+                    "i": "int", "I": "uint", "q": None}
+        props, ply_rows = [], []
+        for name in names:
+            t = ply_type[kinds[name][2]] or "int"
+            props.append(f"list uchar {t} {name}" if counts[name] > 1 else f"{t} {name}")
+        for i in range(n):
+            row = b""
+            for name in names:
+                c, code = counts[name], kinds[name][2] if kinds[name][2] != "q" else "i"
+                if c > 1:
+                    row += struct.pack("<B", c)
+                row += struct.pack("<" + code * c, *values[name][i * c : (i + 1) * c])
+            ply_rows.append(row)
+        ply = _ply_header("binary_little_endian", [("vertex", n, props)]) + b"".join(ply_rows)
+        (tmp_path / "r.ply").write_bytes(ply)
+        np.testing.assert_array_equal(read_scan(tmp_path / "r.ply"), expected.astype(np.float32))
+
+    check()
