@@ -116,6 +116,23 @@ def test_npy_output_follows_the_mode(scan: Path, tmp_path: Path, mode: str) -> N
     np.testing.assert_array_equal(np.load(out), polar_bev(points, BEVConfig(mode=mode)))
 
 
+def test_model_option_uses_that_models_bev_config(scan: Path, tmp_path: Path) -> None:
+    from disco_cli.bev import polar_bev
+    from disco_cli.model import load_model
+
+    config = load_model("scancontext").bev_config
+    out = tmp_path / "sc.npy"
+    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "--model", "scancontext"])
+    assert result.exit_code == 0, result.output
+    grid = np.load(out)
+    assert grid.shape == config.shape
+    np.testing.assert_array_equal(grid, polar_bev(np.concatenate([INSIDE, OUTSIDE]), config))
+
+    missing = str(tmp_path / "no.pt")
+    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "--model", missing])
+    assert result.exit_code == 1 and "no.pt" in _stderr(result)
+
+
 def test_png_shows_the_occupied_cells(scan: Path, tmp_path: Path) -> None:
     from disco_cli.bev import BEVConfig
 
@@ -245,7 +262,7 @@ def test_console_entry_point_prints_one_line_for_a_bad_file(tmp_path: Path) -> N
     import sys
 
     bad = tmp_path / "garbage.ply"
-    bad.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n2\n")
+    bad.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n")
     proc = subprocess.run(
         [sys.executable, "-m", "disco_cli.cli", "bev", str(bad), "-o", str(tmp_path / "o.png")],
         capture_output=True, text=True, timeout=60,

@@ -138,6 +138,14 @@ def bev(
         bool,
         typer.Option("--polar", help="Draw the PNG as a top-down disc instead of rings x sectors."),
     ] = False,
+    model: Annotated[
+        str | None,
+        typer.Option(
+            "--model",
+            help="Use this model's BEV config (a name such as spectral, or a checkpoint), "
+            "to see what it sees; default: the built-in BEV config.",
+        ),
+    ] = None,
 ) -> None:
     """Write the polar BEV of one scan: check that your data is read correctly."""
     suffix = output.suffix.lower()
@@ -155,7 +163,12 @@ def bev(
 
     points = read_scan(scan, format=format)
     fmt = format.value if format else guess_format(scan)
-    config = BEVConfig()
+    if model is not None:
+        from disco_cli.model import load_model
+
+        config = load_model(model).bev_config
+    else:
+        config = BEVConfig()
     if mode is not None:
         config = dataclasses.replace(config, mode=mode.value)
     used = int(in_window(points, config).sum())
