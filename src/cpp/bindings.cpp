@@ -6,6 +6,7 @@
 #include <pybind11/stl.h>
 
 #include "disco/version.hpp"
+#include "disco/polar_bev.hpp"  // polar BEV voxelizer
 #include "disco/icp.hpp"  // relative pose
 #include <pybind11/eigen.h>  // relative pose: 4 x 4 transforms
 
@@ -16,6 +17,83 @@ PYBIND11_MODULE(_core, m) {
     m.attr("__version__") = disco::core_version();
 
     // --- polar BEV voxelizer (src/cpp/disco/polar_bev.*) ---
+    {
+        // Points arrive as any float32/float64 numpy array of N x >=3 with positive
+        // strides and are read in place (no copy); the Python wrapper (disco_cli.bev)
+        // converts anything else once before calling.
+        auto view_of = [](const py::handle& obj) -> disco::AnyBEVPointsView {
+            if (!py::isinstance<py::array>(obj)) throw py::type_error("points must be a numpy array");
+            auto a = py::reinterpret_borrow<py::array>(obj);
+            if (a.ndim() != 2 || a.shape(1) < 3) throw py::value_error("points must be N x 3 or wider");
+            const auto item = a.itemsize();
+            const auto rows = a.shape(0);
+            // Strides of an empty or one-row array are never used to step, and NumPy
+            // may report them as 0.
+            const auto rs = rows > 1 ? a.strides(0) : item * a.shape(1);
+            const auto cs = rows > 0 ? a.strides(1) : item;
+            if (rs <= 0 || cs <= 0 || rs % item != 0 || cs % item != 0)
+                throw py::value_error("points need positive strides in whole elements");
+            const Eigen::Index n = rows;
+            const Eigen::Stride<Eigen::Dynamic, Eigen::Dynamic> stride(rs / item, cs / item);
+            if (py::isinstance<py::array_t<float>>(a))
+                return disco::BEVPointsView<float>(static_cast<const float*>(a.data()), n, 3, stride);
+            if (py::isinstance<py::array_t<double>>(a))
+                return disco::BEVPointsView<double>(static_cast<const double*>(a.data()), n, 3, stride);
+            throw py::type_error("points must be float32 or float64");
+        };
+
+        py::enum_<disco::BEVMode>(m, "BEVMode")
+            .value("occupancy", disco::BEVMode::kOccupancy)
+            .value("density", disco::BEVMode::kDensity)
+            .value("max_height", disco::BEVMode::kMaxHeight);
+        py::class_<disco::BEVConfig>(m, "BEVConfig")
+            .def(py::init<>())
+            .def_readwrite("rings", &disco::BEVConfig::rings)
+            .def_readwrite("sectors", &disco::BEVConfig::sectors)
+            .def_readwrite("heights", &disco::BEVConfig::heights)
+            .def_readwrite("max_range", &disco::BEVConfig::max_range)
+            .def_readwrite("min_range", &disco::BEVConfig::min_range)
+            .def_readwrite("z_min", &disco::BEVConfig::z_min)
+            .def_readwrite("z_max", &disco::BEVConfig::z_max)
+            .def_readwrite("mode", &disco::BEVConfig::mode)
+            .def("validate", &disco::BEVConfig::validate)
+            .def_property_readonly("layers", &disco::BEVConfig::layers);
+
+        m.def(
+            "polar_bev",
+            [view_of](const py::object& points, const disco::BEVConfig& config) {
+                config.validate();
+                const auto view = view_of(points);
+                py::array_t<float> out({config.layers(), config.rings, config.sectors});
+                float* dst = out.mutable_data();
+                {
+                    py::gil_scoped_release release;
+                    std::visit([&](const auto& v) { disco::polar_bev(v, config, dst); }, view);
+                }
+                return out;
+            },
+            py::arg("points"), py::arg("config"), "[layers, rings, sectors] float32 BEV of one scan");
+        m.def(
+            "polar_bev_batch",
+            [view_of](const py::list& scans, const disco::BEVConfig& config, int threads) {
+                config.validate();
+                std::vector<disco::AnyBEVPointsView> views;
+                views.reserve(scans.size());
+                for (const auto& s : scans) views.push_back(view_of(s));  // the list keeps them alive
+                const auto count = static_cast<py::ssize_t>(views.size());
+                py::array_t<float> out({count, static_cast<py::ssize_t>(config.layers()),
+                                        static_cast<py::ssize_t>(config.rings),
+                                        static_cast<py::ssize_t>(config.sectors)});
+                float* dst = out.mutable_data();
+                {
+                    py::gil_scoped_release release;
+                    disco::polar_bev_batch(views, config, dst, threads);
+                }
+                return out;
+            },
+            py::arg("scans"), py::arg("config"), py::arg("threads") = 0,
+            "[B, layers, rings, sectors] float32 BEVs, scans spread over threads (0: all cores)");
+    }
 
     // --- simulator ray casting (src/cpp/disco/raycast.*) ---
 
