@@ -279,6 +279,9 @@ def test_ply_bad_files(tmp_path: Path) -> None:
         "noend.ply": b"ply\nformat ascii 1.0\nelement vertex 1\n",
         "garbage.ply": b"\x00\xff" * 500,
         "empty.ply": b"",
+        "hugecount.ply": _ply_header("binary_little_endian", [
+            ("vertex", 10**15, ["float x", "float y", "float z", "list uchar float e"]),
+        ]) + struct.pack("<3fB", 1, 2, 3, 0),
         "listtrunc.ply": _ply_header("binary_little_endian", [
             ("vertex", 2, ["float x", "float y", "float z", "list uchar float e"]),
         ]) + struct.pack("<3fB", 1, 2, 3, 200),
@@ -463,3 +466,43 @@ def test_pcd_and_ply_binary_random_layouts(tmp_path: Path) -> None:
         np.testing.assert_array_equal(read_scan(tmp_path / "r.ply"), expected.astype(np.float32))
 
     check()
+
+
+def test_damaged_files_raise_only_scan_read_error(tmp_path: Path) -> None:
+    """Every prefix and many byte-flipped copies of a valid file of each format
+    either read as N x 4 float32 or raise ScanReadError; nothing else escapes."""
+    valid: dict[str, bytes] = {}
+    valid["kitti.bin"] = XYZI.tobytes()
+    np.save(tmp_path / "v.npy", XYZI)
+    valid["v.npy"] = (tmp_path / "v.npy").read_bytes()
+    head = _pcd_header(["x", "y", "z", "intensity"], [4] * 4, "F F F F".split(), [1] * 4,
+                       len(XYZI), "binary")
+    valid["b.pcd"] = head + XYZI.tobytes()
+    head = _pcd_header(["x", "y", "z", "intensity"], [4] * 4, "F F F F".split(), [1] * 4,
+                       len(XYZI), "ascii")
+    valid["a.pcd"] = head + "".join(" ".join(map(str, r)) + "\n" for r in XYZI.tolist()).encode()
+    props = ["float x", "float y", "float z", "float intensity", "list uchar int e"]
+    head = _ply_header("binary_little_endian", [("vertex", len(XYZI), props)])
+    valid["b.ply"] = head + b"".join(struct.pack("<4fB2i", *r, 2, 7, 8) for r in XYZI.tolist())
+    valid["a.ply"] = _ply_header("ascii", [("vertex", len(XYZI), props)]) + "".join(
+        " ".join(map(str, r)) + " 2 7 8\n" for r in XYZI.tolist()).encode()
+    rng = np.random.default_rng(7)
+    for name, content in valid.items():
+        path = tmp_path / name
+        variants = [content[:cut] for cut in range(0, len(content), 5)]
+        for _ in range(60):
+            damaged = bytearray(content)
+            for pos in rng.integers(0, len(content), size=rng.integers(1, 4)):
+                damaged[pos] = int(rng.integers(0, 256))
+            variants.append(bytes(damaged))
+        for variant in variants:
+            path.write_bytes(variant)
+            try:
+                points = read_scan(path)
+            except ScanReadError as exc:
+                assert str(exc).startswith(f"{path}: ")
+            else:
+                assert points.dtype == np.float32 and points.ndim == 2 and points.shape[1] == 4
+                assert len(points) > 0
+        path.write_bytes(content)
+        assert read_scan(path).shape == (len(XYZI), 4), name

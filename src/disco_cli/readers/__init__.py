@@ -29,7 +29,9 @@ from disco_cli.errors import ScanReadError
 if TYPE_CHECKING:
     import numpy as np
 
-__all__ = ["FORMATS", "FormatName", "ScanFormat", "guess_format", "list_scans", "natural_key", "read_scan"]
+__all__ = [
+    "FORMATS", "FormatName", "ScanFormat", "guess_format", "list_scans", "natural_key", "read_scan",
+]
 
 
 @dataclass(frozen=True)

@@ -22,8 +22,13 @@ def read(path: Path) -> np.ndarray:
         arr = np.load(path, allow_pickle=False)
     except OSError as exc:
         raise ScanReadError(path, f"cannot read: {exc.strerror or exc}") from None
-    except (ValueError, EOFError) as exc:
-        raise ScanReadError(path, f"not a readable .npy array ({exc})") from None
+    except ScanReadError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        # np.load parses a damaged header with Python's tokenizer and can raise
+        # nearly anything (ValueError, SyntaxError, TokenError, EOFError...).
+        reason = f"not a readable .npy array ({type(exc).__name__}: {exc})"
+        raise ScanReadError(path, reason) from None
     if arr.dtype.names:
         names = list(arr.dtype.names)
         missing = [c for c in ("x", "y", "z") if c not in names]

@@ -152,7 +152,15 @@ def _read_binary(
         for i, p in enumerate(vertex.props):
             first.setdefault(p.name, table[f"{i}_{p.name}"])
         return {name: first[name] for name in wanted}
-    # Vertices with list properties have no fixed size: walk them one by one.
+    # Vertices with list properties have no fixed size: walk them one by one,
+    # after checking that the data can hold even empty lists (a damaged count
+    # must not make us allocate terabytes).
+    least = sum(_SIZE[p.count_type or p.type] for p in vertex.props)
+    if vertex.count * least > len(data) - pos:
+        raise ScanReadError(
+            path, f"truncated: {vertex.count} vertices need at least {vertex.count * least} "
+            f"bytes of data, found {len(data) - pos}"
+        )
     out = {name: np.empty(vertex.count, dtype=np.float64) for name in wanted}
     for row in range(vertex.count):
         for p in vertex.props:
