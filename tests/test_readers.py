@@ -185,6 +185,72 @@ def test_pcd_integer_coordinates(tmp_path: Path) -> None:
     _assert_points(read_scan(tmp_path / "i.pcd"), expected, None)
 
 
+def lzf_compress(raw: bytes) -> bytes:
+    """A plain greedy LZF encoder (liblzf's stream format), for the tests: literal
+    runs of up to 32 bytes, back references of 3 to 264 bytes up to 8192 back."""
+    out, literals, last = bytearray(), bytearray(), {}
+    i = 0
+
+    def flush() -> None:
+        for k in range(0, len(literals), 32):
+            chunk = literals[k : k + 32]
+            out.append(len(chunk) - 1)
+            out.extend(chunk)
+        literals.clear()
+
+    while i < len(raw):
+        key = raw[i : i + 3]
+        ref = last.get(key)
+        last[key] = i
+        if len(key) == 3 and ref is not None and 0 < i - ref <= 8192:
+            length = 3
+            while length < 264 and i + length < len(raw) and raw[ref + length] == raw[i + length]:
+                length += 1  # may run into bytes the copy itself writes (ref + length >= i)
+            flush()
+            offset, extra = i - ref - 1, length - 2
+            if extra < 7:
+                out += bytes([(extra << 5) | (offset >> 8), offset & 0xFF])
+            else:
+                out += bytes([(7 << 5) | (offset >> 8), extra - 7, offset & 0xFF])
+            i += length
+        else:
+            literals.append(raw[i])
+            i += 1
+    flush()
+    return bytes(out)
+
+
+def test_pcd_binary_compressed(tmp_path: Path) -> None:
+    # Fields one after another after expansion: all x, then all normal (COUNT 2), ...
+    n = 300
+    rng = np.random.default_rng(3)
+    x = np.round(rng.uniform(-50, 50, n), 2).astype(np.float32)
+    y = np.zeros(n, np.float32)  # long runs of zeros: overlapping copies
+    z = np.repeat(np.float32([0.5, -1.25, 2.0]), n // 3)
+    normal = np.tile(np.float32([1.0, 0.0]), (n, 1))
+    intensity = (np.arange(n) % 7).astype(np.uint8)
+    raw = x.tobytes() + normal.tobytes() + y.tobytes() + z.tobytes() + intensity.tobytes()
+    packed = lzf_compress(raw)
+    assert len(packed) < len(raw)  # the encoder really used back references
+    head = _pcd_header(["x", "normal", "y", "z", "intensity"], [4, 4, 4, 4, 1],
+                       "F F F F U".split(), [1, 2, 1, 1, 1], n, "binary_compressed")
+    path = tmp_path / "c.pcd"
+    path.write_bytes(head + struct.pack("<II", len(packed), len(raw)) + packed)
+    _assert_points(read_scan(path), np.stack([x, y, z], axis=1), intensity)
+
+    bad = {
+        "short.pcd": head + struct.pack("<II", len(packed), len(raw)) + packed[:-5],
+        "size.pcd": head + struct.pack("<II", len(packed), len(raw) - 4) + packed,
+        "nosize.pcd": head + b"\1\2",
+        "damaged.pcd": head + struct.pack("<II", 4, len(raw)) + bytes([0xE0, 0xFF, 0x10, 0x00]),
+    }
+    for name, content in bad.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ScanReadError) as info:
+            read_scan(tmp_path / name)
+        assert str(tmp_path / name) in str(info.value), name
+
+
 def test_pcd_bad_files(tmp_path: Path) -> None:
     head = _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 3, "binary")
     cases = {
@@ -206,8 +272,9 @@ def test_pcd_bad_files(tmp_path: Path) -> None:
         with pytest.raises(ScanReadError) as info:
             read_scan(tmp_path / name)
         assert str(tmp_path / name) in str(info.value), name
-    with pytest.raises(ScanReadError, match="binary_compressed is not supported"):
-        read_scan(tmp_path / "compressed.pcd")
+    (tmp_path / "lzma.pcd").write_bytes(head.replace(b"DATA binary", b"DATA lzma") + b"\0" * 40)
+    with pytest.raises(ScanReadError, match="'lzma' is not supported"):
+        read_scan(tmp_path / "lzma.pcd")
 
 
 # -- PLY -----------------------------------------------------------------------
@@ -478,6 +545,11 @@ def test_damaged_files_raise_only_scan_read_error(tmp_path: Path) -> None:
     head = _pcd_header(["x", "y", "z", "intensity"], [4] * 4, "F F F F".split(), [1] * 4,
                        len(XYZI), "binary")
     valid["b.pcd"] = head + XYZI.tobytes()
+    raw = XYZI.T.tobytes() + bytes(40)  # field by field, then a zero run
+    head = _pcd_header(["x", "y", "z", "intensity", "_"], [4] * 5, "F F F F U".split(),
+                       [1, 1, 1, 1, 2], len(XYZI), "binary_compressed")
+    packed = lzf_compress(raw)
+    valid["c.pcd"] = head + struct.pack("<II", len(packed), len(raw)) + packed
     head = _pcd_header(["x", "y", "z", "intensity"], [4] * 4, "F F F F".split(), [1] * 4,
                        len(XYZI), "ascii")
     valid["a.pcd"] = head + "".join(" ".join(map(str, r)) + "\n" for r in XYZI.tolist()).encode()

@@ -1,12 +1,18 @@
-"""PCL .pcd scans: ascii and binary data; binary_compressed is refused.
+"""PCL .pcd scans: DATA ascii, binary and binary_compressed.
 
 The header names the fields (any order), their byte SIZE, TYPE (F float,
 U unsigned, I signed) and COUNT (elements per field); padding fields are
-named `_`. Only x, y, z and an optional intensity field are kept.
+named `_`. Only x, y, z and an optional intensity field are kept (the first
+element of a field with COUNT > 1).
+
+binary_compressed data is two little-endian uint32 (compressed size,
+uncompressed size) and an LZF stream; once expanded it holds the fields one
+after another (all x, then all y, ...) instead of one record per point.
 """
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -35,15 +41,19 @@ def read(path: Path) -> np.ndarray:
         table = _read_ascii(path, body, dtype, n_points)
     elif kind == "binary":
         table = _read_binary(path, body, dtype, n_points)
+    elif kind == "binary_compressed":
+        table = _read_compressed(path, body, dtype, n_points)
     else:
         raise ScanReadError(
-            path, f"PCD DATA {kind} is not supported; convert it with "
-            "`pcl_convert_pcd_ascii_binary in.pcd out.pcd 1` (binary)"
+            path, f"PCD DATA {kind!r} is not supported (only ascii, binary, binary_compressed)"
         )
     inten = pick_intensity([f for f in fields if f != "_"])
-    return assemble(
-        path, table["x"], table["y"], table["z"], table[inten] if inten else None
-    )
+    intensity = None
+    if inten:
+        intensity = table[inten]
+        if intensity.ndim > 1:  # COUNT > 1: keep the first element
+            intensity = intensity[:, 0]
+    return assemble(path, table["x"], table["y"], table["z"], intensity)
 
 
 def _split_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], bytes]:
@@ -123,6 +133,84 @@ def _read_binary(path: Path, body: bytes, dtype: np.dtype, n_points: int) -> np.
             f"of data, found {len(body)}"
         )
     return np.frombuffer(body, dtype=dtype, count=n_points)
+
+
+def _read_compressed(
+    path: Path, body: bytes, dtype: np.dtype, n_points: int
+) -> dict[str, np.ndarray]:
+    if n_points == 0:
+        raise ScanReadError(path, "the scan has no points (POINTS 0)")
+    if len(body) < 8:
+        raise ScanReadError(path, "truncated: binary_compressed data has no size fields")
+    packed, unpacked = struct.unpack_from("<II", body)
+    need = n_points * dtype.itemsize
+    if unpacked != need:
+        raise ScanReadError(
+            path, f"binary_compressed data expands to {unpacked} bytes, but {n_points} points "
+            f"of {dtype.itemsize} bytes need {need}"
+        )
+    if len(body) - 8 < packed:
+        raise ScanReadError(
+            path, f"truncated: {packed} bytes of compressed data expected, found {len(body) - 8}"
+        )
+    try:
+        raw = lzf_decompress(body[8 : 8 + packed], unpacked)
+    except ValueError as exc:
+        raise ScanReadError(path, f"damaged binary_compressed data ({exc})") from None
+    out: dict[str, np.ndarray] = {}
+    offset = 0
+    for k in dtype.names:
+        field = dtype[k]
+        elements = int(np.prod(field.shape))
+        column = np.frombuffer(raw, dtype=field.base, count=n_points * elements, offset=offset)
+        out[k] = column.reshape(n_points, elements) if elements > 1 else column
+        offset += n_points * field.itemsize
+    return out
+
+
+def lzf_decompress(data: bytes, size: int) -> bytes:
+    """Expand an LZF stream (liblzf's format) that must give exactly `size` bytes.
+
+    A control byte below 32 starts a run of ctrl + 1 literal bytes; otherwise its
+    top 3 bits are a copy length - 2 (7: add the next byte) and its low 5 bits
+    with the next byte an offset - 1 back into the output. Raises ValueError.
+    """
+    out = bytearray()
+    i, n = 0, len(data)
+    while i < n:
+        ctrl = data[i]
+        i += 1
+        if ctrl < 32:
+            run = ctrl + 1
+            if i + run > n:
+                raise ValueError("a literal run goes past the end")
+            out += data[i : i + run]
+            i += run
+        else:
+            length = ctrl >> 5
+            if length == 7:
+                if i >= n:
+                    raise ValueError("a copy length goes past the end")
+                length += data[i]
+                i += 1
+            length += 2
+            if i >= n:
+                raise ValueError("a copy offset goes past the end")
+            start = len(out) - ((ctrl & 0x1F) << 8) - data[i] - 1
+            i += 1
+            if start < 0:
+                raise ValueError("a copy reaches before the start")
+            period = len(out) - start
+            if length <= period:
+                out += out[start : start + length]
+            else:  # the copy overlaps what it writes: the last `period` bytes repeat
+                pattern = bytes(out[start:])
+                out += (pattern * (length // period + 1))[:length]
+        if len(out) > size:
+            raise ValueError(f"expands past the {size} bytes announced")
+    if len(out) != size:
+        raise ValueError(f"expands to {len(out)} bytes, not the {size} announced")
+    return bytes(out)
 
 
 def _read_ascii(
