@@ -198,6 +198,14 @@ def test_missing_and_bad_files_give_one_line(tmp_path: Path) -> None:
     result = runner.invoke(app, ["bev", str(bad), "-o", str(tmp_path / "x.jpg")])
     assert result.exit_code == 1 and ".png or .npy" in _stderr(result)
 
+    # An output under a regular file cannot be written: one line, no traceback.
+    good = tmp_path / "good.npy"
+    np.save(good, INSIDE)
+    blocked = tmp_path / "good.npy" / "out.png"
+    result = runner.invoke(app, ["bev", str(good), "-o", str(blocked)])
+    assert result.exit_code == 1 and not isinstance(result.exception, OSError)
+    assert f"{blocked}: cannot write" in _stderr(result) and "Traceback" not in _stderr(result)
+
 
 def test_points_outside_the_window_are_reported(tmp_path: Path) -> None:
     # Millimetres instead of metres: everything lands outside the window.

@@ -21,6 +21,7 @@ if TYPE_CHECKING:
 
 # The longer side of the sectors x rings picture when --scale is not given.
 _TARGET_WIDTH = 960
+_MAX_SIDE = 4096
 _GREY = (96, 96, 96)
 _WHITE = (255, 255, 255)
 
@@ -70,7 +71,7 @@ def collapse(bev: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray, str]:
     if mode == "occupancy":
         return column / peak, empty, f"{peak:g} of {bev.shape[0]} layers occupied"
     if mode == "density":
-        return np.sqrt(column / peak), empty, "the densest column (square-root scale)"
+        return np.sqrt(column / peak), empty, "the densest column, square-root scale"
     return column / peak, empty, f"{peak:.2f} m above z_min"
 
 
@@ -110,6 +111,15 @@ def polar_image(values: np.ndarray, empty: np.ndarray, config: Any, scale: int) 
     ahead = (np.abs(y) < metres_per_px) & (x >= 0) & (r < config.min_range)
     image[ahead] = _WHITE
     return image
+
+
+def _write(output: Path, save: Any) -> None:
+    """Run `save()` after making the output's folder; one error line if that fails."""
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        save()
+    except OSError as exc:
+        raise fail(f"{output}: cannot write ({exc.strerror or exc})") from None
 
 
 @handle_errors
@@ -184,23 +194,25 @@ def bev(
         warn(f"only {100 * used / len(points):.0f}% of the points fall in the BEV window")
 
     grid = polar_bev(points, config)
-    output.parent.mkdir(parents=True, exist_ok=True)
     cell_mode = str(getattr(config.mode, "value", config.mode))
     shape = "[" + ", ".join(str(n) for n in grid.shape) + "]"
     if suffix == ".npy":
-        np.save(output, grid)
+        _write(output, lambda: np.save(output, grid))
         what = f"BEV {shape} float32 ({cell_mode})"
     else:
         from disco_cli.png import write_png
 
         values, empty, top = collapse(grid, cell_mode)
+        cells_across = 2 * grid.shape[1] if polar else grid.shape[2]
         if scale is None:
-            scale = max(1, round(_TARGET_WIDTH / (2 * grid.shape[1] if polar else grid.shape[2])))
+            scale = max(1, round(_TARGET_WIDTH / cells_across))
+        # Keep the picture (and the memory it takes) within reason for big grids.
+        scale = max(1, min(scale, _MAX_SIDE // cells_across))
         if polar:
             image = polar_image(values, empty, config, scale)
         else:
             image = rect_image(values, empty, scale)
-        write_png(output, image)
+        _write(output, lambda: write_png(output, image))
         what = (
             f"BEV {shape} ({cell_mode}) as a {image.shape[1]} x {image.shape[0]} "
             f"{'top-down' if polar else 'sectors x rings'} picture (yellow: {top})"
