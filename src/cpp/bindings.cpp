@@ -8,6 +8,7 @@
 #include "disco/version.hpp"
 #include "disco/polar_bev.hpp"  // polar BEV voxelizer
 #include "disco/icp.hpp"  // relative pose
+#include "disco/raycast.hpp"  // simulator ray casting
 #include <pybind11/eigen.h>  // relative pose: 4 x 4 transforms
 
 namespace py = pybind11;
@@ -96,6 +97,73 @@ PYBIND11_MODULE(_core, m) {
     }
 
     // --- simulator ray casting (src/cpp/disco/raycast.*) ---
+    {
+        // The Python wrapper (disco_cli.simulator.world) builds the primitive table
+        // and checks shapes; here only what C++ itself relies on is checked.
+        py::class_<disco::RaycastWorld>(m, "RaycastWorld")
+            .def(py::init([](const py::array_t<double, py::array::c_style | py::array::forcecast>&
+                                 table,
+                             double a, double b, double c, double cell_size) {
+                     // table: N x 9 rows of kind, cx, cy, cz, hx, hy, hz, yaw, hit_prob.
+                     if (table.ndim() != 2 || table.shape(1) != 9)
+                         throw py::value_error("primitive table must be N x 9");
+                     std::vector<disco::Primitive> prims(static_cast<std::size_t>(table.shape(0)));
+                     auto t = table.unchecked<2>();
+                     for (py::ssize_t k = 0; k < table.shape(0); ++k) {
+                         const int kind = static_cast<int>(t(k, 0));
+                         if (kind < 0 || kind > 2) throw py::value_error("unknown primitive kind");
+                         auto& p = prims[static_cast<std::size_t>(k)];
+                         p.kind = static_cast<disco::PrimitiveKind>(kind);
+                         p.cx = t(k, 1), p.cy = t(k, 2), p.cz = t(k, 3);
+                         p.hx = t(k, 4), p.hy = t(k, 5), p.hz = t(k, 6);
+                         p.yaw = t(k, 7), p.hit_prob = t(k, 8);
+                     }
+                     disco::GroundPlane ground{a, b, c};
+                     py::gil_scoped_release release;
+                     return new disco::RaycastWorld(std::move(prims), ground, cell_size);
+                 }),
+                 py::arg("table"), py::arg("a"), py::arg("b"), py::arg("c"), py::arg("cell_size"))
+            .def_property_readonly("size", &disco::RaycastWorld::size)
+            .def_property_readonly("grid_shape",
+                                   [](const disco::RaycastWorld& w) {
+                                       return py::make_tuple(w.grid_nx(), w.grid_ny());
+                                   })
+            .def(
+                "cast_scans",
+                [](const disco::RaycastWorld& world,
+                   const py::array_t<double, py::array::c_style | py::array::forcecast>& poses,
+                   const py::array_t<float, py::array::c_style | py::array::forcecast>& dirs,
+                   double max_range,
+                   const py::array_t<std::uint64_t, py::array::c_style | py::array::forcecast>&
+                       seeds,
+                   int threads) {
+                    if (poses.ndim() != 3 || poses.shape(1) != 4 || poses.shape(2) != 4)
+                        throw py::value_error("poses must be B x 4 x 4");
+                    if (dirs.ndim() != 2 || dirs.shape(1) != 3)
+                        throw py::value_error("directions must be N x 3");
+                    if (seeds.ndim() != 1 || seeds.shape(0) != poses.shape(0))
+                        throw py::value_error("need one seed per pose");
+                    const py::ssize_t b = poses.shape(0), n = dirs.shape(0);
+                    py::array_t<float> range({b, n});
+                    py::array_t<std::int32_t> id({b, n});
+                    py::array_t<float> cosi({b, n});
+                    const double* pp = poses.data();
+                    const float* dp = dirs.data();
+                    const std::uint64_t* sp = seeds.data();
+                    float* rp = range.mutable_data();
+                    std::int32_t* ip = id.mutable_data();
+                    float* cp = cosi.mutable_data();
+                    {
+                        py::gil_scoped_release release;
+                        disco::cast_scans(world, pp, b, dp, n, max_range, sp, threads, rp, ip, cp);
+                    }
+                    return py::make_tuple(range, id, cosi);
+                },
+                py::arg("poses"), py::arg("dirs"), py::arg("max_range"), py::arg("seeds"),
+                py::arg("threads") = 1);
+        m.attr("RAYCAST_GROUND") = disco::kGround;
+        m.attr("RAYCAST_MISS") = disco::kMiss;
+    }
 
     // --- relative pose: ICP (src/cpp/disco/icp.*) ---
     {

@@ -14,6 +14,7 @@ from typing import Annotated
 import typer
 
 # from disco_cli.commands import <name>   (one import per command)
+from disco_cli.commands import gt_loops, simulate
 from disco_cli.commands import evaluate
 from disco_cli.commands import bev
 
@@ -28,6 +29,8 @@ app = typer.Typer(
 
 # -- registration: one line per command ------------------------------------
 # app.command("<name>", rich_help_panel="...")(<name>.<function>)
+app.command("simulate", rich_help_panel="Data")(simulate.simulate)
+app.command("gt-loops", rich_help_panel="Data")(gt_loops.gt_loops)
 app.command("eval", rich_help_panel="Evaluate")(evaluate.evaluate)
 app.command("eval-loops", rich_help_panel="Evaluate")(evaluate.evaluate_loops)
 app.command("bev", rich_help_panel="Inspect")(bev.bev)

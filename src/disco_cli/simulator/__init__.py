@@ -1,0 +1,228 @@
+"""The synthetic LiDAR world: a procedural town, sensor models and driving sessions.
+
+`simulate(out, ...)` writes KITTI-style sessions `out/00`, `out/01`, ... of one
+town (scans, poses, times) and `out/world.json` with every parameter, so that the
+same call regenerates the same bytes. `scan(world, pose, sensor, ...)` casts one
+scan, for tests and experiments.
+
+Ray casting runs in C++ (`disco_cli._core.RaycastWorld`, threads, GIL released);
+noise, dropout and intensity are applied here with NumPy, seeded per scan.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from disco_cli.errors import DiscoError
+from disco_cli.simulator.routes import (
+    RoadGraph,
+    lane_path,
+    loop_route,
+    loop_stations,
+    open_stations,
+    revisit_route,
+    sensor_poses,
+)
+from disco_cli.simulator.sensors import SENSORS, Sensor, get_sensor
+from disco_cli.simulator.world import SessionWorld, Town, TownParams
+
+__all__ = ["simulate", "scan", "cast", "Town", "TownParams", "Sensor", "SENSORS", "get_sensor",
+           "SimulatedSession"]
+
+FORMAT = "disco-simulate/1"
+
+
+@dataclass
+class SimulatedSession:
+    name: str
+    poses: np.ndarray  # [N, 4, 4] sensor -> world
+    times: np.ndarray  # [N] s
+    route: list[int]  # junctions driven through
+    closed: bool
+    offset_m: float  # right of the centre line
+
+
+def _scan_seed(seed: int, session: int, frame: int) -> int:
+    return int(np.random.SeedSequence([seed, 7, session, frame]).generate_state(1, np.uint64)[0])
+
+
+def cast(world: SessionWorld, poses: np.ndarray, sensor: Sensor, seeds: np.ndarray,
+         threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw ray casting of `B` scans: ranges `[B, R]` (0: no return), hit ids, |cos incidence|."""
+    poses = np.ascontiguousarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    seeds = np.ascontiguousarray(seeds, dtype=np.uint64).reshape(-1)
+    return world.caster.cast_scans(poses, sensor.directions(), sensor.max_range, seeds, threads)
+
+
+def finish_scan(rng: np.random.Generator, sensor: Sensor, dirs: np.ndarray, pose: np.ndarray,
+                rng_range: np.ndarray, ids: np.ndarray, cosi: np.ndarray, world: SessionWorld,
+                town: Town | None) -> np.ndarray:
+    """Noise, dropout and intensity for one cast scan: KITTI points `[N, 4]` float32."""
+    from disco_cli import _core
+
+    hit = (ids != _core.RAYCAST_MISS) & (rng_range >= sensor.min_range)
+    r = rng_range[hit].astype(np.float64)
+    idx = ids[hit]
+    d = dirs[hit].astype(np.float64)
+    cos_i = cosi[hit].astype(np.float64)
+    refl = np.empty(len(r))
+    drop = np.zeros(len(r))
+    obj = idx >= 0
+    refl[obj] = world.reflectivity[idx[obj]]
+    drop[obj] = world.dropout[idx[obj]]
+    ground = ~obj
+    if ground.any():
+        if town is None:
+            refl[ground] = 0.15
+        else:
+            local = d[ground] * r[ground, None]
+            xy = local @ pose[:2, :3].T + pose[:2, 3]
+            refl[ground] = town.ground_reflectivity(xy)
+    # Texture: real surfaces are not uniform.
+    refl = np.clip(refl * rng.lognormal(0.0, 0.2, len(r)), 0.0, 1.0)
+    # Lost returns: a base rate, the material's own, grazing angles, dark far targets.
+    rel = r / sensor.max_range
+    p_lost = sensor.dropout + drop + 0.3 * np.clip(0.08 - cos_i, 0, None) / 0.08
+    p_lost += 0.6 * rel**3 * (1.0 - refl)
+    keep = rng.random(len(r)) >= p_lost
+    noisy = r + rng.normal(0.0, sensor.range_noise, len(r)) * (1.0 + rel)
+    intensity = refl * (0.35 + 0.65 * cos_i) * (1.0 - 0.3 * rel) + rng.normal(0, 0.01, len(r))
+    points = np.empty((int(keep.sum()), 4), np.float32)
+    points[:, :3] = d[keep] * noisy[keep, None]
+    points[:, 3] = np.clip(intensity[keep], 0.0, 1.0)
+    return points
+
+
+def scan(world: SessionWorld, pose: np.ndarray, sensor: Sensor | str = "hdl32", seed: int = 0,
+         town: Town | None = None) -> np.ndarray:
+    """One simulated scan from sensor pose `pose` (4 x 4, sensor -> world): `[N, 4]` float32."""
+    sensor = get_sensor(sensor) if isinstance(sensor, str) else sensor
+    ranges, ids, cosi = cast(world, pose, sensor, np.array([seed], np.uint64))
+    rng = np.random.default_rng([seed, 11])
+    return finish_scan(rng, sensor, sensor.directions(), np.asarray(pose, float), ranges[0],
+                       ids[0], cosi[0], world, town)
+
+
+def plan_sessions(town: Town, sensor: Sensor, sessions: int, frames: int, step_m: float,
+                  seed: int) -> list[SimulatedSession]:
+    """Routes and sensor poses of every session (no ray casting yet).
+
+    Session 00 drives a closed loop a little shorter than the session (so its last
+    scans revisit its first ones); the others revisit part of that loop, odd ones in
+    the opposite direction, then drive on into other streets.
+    """
+    graph = RoadGraph(town)
+    target = frames * step_m
+    rng = np.random.default_rng([seed, 6])
+    base = loop_route(graph, rng, target - max(3 * step_m, 0.1 * target))
+    plans = []
+    for k in range(sessions):
+        srng = np.random.default_rng([seed, 8, k])
+        offset = float(srng.uniform(0.3, 1.5))
+        if k == 0:
+            route, closed = base, True
+            line, s = lane_path(town.nodes, route, offset, closed)
+            stations, lateral = loop_stations(srng, frames, step_m, float(s[-1]))
+        else:
+            # Longer than needed: the smoothed line is a little shorter than the route.
+            route = revisit_route(graph, srng, base, target * 1.2 + 60, reverse=bool(k % 2))
+            closed = False
+            line, s = lane_path(town.nodes, route, offset, closed)
+            phase = float(srng.uniform(0.2, 0.8)) * step_m + 10.0
+            stations, lateral = open_stations(srng, frames, step_m, phase)
+        poses = sensor_poses(town, line, s, closed, stations, lateral, sensor.mount_height, srng)
+        times = np.arange(frames) / sensor.rate_hz
+        plans.append(SimulatedSession(f"{k:02d}", poses, times, route, closed, offset))
+    return plans
+
+
+def simulate(
+    out: str | Path,
+    sessions: int = 2,
+    frames: int | None = None,
+    length_m: float | None = None,
+    step_m: float = 1.0,
+    sensor: str = "hdl32",
+    seed: int = 0,
+    threads: int = 0,
+    azimuth_step_deg: float | None = None,
+    params: TownParams | None = None,
+    on_scan: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Write `sessions` KITTI-style sessions of one town under `out`; returns world.json's dict.
+
+    Session length: `frames` scans, or `length_m` metres (default 400 m), `step_m` apart.
+    `on_scan(done, total)` reports progress.
+    """
+    from disco_cli.poses import write_kitti_poses, write_times
+
+    if sessions < 1:
+        raise DiscoError("--sessions must be at least 1")
+    if step_m <= 0:
+        raise DiscoError("--step-m must be positive")
+    if frames is not None and length_m is not None:
+        raise DiscoError("give --frames or --length-m, not both")
+    if frames is None:
+        frames = int((length_m if length_m is not None else 400.0) / step_m)
+    if frames < 1:
+        raise DiscoError("a session needs at least one frame")
+    spec = get_sensor(sensor)
+    if azimuth_step_deg is not None:
+        if not 0.01 <= azimuth_step_deg <= 5.0:
+            raise DiscoError("--azimuth-step must be within 0.01..5 degrees")
+        spec = replace(spec, azimuth_step_deg=float(azimuth_step_deg))
+    town = Town(seed, params)
+    plans = plan_sessions(town, spec, sessions, frames, step_m, seed)
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    dirs = spec.directions()
+    total, done = sessions * frames, 0
+    batch = 8
+    for k, plan in enumerate(plans):
+        world = town.session_world(k)
+        folder = out / plan.name
+        (folder / "velodyne").mkdir(parents=True, exist_ok=True)
+        for start in range(0, frames, batch):
+            idx = np.arange(start, min(start + batch, frames))
+            seeds = np.array([_scan_seed(seed, k, int(i)) for i in idx], np.uint64)
+            ranges, ids, cosi = cast(world, plan.poses[idx], spec, seeds, threads)
+            for j, i in enumerate(idx):
+                rng = np.random.default_rng([seed, 9, k, int(i)])
+                pts = finish_scan(rng, spec, dirs, plan.poses[i], ranges[j], ids[j], cosi[j],
+                                  world, town)
+                pts.tofile(folder / "velodyne" / f"{i:06d}.bin")
+                done += 1
+                if on_scan is not None:
+                    on_scan(done, total)
+        write_kitti_poses(folder / "poses.txt", plan.poses)
+        write_times(folder / "times.txt", plan.times)
+
+    meta = {
+        "format": FORMAT,
+        "command": _command(sessions, frames, step_m, sensor, seed, azimuth_step_deg),
+        "seed": int(seed),
+        "sessions": [
+            {"name": p.name, "frames": frames, "closed_loop": p.closed,
+             "offset_right_m": round(p.offset_m, 4), "route_junctions": [int(n) for n in p.route]}
+            for p in plans
+        ],
+        "step_m": step_m,
+        "rate_hz": spec.rate_hz,
+        "sensor": spec.to_dict(),
+        "town": town.describe(),
+    }
+    (out / "world.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return meta
+
+
+def _command(sessions: int, frames: int, step_m: float, sensor: str, seed: int,
+             azimuth_step_deg: float | None) -> str:
+    cmd = (f"disco simulate OUT --sessions {sessions} --frames {frames} --step-m {step_m:g} "
+           f"--sensor {sensor} --seed {seed}")
+    return cmd + (f" --azimuth-step {azimuth_step_deg:g}" if azimuth_step_deg is not None else "")
