@@ -406,6 +406,7 @@ def test_list_scans_layouts(tmp_path: Path) -> None:
     for i in (10, 2, 1):
         XYZI.tofile(seq / "velodyne" / f"{i}.bin")
     (seq / "velodyne" / "notes.txt").write_text("not a scan")
+    (seq / "velodyne" / "._1.bin").write_bytes(b"\0" * 4096)  # a macOS resource fork
     (seq / "poses.npy").write_bytes(b"")
     assert [p.name for p in list_scans(seq)] == ["1.bin", "2.bin", "10.bin"]
     # A file gives itself, whatever it holds.

@@ -121,12 +121,17 @@ def natural_key(path: str | Path) -> tuple:
     return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)) + (Path(path).name,)
 
 
+def _visible(path: Path) -> bool:
+    # Hidden files (macOS `._000001.bin` copies, editor backups) are not scans.
+    return not path.name.startswith(".") and path.is_file()
+
+
 def list_scans(path: str | Path, format: str | None = None) -> list[Path]:
     """The scan files at `path`, in natural order.
 
     A file gives itself. A folder gives `DIR/velodyne/*.bin` (or
     `DIR/velodyne_sync/*.bin`) when that exists, else its own files with a scan
-    extension (of `format` when given). Raises `ScanReadError` when the path is
+    extension (of `format` when given); hidden files are skipped. Raises `ScanReadError` when the path is
     missing or holds no scans, or when a folder mixes formats and none was given.
     """
     path = Path(path)
@@ -141,12 +146,12 @@ def list_scans(path: str | Path, format: str | None = None) -> list[Path]:
     for sub in _SCAN_SUBFOLDERS:
         folder = path / sub
         if folder.is_dir() and (fmt is None or ".bin" in fmt.extensions):
-            found = [p for p in folder.iterdir() if p.suffix.lower() == ".bin" and p.is_file()]
+            found = [p for p in folder.iterdir() if p.suffix.lower() == ".bin" and _visible(p)]
             if found:
                 return sorted(found, key=natural_key)
 
     extensions = set(fmt.extensions) if fmt else {e for f in FORMATS.values() for e in f.extensions}
-    found = [p for p in path.iterdir() if p.suffix.lower() in extensions and p.is_file()]
+    found = [p for p in path.iterdir() if p.suffix.lower() in extensions and _visible(p)]
     if not found:
         wanted = ", ".join(sorted(extensions))
         raise ScanReadError(path, f"no scan files ({wanted}) in this folder or in velodyne/")
