@@ -94,6 +94,9 @@ PYBIND11_MODULE(_core, m) {
             },
             py::arg("scans"), py::arg("config"), py::arg("threads") = 0,
             "[B, layers, rings, sectors] float32 BEVs, scans spread over threads (0: all cores)");
+        // For tests and benchmarks: cap the SIMD kernel (2 AVX2, 1 SSE2, 0 plain C++).
+        m.def("_set_bev_kernel_level", &disco::set_bev_kernel_level, py::arg("cap"));
+        m.def("_bev_kernel_level", &disco::bev_kernel_level);
     }
 
     // --- simulator ray casting (src/cpp/disco/raycast.*) ---

@@ -16,6 +16,16 @@
 #include <stdexcept>
 #include <string>
 #include <thread>
+#include <type_traits>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#define DISCO_BEV_SSE2 1
+#if defined(__GNUC__) || defined(__clang__)
+#include <immintrin.h>
+#define DISCO_BEV_AVX2 1
+#endif
+#endif
 
 namespace disco {
 
@@ -154,6 +164,260 @@ void fast_codes(const float* xs, const float* ys, const float* zs, int n, const 
     }
 }
 
+#if DISCO_BEV_SSE2
+// The fast path on four points at once (SSE2, the x86-64 baseline): the same
+// arithmetic as fast_codes, lane by lane, with the cell index formed in float
+// (exact because the grid has < 2^24 cells when this is used).
+struct SimdBinning {
+    __m128 ring_scale, sector_scale, height_scale, z_min;
+    __m128 ring_lo, ring_hi, ring_max_out, height_lo_out, height_max_out;
+    __m128 rings, sectors, heights;
+    __m128 ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin, height_margin_hi;
+
+    explicit SimdBinning(const Binning& b)
+        : ring_scale(_mm_set1_ps(b.ring_scale)),
+          sector_scale(_mm_set1_ps(b.sector_scale)),
+          height_scale(_mm_set1_ps(b.height_scale)),
+          z_min(_mm_set1_ps(b.z_min_f)),
+          ring_lo(_mm_set1_ps(b.ring_min - b.ring_margin)),
+          ring_hi(_mm_set1_ps(b.ring_min + b.ring_margin)),
+          ring_max_out(_mm_set1_ps(b.rings_f + b.ring_margin)),
+          height_lo_out(_mm_set1_ps(-b.height_margin)),
+          height_max_out(_mm_set1_ps(b.heights_f + b.height_margin)),
+          rings(_mm_set1_ps(b.rings_f)),
+          sectors(_mm_set1_ps(static_cast<float>(b.sectors))),
+          heights(_mm_set1_ps(b.heights_f)),
+          ring_margin(_mm_set1_ps(b.ring_margin)),
+          ring_margin_hi(_mm_set1_ps(1.0f - b.ring_margin)),
+          sector_margin(_mm_set1_ps(b.sector_margin)),
+          sector_margin_hi(_mm_set1_ps(1.0f - b.sector_margin)),
+          height_margin(_mm_set1_ps(b.height_margin)),
+          height_margin_hi(_mm_set1_ps(1.0f - b.height_margin)) {}
+};
+
+inline __m128 select4(__m128 mask, __m128 a, __m128 b) {
+    return _mm_or_ps(_mm_and_ps(mask, a), _mm_andnot_ps(mask, b));
+}
+
+// floor(a) clamped into [0, n] as float, and the mask of lanes where it is certain.
+inline __m128 index4(__m128 a, __m128 n, __m128 margin, __m128 margin_hi, __m128& ok) {
+    const __m128 clamped = _mm_min_ps(_mm_max_ps(a, _mm_setzero_ps()), n);  // NaN -> 0
+    const __m128 i = _mm_cvtepi32_ps(_mm_cvttps_epi32(clamped));
+    const __m128 frac = _mm_sub_ps(a, i);
+    ok = _mm_and_ps(_mm_cmplt_ps(a, n), _mm_and_ps(_mm_cmpgt_ps(frac, margin), _mm_cmplt_ps(frac, margin_hi)));
+    return i;
+}
+
+inline __m128i codes4(__m128 x, __m128 y, __m128 z, const SimdBinning& s) {
+    const __m128 zero = _mm_setzero_ps();
+    const __m128 a_ring = _mm_mul_ps(_mm_sqrt_ps(_mm_add_ps(_mm_mul_ps(x, x), _mm_mul_ps(y, y))), s.ring_scale);
+    const __m128 a_height = _mm_mul_ps(_mm_sub_ps(z, s.z_min), s.height_scale);
+
+    const __m128 abs_mask = _mm_castsi128_ps(_mm_set1_epi32(0x7fffffff));
+    const __m128 ax = _mm_and_ps(x, abs_mask);
+    const __m128 ay = _mm_and_ps(y, abs_mask);
+    const __m128 t = _mm_div_ps(_mm_min_ps(ax, ay), _mm_max_ps(ax, ay));
+    const __m128 u = _mm_mul_ps(t, t);
+    __m128 p = _mm_add_ps(_mm_mul_ps(_mm_set1_ps(kA6), u), _mm_set1_ps(kA5));
+    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA4));
+    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA3));
+    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA2));
+    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA1));
+    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA0));
+    p = _mm_mul_ps(p, t);
+    __m128 theta = select4(_mm_cmpgt_ps(ay, ax), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kPi / 2.0)), p), p);
+    theta = select4(_mm_cmplt_ps(x, zero), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kPi)), theta), theta);
+    theta = select4(_mm_cmplt_ps(y, zero), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kTwoPi)), theta), theta);
+    const __m128 a_sector = _mm_mul_ps(theta, s.sector_scale);
+
+    __m128 ok_ring, ok_sector, ok_height;
+    const __m128 ring = index4(a_ring, s.rings, s.ring_margin, s.ring_margin_hi, ok_ring);
+    const __m128 sector = index4(a_sector, s.sectors, s.sector_margin, s.sector_margin_hi, ok_sector);
+    const __m128 height = index4(a_height, s.heights, s.height_margin, s.height_margin_hi, ok_height);
+    const __m128 ok = _mm_and_ps(_mm_and_ps(ok_ring, _mm_cmpgt_ps(a_ring, s.ring_hi)), _mm_and_ps(ok_sector, ok_height));
+    const __m128 drop = _mm_or_ps(
+        _mm_or_ps(_mm_cmplt_ps(a_ring, s.ring_lo), _mm_cmpgt_ps(a_ring, s.ring_max_out)),
+        _mm_or_ps(_mm_cmplt_ps(a_height, s.height_lo_out), _mm_cmpgt_ps(a_height, s.height_max_out)));
+    const __m128 cell_f = _mm_add_ps(_mm_mul_ps(_mm_add_ps(_mm_mul_ps(height, s.rings), ring), s.sectors), sector);
+    const __m128i cell = _mm_cvttps_epi32(cell_f);
+    // Not certain: kDrop (-1) where surely outside, else kExact (-2).
+    const __m128i other = _mm_sub_epi32(_mm_set1_epi32(kExact), _mm_castps_si128(drop));
+    const __m128i okm = _mm_castps_si128(ok);
+    return _mm_or_si128(_mm_and_si128(okm, cell), _mm_andnot_si128(okm, other));
+}
+
+// Deinterleaved coordinates.
+void fast_codes_simd(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
+                     const SimdBinning& s, int32_t* codes) {
+    int i = 0;
+    for (; i + 4 <= n; i += 4) {
+        const __m128i c = codes4(_mm_load_ps(xs + i), _mm_load_ps(ys + i), _mm_load_ps(zs + i), s);
+        _mm_store_si128(reinterpret_cast<__m128i*>(codes + i), c);
+    }
+    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
+}
+
+// Packed x, y, z, w float rows (the KITTI layout), read in place.
+void fast_codes_xyzw(const float* rows, int n, const Binning& b, const SimdBinning& s, int32_t* codes) {
+    int i = 0;
+    for (; i + 4 <= n; i += 4) {
+        __m128 p0 = _mm_loadu_ps(rows + 4 * i);
+        __m128 p1 = _mm_loadu_ps(rows + 4 * i + 4);
+        __m128 p2 = _mm_loadu_ps(rows + 4 * i + 8);
+        __m128 p3 = _mm_loadu_ps(rows + 4 * i + 12);
+        _MM_TRANSPOSE4_PS(p0, p1, p2, p3);  // now x, y, z, w
+        _mm_store_si128(reinterpret_cast<__m128i*>(codes + i), codes4(p0, p1, p2, s));
+    }
+    for (; i < n; ++i) {
+        const float* r = rows + 4 * i;
+        fast_codes(r, r + 1, r + 2, 1, b, codes + i);
+    }
+}
+#endif
+
+#if DISCO_BEV_AVX2
+// The same fast path on eight points at once, for CPUs with AVX2 and FMA (chosen at
+// run time; the build itself targets the x86-64 baseline). FMA only makes the
+// float values more accurate, and the margins cover either way.
+#define DISCO_AVX2_FMA __attribute__((target("avx2,fma")))
+
+DISCO_AVX2_FMA inline __m256 select8(__m256 mask, __m256 a, __m256 b) { return _mm256_blendv_ps(b, a, mask); }
+
+DISCO_AVX2_FMA inline __m256 index8(__m256 a, float n, float margin, __m256& ok) {
+    const __m256 nn = _mm256_set1_ps(n);
+    const __m256 clamped = _mm256_min_ps(_mm256_max_ps(a, _mm256_setzero_ps()), nn);  // NaN -> 0
+    const __m256 i = _mm256_round_ps(clamped, _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC);
+    const __m256 frac = _mm256_sub_ps(a, i);
+    ok = _mm256_and_ps(_mm256_cmp_ps(a, nn, _CMP_LT_OQ),
+                       _mm256_and_ps(_mm256_cmp_ps(frac, _mm256_set1_ps(margin), _CMP_GT_OQ),
+                                     _mm256_cmp_ps(frac, _mm256_set1_ps(1.0f - margin), _CMP_LT_OQ)));
+    return i;
+}
+
+DISCO_AVX2_FMA inline __m256i codes8(__m256 x, __m256 y, __m256 z, const Binning& b) {
+    const __m256 zero = _mm256_setzero_ps();
+    const __m256 r2 = _mm256_fmadd_ps(x, x, _mm256_mul_ps(y, y));
+    const __m256 a_ring = _mm256_mul_ps(_mm256_sqrt_ps(r2), _mm256_set1_ps(b.ring_scale));
+    const __m256 a_height = _mm256_mul_ps(_mm256_sub_ps(z, _mm256_set1_ps(b.z_min_f)), _mm256_set1_ps(b.height_scale));
+
+    const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+    const __m256 ax = _mm256_and_ps(x, abs_mask);
+    const __m256 ay = _mm256_and_ps(y, abs_mask);
+    const __m256 t = _mm256_div_ps(_mm256_min_ps(ax, ay), _mm256_max_ps(ax, ay));
+    const __m256 u = _mm256_mul_ps(t, t);
+    __m256 p = _mm256_fmadd_ps(_mm256_set1_ps(kA6), u, _mm256_set1_ps(kA5));
+    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA4));
+    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA3));
+    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA2));
+    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA1));
+    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA0));
+    p = _mm256_mul_ps(p, t);
+    __m256 theta = select8(_mm256_cmp_ps(ay, ax, _CMP_GT_OQ),
+                           _mm256_sub_ps(_mm256_set1_ps(static_cast<float>(kPi / 2.0)), p), p);
+    theta = select8(_mm256_cmp_ps(x, zero, _CMP_LT_OQ),
+                    _mm256_sub_ps(_mm256_set1_ps(static_cast<float>(kPi)), theta), theta);
+    theta = select8(_mm256_cmp_ps(y, zero, _CMP_LT_OQ),
+                    _mm256_sub_ps(_mm256_set1_ps(static_cast<float>(kTwoPi)), theta), theta);
+    const __m256 a_sector = _mm256_mul_ps(theta, _mm256_set1_ps(b.sector_scale));
+
+    __m256 ok_ring, ok_sector, ok_height;
+    const __m256 ring = index8(a_ring, b.rings_f, b.ring_margin, ok_ring);
+    const __m256 sector = index8(a_sector, static_cast<float>(b.sectors), b.sector_margin, ok_sector);
+    const __m256 height = index8(a_height, b.heights_f, b.height_margin, ok_height);
+    const __m256 ring_in = _mm256_cmp_ps(a_ring, _mm256_set1_ps(b.ring_min + b.ring_margin), _CMP_GT_OQ);
+    const __m256 ok = _mm256_and_ps(_mm256_and_ps(ok_ring, ring_in), _mm256_and_ps(ok_sector, ok_height));
+    const __m256 drop = _mm256_or_ps(
+        _mm256_or_ps(_mm256_cmp_ps(a_ring, _mm256_set1_ps(b.ring_min - b.ring_margin), _CMP_LT_OQ),
+                     _mm256_cmp_ps(a_ring, _mm256_set1_ps(b.rings_f + b.ring_margin), _CMP_GT_OQ)),
+        _mm256_or_ps(_mm256_cmp_ps(a_height, _mm256_set1_ps(-b.height_margin), _CMP_LT_OQ),
+                     _mm256_cmp_ps(a_height, _mm256_set1_ps(b.heights_f + b.height_margin), _CMP_GT_OQ)));
+    const __m256 cell_f = _mm256_fmadd_ps(_mm256_fmadd_ps(height, _mm256_set1_ps(b.rings_f), ring),
+                                          _mm256_set1_ps(static_cast<float>(b.sectors)), sector);
+    const __m256i cell = _mm256_cvttps_epi32(cell_f);
+    const __m256i other = _mm256_sub_epi32(_mm256_set1_epi32(kExact), _mm256_castps_si256(drop));
+    return _mm256_blendv_epi8(other, cell, _mm256_castps_si256(ok));
+}
+
+DISCO_AVX2_FMA void fast_codes_simd8(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
+                                     int32_t* codes) {
+    int i = 0;
+    for (; i + 8 <= n; i += 8) {
+        const __m256i c = codes8(_mm256_load_ps(xs + i), _mm256_load_ps(ys + i), _mm256_load_ps(zs + i), b);
+        _mm256_store_si256(reinterpret_cast<__m256i*>(codes + i), c);
+    }
+    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
+}
+
+DISCO_AVX2_FMA void fast_codes_xyzw8(const float* rows, int n, const Binning& b, int32_t* codes) {
+    // Lanes come out as points 0 2 4 6 | 1 3 5 7; this puts them back in order.
+    const __m256i unshuffle = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+    int i = 0;
+    for (; i + 8 <= n; i += 8) {
+        const float* r = rows + 4 * i;
+        const __m256 a0 = _mm256_loadu_ps(r);       // p0 | p1
+        const __m256 a1 = _mm256_loadu_ps(r + 8);   // p2 | p3
+        const __m256 a2 = _mm256_loadu_ps(r + 16);  // p4 | p5
+        const __m256 a3 = _mm256_loadu_ps(r + 24);  // p6 | p7
+        const __m256 lo01 = _mm256_unpacklo_ps(a0, a1);  // x0 x2 y0 y2 | x1 x3 y1 y3
+        const __m256 lo23 = _mm256_unpacklo_ps(a2, a3);  // x4 x6 y4 y6 | x5 x7 y5 y7
+        const __m256 hi01 = _mm256_unpackhi_ps(a0, a1);  // z0 z2 w0 w2 | ...
+        const __m256 hi23 = _mm256_unpackhi_ps(a2, a3);
+        const __m256 x = _mm256_shuffle_ps(lo01, lo23, _MM_SHUFFLE(1, 0, 1, 0));
+        const __m256 y = _mm256_shuffle_ps(lo01, lo23, _MM_SHUFFLE(3, 2, 3, 2));
+        const __m256 z = _mm256_shuffle_ps(hi01, hi23, _MM_SHUFFLE(1, 0, 1, 0));
+        const __m256i c = _mm256_permutevar8x32_epi32(codes8(x, y, z, b), unshuffle);
+        _mm256_store_si256(reinterpret_cast<__m256i*>(codes + i), c);
+    }
+    for (; i < n; ++i) {
+        const float* r = rows + 4 * i;
+        fast_codes(r, r + 1, r + 2, 1, b, codes + i);
+    }
+}
+#endif
+
+// Which fast-path kernel runs: the best the CPU has, capped by set_bev_kernel_level.
+std::atomic<int> g_level_cap{2};
+
+int detected_level() {
+#if DISCO_BEV_AVX2
+    static const int level = (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) ? 2 : 1;
+    return level;
+#elif DISCO_BEV_SSE2
+    return 1;
+#else
+    return 0;
+#endif
+}
+
+// Stage 1 for one chunk: codes[i] for rows row[0 .. m).
+template <typename T>
+void chunk_codes(int level, const T* row, Eigen::Index rs, Eigen::Index cs, int m, const Binning& b,
+                 float* xs, float* ys, float* zs, int32_t* codes) {
+    if constexpr (std::is_same_v<T, float>) {
+        if (rs == 4 && cs == 1 && level >= 1) {
+            const float* rows = row;
+#if DISCO_BEV_AVX2
+            if (level == 2) return fast_codes_xyzw8(rows, m, b, codes);
+#endif
+#if DISCO_BEV_SSE2
+            return fast_codes_xyzw(rows, m, b, SimdBinning(b), codes);
+#endif
+        }
+    }
+    for (int i = 0; i < m; ++i, row += rs) {
+        xs[i] = static_cast<float>(row[0]);
+        ys[i] = static_cast<float>(row[cs]);
+        zs[i] = static_cast<float>(row[2 * cs]);
+    }
+#if DISCO_BEV_AVX2
+    if (level == 2) return fast_codes_simd8(xs, ys, zs, m, b, codes);
+#endif
+#if DISCO_BEV_SSE2
+    if (level == 1) return fast_codes_simd(xs, ys, zs, m, b, SimdBinning(b), codes);
+#endif
+    fast_codes(xs, ys, zs, m, b, codes);
+}
+
 template <BEVMode Mode, typename T>
 void voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     const Eigen::Index n = points.rows();
@@ -165,15 +429,13 @@ void voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     alignas(64) float zs[kChunk];
     alignas(64) int32_t codes[kChunk];
     float sink = 0.0f;  // dropped points write here, so the scatter has no branch
+    // The SIMD kernels form the cell index in float, exact below 2^24 cells.
+    const bool small = static_cast<std::size_t>(b.heights) * b.rings * b.sectors < (1u << 24);
+    const int level = small ? std::min(detected_level(), g_level_cap.load()) : 0;
     for (Eigen::Index start = 0; start < n; start += kChunk) {
         const int m = static_cast<int>(std::min<Eigen::Index>(kChunk, n - start));
         const T* row = base + start * rs;
-        for (int i = 0; i < m; ++i, row += rs) {
-            xs[i] = static_cast<float>(row[0]);
-            ys[i] = static_cast<float>(row[cs]);
-            zs[i] = static_cast<float>(row[2 * cs]);
-        }
-        fast_codes(xs, ys, zs, m, b, codes);
+        chunk_codes(level, row, rs, cs, m, b, xs, ys, zs, codes);
         row = base + start * rs;
         for (int i = 0; i < m; ++i, row += rs) {
             int32_t c = codes[i];
@@ -236,6 +498,13 @@ void BEVConfig::validate() const {
     const int m = static_cast<int>(mode);
     if (m < 0 || m > 2) fail("unknown mode");
 }
+
+int set_bev_kernel_level(int cap) {
+    const int previous = g_level_cap.exchange(std::max(0, std::min(cap, 2)));
+    return previous;
+}
+
+int bev_kernel_level() { return std::min(detected_level(), g_level_cap.load()); }
 
 void polar_bev(const BEVPointsView<float>& points, const BEVConfig& config, float* out) {
     polar_bev_impl(points, config, out);
