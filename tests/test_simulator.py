@@ -1,0 +1,317 @@
+"""The synthetic LiDAR world: ray casting against a NumPy reference, geometry, noise,
+see-through crowns, determinism, sessions with reverse revisits, and the two commands."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from disco_cli.cli import app
+from disco_cli.poses import gt_pairs, gt_pairs_within, read_kitti_poses, relative_yaw_deg
+from disco_cli.simulator import cast, get_sensor, plan_sessions, scan, simulate
+from disco_cli.simulator.world import (
+    BOX,
+    CYLINDER,
+    ELLIPSOID,
+    Town,
+    TownParams,
+    primitives_world,
+    wall_world,
+)
+
+SMALL = TownParams(blocks_x=2, blocks_y=2, outskirts_m=30.0)
+
+
+def rot(yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True).as_matrix()
+
+
+def pose(x: float, y: float, z: float, yaw: float = 0.0, pitch: float = 0.0,
+         roll: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rot(yaw, pitch, roll)
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+# -- a plain NumPy ray caster, written independently of the C++ one -----------
+def ref_hit(row: np.ndarray, o: np.ndarray, d: np.ndarray) -> float:
+    kind, cx, cy, cz, hx, hy, hz, yaw, _ = row
+    rel = o - [cx, cy, cz]
+    ts = []
+    if kind == BOX:
+        R = rot(np.degrees(yaw))
+        lo, ld = R.T @ rel, R.T @ d
+        h = np.array([hx, hy, hz])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta, tb = (-h - lo) / ld, (h - lo) / ld
+        t0 = np.max(np.minimum(ta, tb))
+        t1 = np.min(np.maximum(ta, tb))
+        if t0 <= t1:
+            ts += [t0, t1]
+    elif kind == CYLINDER:
+        a = d[0] ** 2 + d[1] ** 2
+        b = rel[0] * d[0] + rel[1] * d[1]
+        c = rel[0] ** 2 + rel[1] ** 2 - hx**2
+        if b * b - a * c >= 0:
+            for t in ((-b - np.sqrt(b * b - a * c)) / a, (-b + np.sqrt(b * b - a * c)) / a):
+                if abs(rel[2] + t * d[2]) <= hz:
+                    ts.append(t)
+        for zc in (hz, -hz):
+            t = (zc - rel[2]) / d[2]
+            if np.hypot(rel[0] + t * d[0], rel[1] + t * d[1]) <= hx:
+                ts.append(t)
+    else:
+        s = np.array([1 / hx, 1 / hx, 1 / hz])
+        so, sd = rel * s, d * s
+        a, b, c = sd @ sd, so @ sd, so @ so - 1
+        if b * b - a * c >= 0:
+            ts += [(-b - np.sqrt(b * b - a * c)) / a, (-b + np.sqrt(b * b - a * c)) / a]
+    ts = [t for t in ts if t > 1e-6]
+    return min(ts) if ts else np.inf
+
+
+def random_table(rng: np.random.Generator, n: int) -> np.ndarray:
+    rows = []
+    for _ in range(n):
+        kind = rng.integers(3)
+        c = [*rng.uniform(-40, 40, 2), rng.uniform(0, 6)]
+        if kind == BOX:
+            rows.append([BOX, *c, *rng.uniform(0.2, 6, 3), rng.uniform(-np.pi, np.pi), 1])
+        elif kind == CYLINDER:
+            r = rng.uniform(0.1, 1.5)
+            rows.append([CYLINDER, *c, r, r, rng.uniform(0.5, 5), 0, 1])
+        else:
+            r = rng.uniform(0.5, 4)
+            rows.append([ELLIPSOID, *c, r, r, rng.uniform(0.5, 4), 0, 1])
+    return np.array(rows, float)
+
+
+def test_ray_casting_matches_a_numpy_reference():
+    rng = np.random.default_rng(0)
+    table = random_table(rng, 60)
+    ground = (0.01, -0.02, -0.5)
+    world = primitives_world(table, ground, cell_size=3.0)
+    dirs = rng.normal(size=(400, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origin = np.array([1.0, -2.0, 2.0])
+    T = pose(*origin)
+    ranges, ids, _ = world.caster.cast_scans(T[None], dirs.astype(np.float32), 80.0,
+                                             np.array([1], np.uint64), 1)
+    d32 = dirs.astype(np.float32).astype(np.float64)
+    d32 /= np.linalg.norm(d32, axis=1, keepdims=True)
+    n_objects = 0
+    for r in range(len(dirs)):
+        d = d32[r]
+        t = np.array([ref_hit(row, origin, d) for row in table])
+        a, b, c = ground
+        denom = d[2] - a * d[0] - b * d[1]
+        tg = (a * origin[0] + b * origin[1] + c - origin[2]) / denom if denom < 0 else np.inf
+        best = min(t.min(), tg)
+        if best >= 80.0:
+            assert ids[0, r] == -2 and ranges[0, r] == 0
+        elif tg <= t.min():
+            assert ids[0, r] == -1
+            assert ranges[0, r] == pytest.approx(tg, abs=1e-4)
+        else:
+            n_objects += 1
+            assert ids[0, r] == int(np.argmin(t)), f"ray {r}"
+            assert ranges[0, r] == pytest.approx(t.min(), abs=1e-4)
+    assert n_objects > 20  # the test exercised the grid, not only the ground
+
+
+def test_wall_at_known_distance_within_noise():
+    sensor = get_sensor("hdl32")
+    world = wall_world(distance=12.0, height=8.0, length=200.0)
+    h = 1.8
+    pts = scan(world, pose(0, 0, h), sensor, seed=3)
+    assert pts.dtype == np.float32 and pts.shape[1] == 4
+    # Every point lies on the ground plane (z = -h) or on the wall's face (x = 12),
+    # within the noise: sigma * (1 + r/R) < 0.03 m here, so a 5-sigma bound.
+    on_ground = np.abs(pts[:, 2] + h) < 0.15
+    wall = pts[~on_ground]
+    assert len(wall) > 1000 and on_ground.sum() > 1000
+    assert np.all(np.abs(wall[:, 0] - 12.0) < 0.15)
+    assert np.std(wall[:, 0] - 12.0) < 0.04
+    assert np.std(pts[on_ground, 2] + h) < 0.02
+    # Nothing above the wall's top (z = 8 - h) and nothing behind it.
+    assert wall[:, 2].max() < 8.0 - h + 0.1
+    assert pts[:, 0].max() < 12.0 + 0.15
+    # Intensities are plausible: within [0, 1], and not all equal.
+    assert 0 <= pts[:, 3].min() and pts[:, 3].max() <= 1 and pts[:, 3].std() > 0.01
+
+
+def test_a_static_object_sits_still_from_two_poses():
+    # A box with its -x face at x = 20 (world), seen from two poses turned and tilted.
+    table = np.array([[BOX, 21.0, 3.0, 3.0, 1.0, 2.0, 3.0, 0.0, 1.0]])
+    world = primitives_world(table)
+    faces = []
+    for T in (pose(0, 0, 1.8, yaw=10), pose(6, 5, 1.9, yaw=-30, pitch=2, roll=-1.5)):
+        pts = scan(world, T, "hdl64", seed=5).astype(np.float64)
+        xyz = pts[:, :3] @ T[:3, :3].T + T[:3, 3]
+        face = xyz[(xyz[:, 2] > 0.3) & (np.abs(xyz[:, 1] - 3.0) < 1.9) & (xyz[:, 0] < 20.5)]
+        assert len(face) > 100
+        faces.append(face)
+        assert np.all(np.abs(face[:, 0] - 20.0) < 0.15)
+    assert np.mean(faces[0][:, 0]) == pytest.approx(np.mean(faces[1][:, 0]), abs=0.01)
+
+
+def test_tree_crowns_are_partly_see_through():
+    # A crown (hit probability 0.4) in front of a wall: about 40 % of the rays that
+    # cross it stop on it; the others reach the wall.
+    p = 0.4
+    table = np.array([
+        [ELLIPSOID, 10.0, 0.0, 2.0, 2.0, 2.0, 2.0, 0.0, p],
+        [BOX, 20.5, 0.0, 5.0, 0.5, 30.0, 5.0, 0.0, 1.0],
+    ])
+    world = primitives_world(table)
+    sensor = get_sensor("hdl64")
+    ranges, ids, _ = cast(world, pose(0, 0, 2.0), sensor, np.array([7], np.uint64))
+    d = sensor.directions().astype(np.float64)
+    # Rays whose line crosses the crown (unit-sphere test in the scaled frame).
+    rel = np.array([0.0, 0.0, 0.0]) - [10.0, 0.0, 0.0]
+    b = d @ rel / 4.0
+    c = rel @ rel / 4.0 - 1.0
+    crosses = (b * b - (d * d).sum(1) / 4.0 * c > 0.05) & (d[:, 0] > 0)
+    n = int(crosses.sum())
+    assert n > 500
+    frac = float((ids[0][crosses] == 0).mean())
+    assert abs(frac - p) < 4 * np.sqrt(p * (1 - p) / n)
+    assert np.all(np.isin(ids[0][crosses], [0, 1, -1]))  # the crown, or the wall or ground behind
+    # Another scan seed decides differently, ray by ray.
+    _, ids2, _ = cast(world, pose(0, 0, 2.0), sensor, np.array([8], np.uint64))
+    assert (ids[0][crosses] != ids2[0][crosses]).mean() > 0.2
+
+
+def test_sensor_patterns():
+    for name, beams, lo, hi in (("hdl32", 32, -30.67, 10.67), ("hdl64", 64, -24.9, 2.0),
+                                ("vlp16", 16, -15.0, 15.0), ("os1-64", 64, -16.6, 16.6)):
+        s = get_sensor(name)
+        el = np.degrees(np.arcsin(s.directions()[:, 2].astype(np.float64)))
+        assert s.beams == beams
+        assert el.min() == pytest.approx(lo, abs=1e-3) and el.max() == pytest.approx(hi, abs=1e-3)
+        assert 0.1 <= s.azimuth_step_deg <= 0.4 and 100 <= s.max_range <= 120
+        np.testing.assert_allclose(np.linalg.norm(s.directions(), axis=1), 1.0, atol=1e-6)
+
+
+def test_town_scan_looks_like_a_street():
+    town = Town(11, SMALL)
+    sensor = get_sensor("hdl32")
+    plan = plan_sessions(town, sensor, 1, 60, 2.0, 11)[0]
+    pts = scan(town.session_world(0), plan.poses[10], sensor, seed=1, town=town)
+    assert 20_000 < len(pts) < 40_000  # the ~30k points of a 32-beam scan
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    assert r.max() <= sensor.max_range + 0.5 and r.min() >= sensor.min_range - 0.1
+    above = pts[pts[:, 2] > -1.0]  # walls, trees, poles, cars: not only the ground
+    assert len(above) > 0.15 * len(pts)
+    assert np.isfinite(pts).all() and 0 <= pts[:, 3].min() and pts[:, 3].max() <= 1
+
+
+def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path):
+    kw = dict(sessions=2, frames=3, step_m=5.0, sensor="vlp16", params=SMALL)
+    simulate(tmp_path / "a", seed=4, threads=1, **kw)
+    simulate(tmp_path / "b", seed=4, threads=2, **kw)
+    simulate(tmp_path / "c", seed=5, threads=1, **kw)
+    files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    assert len(files) == 2 * (3 + 2) + 1
+    for f in files:
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
+    assert (tmp_path / "a/00/velodyne/000000.bin").read_bytes() != \
+        (tmp_path / "c/00/velodyne/000000.bin").read_bytes()
+    meta = json.loads((tmp_path / "a/world.json").read_text())
+    assert meta["seed"] == 4 and meta["sensor"]["name"] == "vlp16"
+    assert meta["town"]["params"]["blocks_x"] == 2
+    poses = read_kitti_poses(tmp_path / "a/01/poses.txt")
+    assert poses.shape == (3, 4, 4)
+
+
+def test_sessions_revisit_in_the_opposite_direction():
+    town = Town(2)
+    plans = plan_sessions(town, get_sensor("hdl32"), 2, 300, 2.0, 2)
+    a, b = plans[0].poses, plans[1].poses
+    pairs = gt_pairs(b, a, 3.0)
+    yaw = relative_yaw_deg(a[pairs[:, 1]], b[pairs[:, 0]])
+    assert np.sum(np.abs(yaw) > 150) >= 5
+    # Scan positions do not coincide across sessions.
+    d = np.linalg.norm(b[pairs[:, 0], :3, 3] - a[pairs[:, 1], :3, 3], axis=1)
+    assert d.min() > 0.2
+    # Session 00 closes its loop: late frames come back to early ones.
+    loops = gt_pairs_within(a, 3.0, exclude_frames=50)
+    assert len(loops) > 0 and loops[:, 1].min() < 10
+    # Poses are rigid, and the sensor rides at mount height over the ground.
+    R = a[:, :3, :3]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.tile(np.eye(3), (len(a), 1, 1)),
+                               atol=1e-9)
+    z_ground = town.ground_z(a[:, 0, 3], a[:, 1, 3])
+    assert np.all(np.abs(a[:, 2, 3] - z_ground - 1.8) < 0.05)
+
+
+def test_changeable_things_differ_between_sessions():
+    town = Town(3, SMALL)
+    t0, t1 = town.session_world(0).table, town.session_world(1).table
+    n_static = len(town.static.rows)
+    np.testing.assert_array_equal(t0[:n_static], t1[:n_static])
+    assert len(t0) != len(t1) or not np.array_equal(t0, t1)
+
+
+def test_cli_simulate_and_gt_loops(tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "sim"
+    res = runner.invoke(app, ["simulate", str(out), "--sessions", "2", "--frames", "2",
+                              "--step-m", "4", "--sensor", "vlp16", "--seed", "1"])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in (out / "00" / "velodyne").iterdir()) == ["000000.bin",
+                                                                          "000001.bin"]
+    # A second run refuses to overwrite without --force.
+    res = runner.invoke(app, ["simulate", str(out), "--frames", "2"])
+    assert res.exit_code == 1 and "--force" in res.output
+    res = runner.invoke(app, ["simulate", str(out), "--frames", "2", "--length-m", "9"])
+    assert res.exit_code == 1 and "not both" in res.output
+
+
+def test_gt_loops_lists_exactly_the_pairs_within_the_radius(samples):
+    runner = CliRunner()
+    res = runner.invoke(app, ["gt-loops", str(samples / "00"), str(samples / "01"),
+                              "--radius", "3", "--format", "tsv"])
+    assert res.exit_code == 0, res.output
+    lines = res.output.strip().splitlines()
+    assert lines[0].split("\t") == ["query_seq", "query", "match_seq", "match", "distance_m",
+                                    "yaw_deg"]
+    rows = [line.split("\t") for line in lines[1:]]
+    a = read_kitti_poses(samples / "00" / "poses.txt")
+    b = read_kitti_poses(samples / "01" / "poses.txt")
+    d = np.linalg.norm(b[:, None, :3, 3] - a[None, :, :3, 3], axis=-1)
+    assert {(int(r[1]), int(r[3])) for r in rows} == {tuple(p) for p in np.argwhere(d <= 3.0)}
+    # The sample's second session drives back the other way.
+    assert any(abs(float(r[5])) > 150 for r in rows)
+    res = runner.invoke(app, ["gt-loops", str(samples / "00"), "--exclude-frames", "5",
+                              "--format", "jsonl"])
+    rows = [json.loads(line) for line in res.output.strip().splitlines()]
+    assert rows and all(r["query"] - r["match"] >= 5 and r["distance_m"] <= 3 for r in rows)
+
+
+def test_gt_loops_bad_input_is_one_line(tmp_path):
+    runner = CliRunner()
+    (tmp_path / "seq").mkdir()
+    res = runner.invoke(app, ["gt-loops", str(tmp_path / "seq")])
+    assert res.exit_code == 1 and "no poses.txt" in res.output
+    (tmp_path / "seq" / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1\n")
+    res = runner.invoke(app, ["gt-loops", str(tmp_path / "seq")])
+    assert res.exit_code == 1 and "line 1" in res.output and "Traceback" not in res.output
+
+
+def test_sample_is_small_and_complete(samples):
+    total = sum(p.stat().st_size for p in samples.rglob("*") if p.is_file())
+    assert total <= 15_000_000
+    meta = json.loads((samples / "world.json").read_text())
+    for s in ("00", "01"):
+        n = len(list((samples / s / "velodyne").glob("*.bin")))
+        assert n == meta["sessions"][int(s)]["frames"]
+        assert len(read_kitti_poses(samples / s / "poses.txt")) == n
+    a = read_kitti_poses(samples / "00" / "poses.txt")
+    assert len(gt_pairs_within(a, 3.0, exclude_frames=5)) > 0
