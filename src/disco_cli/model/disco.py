@@ -65,7 +65,9 @@ class DiscoModel:
         self.model_config = dict(model_config)
         self.crop = tuple(int(c) for c in self.model_config.get("crop", DEFAULT_CROP))
         self.name = name
-        self.fingerprint = weights_hash(self.net.state_dict(), self.config_dict())
+        # The name is left out: the same weights loaded as `default` or by path are one model.
+        config = {k: v for k, v in self.config_dict().items() if k != "model"}
+        self.fingerprint = weights_hash(self.net.state_dict(), config)
 
     def config_dict(self) -> dict[str, Any]:
         return {

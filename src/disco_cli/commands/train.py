@@ -1,0 +1,95 @@
+"""`disco train`: train a DiSCO model on KITTI-style sequences (or on scans without poses)."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from disco_cli.console import fail, handle_errors, progress, stderr
+
+
+@handle_errors
+def train(
+    data: Annotated[
+        list[Path],
+        typer.Argument(
+            exists=True, file_okay=False, show_default=False,
+            help="Sequence folders (velodyne/ + poses.txt), or folders of them (one world each).",
+        ),
+    ],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Checkpoint to write (after every epoch).")],
+    epochs: Annotated[int, typer.Option(min=1, help="Epochs to train.")] = 10,
+    steps: Annotated[int, typer.Option(min=0, help="Steps per epoch (0: one pass over the queries).")] = 0,
+    batch: Annotated[int, typer.Option(min=1, help="Quadruplets per step.")] = 8,
+    negatives: Annotated[int, typer.Option(min=1, help="Negatives per quadruplet.")] = 4,
+    width: Annotated[int, typer.Option(min=2, help="Channels of the U-Net's first block (paper: 64).")] = 8,
+    lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
+    lambda_yaw: Annotated[float, typer.Option(help="Weight of the yaw KL loss.")] = 0.1,
+    d_pos: Annotated[float, typer.Option(help="Positives lie within this distance (m).")] = 3.0,
+    d_neg: Annotated[float, typer.Option(help="Negatives lie beyond this distance (m).")] = 10.0,
+    spacing: Annotated[float, typer.Option(help="Keep one scan per this much travel (m); 0: all.")] = 1.0,
+    hard_after: Annotated[int, typer.Option(help="Epochs of random negatives before hard-negative mining.")] = 2,
+    self_supervised: Annotated[
+        bool, typer.Option("--self-supervised", help="No poses: positives are augmented copies of a scan.")
+    ] = False,
+    time_gap: Annotated[int, typer.Option(help="Self-supervised: negatives are at least this many frames apart.")] = 50,
+    val: Annotated[
+        list[Path] | None,
+        typer.Option(exists=True, file_okay=False, help="Held-out sequences for the per-epoch validation (repeatable)."),
+    ] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue from the checkpoint at --output.")] = False,
+    device: Annotated[str, typer.Option(help="Torch device: cpu, cuda, cuda:1 ...")] = "cpu",
+    seed: Annotated[int, typer.Option(help="Random seed (sampling, augmentation, initialization).")] = 0,
+    threads: Annotated[int, typer.Option(min=0, help="Voxelizer threads (0: all cores).")] = 0,
+) -> None:
+    """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
+    import torch
+
+    from disco_cli.bev import BEVConfig
+    from disco_cli.training.data import load_training_data
+    from disco_cli.training.loop import TrainOptions, train as run_training
+
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise fail(f"--device {device}: CUDA is not available on this machine")
+    if output.exists() and not resume:
+        raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
+    command = shlex.join(["disco", *sys.argv[1:]])
+    bev_config = BEVConfig()
+    opts = TrainOptions(
+        epochs=epochs, steps=steps, batch=batch, negatives=negatives, lr=lr,
+        lambda_yaw=lambda_yaw, d_pos=d_pos, d_neg=d_neg, width=width, hard_after=hard_after,
+        self_supervised=self_supervised, time_gap=time_gap, seed=seed, device=device,
+    )
+
+    def load(paths: list[Path], what: str, ss: bool):
+        with progress(transient=True) as bar:
+            task = bar.add_task(f"voxelizing {what}", total=None, rate="")
+            result = load_training_data(
+                paths, bev_config, self_supervised=ss, spacing=0.0 if ss else spacing,
+                seed=seed, threads=threads,
+                on_progress=lambda done, total: bar.update(task, completed=done, total=total),
+            )
+        stderr.print(f"{what}: {len(result.anchors)} scans from {len(result.sessions)} sequences")
+        return result
+
+    data_set = load(data, "training data", self_supervised)
+    val_set = load(val, "validation data", False) if val else None
+
+    with progress() as bar:
+        task = bar.add_task("training", total=None, rate="")
+
+        def on_step(epoch: int, step: int, total: int, losses: dict[str, float]) -> None:
+            bar.update(
+                task, completed=step, total=total, description=f"epoch {epoch + 1}/{epochs}",
+                rate=" ".join(f"{k} {v:.3f}" for k, v in losses.items()),
+            )
+
+        run_training(
+            data_set, bev_config, opts, output, command=command, resume=resume, val=val_set,
+            on_step=on_step, log=lambda line: stderr.print(line, soft_wrap=True),
+        )
+    stderr.print(f"wrote {output}")

@@ -1,0 +1,1 @@
+"""Training DiSCO: data and pair mining (`data`), losses (`losses`), the loop (`loop`)."""

@@ -1,0 +1,212 @@
+"""Training data: BEVs precomputed once, positions and headings, and pair mining.
+
+Sequences are KITTI-style folders (`velodyne/` + `poses.txt`, optional `calib.txt`), as
+`disco simulate` writes them. Sequences in the same parent folder are sessions of one
+world and share its frame, so positives are mined across them; scans of different worlds
+are always negatives of each other.
+
+Every scan is voxelized once, up front, with `polar_bev_batch`, and kept in memory as
+uint8 (occupancy, counts) so that training is bound by the network, not by I/O.
+
+Self-supervised mode (no poses): the positive of a scan is a copy of it rotated by a
+random yaw, shifted by up to a few metres, thinned and noised; negatives are scans of
+the same sequence far apart in time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from disco_cli.errors import DiscoError, PoseFileError
+
+# Scans voxelized per call: bounds the memory held by raw point clouds.
+_CHUNK = 64
+
+
+@dataclass
+class TrainData:
+    """All scans of a training run, one row each."""
+
+    bevs: np.ndarray  # [N, H, R, S] uint8 or float16
+    xy: np.ndarray  # [N, 2] metres in the world of `group`
+    heading_deg: np.ndarray  # [N] sensor yaw in the world
+    group: np.ndarray  # [N] world id (sessions of one world share it)
+    session: np.ndarray  # [N] sequence id
+    frame: np.ndarray  # [N] index of the scan in its sequence
+    source: np.ndarray  # [N] row of the original scan (itself, or the one a copy was made of)
+    sessions: list[str] = field(default_factory=list)
+    anchors: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return len(self.bevs)
+
+    @property
+    def sectors(self) -> int:
+        return int(self.bevs.shape[-1])
+
+    def float_bevs(self, idx: np.ndarray) -> np.ndarray:
+        return self.bevs[idx].astype(np.float32)
+
+
+def expand_sequences(paths: list[Path]) -> list[Path]:
+    """Sequence folders: each path itself if it holds velodyne/, else its subfolders that do."""
+    out: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        if not p.is_dir():
+            raise DiscoError(f"{p}: not a folder")
+        if (p / "velodyne").is_dir():
+            out.append(p)
+            continue
+        subs = sorted(d for d in p.iterdir() if (d / "velodyne").is_dir())
+        if not subs:
+            raise DiscoError(f"{p}: no velodyne/ folder in it or in its subfolders")
+        out.extend(subs)
+    return out
+
+
+def _compact(bevs: np.ndarray) -> np.ndarray:
+    """uint8 when the BEV values are small integers (occupancy, counts), else float16."""
+    if bevs.size and bevs.min() >= 0 and bevs.max() <= 255 and np.all(bevs == np.round(bevs)):
+        return bevs.astype(np.uint8)
+    return bevs.astype(np.float16)
+
+
+def _read_poses(seq: Path) -> np.ndarray:
+    from disco_cli.poses import read_kitti_poses
+
+    poses_file = seq / "poses.txt"
+    if not poses_file.is_file():
+        raise PoseFileError(f"{poses_file}: missing (train with --self-supervised for data without poses)")
+    calib = seq / "calib.txt"
+    return read_kitti_poses(poses_file, calib if calib.is_file() else None)
+
+
+def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
+    """Indices of scans at least `spacing` metres of travel apart (all when spacing <= 0)."""
+    if spacing <= 0 or len(xy) == 0:
+        return np.arange(len(xy))
+    keep = [0]
+    for i in range(1, len(xy)):
+        if np.linalg.norm(xy[i] - xy[keep[-1]]) >= spacing:
+            keep.append(i)
+    return np.asarray(keep)
+
+
+def augment_points(points: np.ndarray, rng: np.random.Generator, yaw_deg: float,
+                   max_shift: float, keep: float, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """A scan seen from a nearby pose: rotated by yaw_deg (points R(a) p), shifted, thinned, noised.
+
+    Returns the points and the xy offset of the new sensor origin in the old frame.
+    """
+    a = np.radians(yaw_deg)
+    c, s = np.cos(a), np.sin(a)
+    offset = rng.uniform(-max_shift, max_shift, size=2)
+    sel = rng.random(len(points)) < keep
+    pts = points[sel].astype(np.float32, copy=True)
+    # Move the sensor to `offset` (points shift by -offset), then rotate by a.
+    x = pts[:, 0] - offset[0]
+    y = pts[:, 1] - offset[1]
+    pts[:, 0] = c * x - s * y
+    pts[:, 1] = s * x + c * y
+    pts[:, :3] += rng.normal(0.0, noise, size=(len(pts), 3)).astype(np.float32)
+    return pts, offset
+
+
+def load_training_data(
+    paths: list[Path],
+    bev_config: Any,
+    self_supervised: bool = False,
+    spacing: float = 0.0,
+    copies: int = 2,
+    max_shift: float = 2.0,
+    seed: int = 0,
+    threads: int = 0,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> TrainData:
+    """Read, voxelize and index every sequence (see the module docstring)."""
+    from disco_cli.bev import polar_bev_batch
+    from disco_cli.poses import xy_yaw
+    from disco_cli.readers import list_scans, read_scan
+
+    seqs = expand_sequences(paths)
+    rng = np.random.default_rng(seed)
+    plan: list[tuple[int, int, Path, list[Path], np.ndarray, np.ndarray]] = []
+    groups: dict[str, int] = {}
+    for sid, seq in enumerate(seqs):
+        scans = list_scans(seq)
+        if not scans:
+            raise DiscoError(f"{seq}: no scans")
+        if self_supervised:
+            xy = np.zeros((len(scans), 2))
+            heading = np.zeros(len(scans))
+            gid = len(groups)
+            groups[str(seq)] = gid
+        else:
+            poses = _read_poses(seq)
+            if len(poses) != len(scans):
+                raise PoseFileError(f"{seq / 'poses.txt'}: {len(poses)} poses for {len(scans)} scans")
+            x, y, yaw = xy_yaw(poses)
+            xy = np.stack([x, y], axis=1)
+            heading = np.degrees(yaw)
+            gid = groups.setdefault(str(seq.resolve().parent), len(groups))
+        keep = _keep_by_spacing(xy, spacing) if not self_supervised else np.arange(len(scans))
+        plan.append((sid, gid, seq, [scans[i] for i in keep], xy[keep], heading[keep]))
+
+    total = sum(len(p[3]) for p in plan) * (1 + (copies if self_supervised else 0))
+    done = 0
+    bevs, xys, heads, grp, sess, frm, src = [], [], [], [], [], [], []
+    row = 0
+    for sid, gid, _seq, scans, xy, heading in plan:
+        for start in range(0, len(scans), _CHUNK):
+            batch = scans[start : start + _CHUNK]
+            clouds = [read_scan(p) for p in batch]
+            n = len(clouds)
+            rows = np.arange(row, row + n)
+            meta_xy = [xy[start : start + n]]
+            meta_head = [heading[start : start + n]]
+            meta_src = [rows]
+            if self_supervised:
+                extra = []
+                for _ in range(copies):
+                    for i, pts in enumerate(clouds):
+                        a = rng.uniform(-180.0, 180.0)
+                        aug, off = augment_points(pts, rng, a, max_shift, rng.uniform(0.5, 0.9), 0.03)
+                        extra.append(aug)
+                        meta_xy.append(off[None])
+                        # Points turned by +a: the sensor is turned by -a.
+                        meta_head.append(np.array([-a]))
+                        meta_src.append(rows[i : i + 1])
+                clouds = clouds + extra
+            vox = polar_bev_batch(clouds, bev_config, threads=threads)
+            m = len(clouds)
+            bevs.append(_compact(np.asarray(vox)))
+            xys.append(np.concatenate(meta_xy))
+            heads.append(np.concatenate(meta_head))
+            grp.append(np.full(m, gid))
+            sess.append(np.full(m, sid))
+            frames = np.arange(start, start + n)
+            frm.append(np.concatenate([frames] + [frames] * (m // n - 1)) if self_supervised else frames)
+            src.append(np.concatenate(meta_src))
+            row += m
+            done += m
+            if on_progress:
+                on_progress(done, total)
+    data = TrainData(
+        bevs=np.concatenate(bevs),
+        xy=np.concatenate(xys).astype(np.float64),
+        heading_deg=np.concatenate(heads).astype(np.float64),
+        group=np.concatenate(grp),
+        session=np.concatenate(sess),
+        frame=np.concatenate(frm),
+        source=np.concatenate(src),
+        sessions=[str(s) for s in seqs],
+    )
+    # Anchors: original scans (copies are positives only).
+    data.anchors = np.flatnonzero(data.source == np.arange(len(data)))
+    return data

@@ -1,0 +1,172 @@
+"""The training loop: quadruplets of precomputed BEVs, random rotations, joint loss, Adam.
+
+Every step draws `batch` quadruplets (query, positive, k negatives, one other negative),
+rolls each BEV by a random number of sectors (the paper's N-way rotation augmentation,
+exact on a polar grid), and minimizes L_quad + lambda * L_rot. After `hard_after` epochs
+half of the negatives are the query's nearest signatures among its true negatives.
+
+A checkpoint is written after every epoch; `resume=True` continues from it. Every epoch's
+random numbers derive from (seed, epoch), so a resumed run draws what the uninterrupted
+run would have drawn.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from disco_cli.errors import ModelError
+from disco_cli.model.checkpoint import read_checkpoint, save_checkpoint
+from disco_cli.model.disco import DiscoModel, build_net, default_model_config
+from disco_cli.model.signature import signatures_torch
+from disco_cli.model.yaw import correlation_curves_torch
+from disco_cli.training.data import TrainData
+from disco_cli.training.evaluate import retrieval_metrics
+from disco_cli.training.losses import quadruplet_loss, yaw_loss
+from disco_cli.training.mining import PairMiner
+
+
+@dataclass
+class TrainOptions:
+    epochs: int = 10
+    steps: int = 0  # steps per epoch; 0: one pass over the queries
+    batch: int = 8
+    negatives: int = 4
+    lr: float = 1e-3
+    lambda_yaw: float = 0.1
+    margin1: float = 0.5
+    margin2: float = 0.2
+    d_pos: float = 3.0
+    d_neg: float = 10.0
+    width: int = 8
+    hard_after: int = 2
+    self_supervised: bool = False
+    time_gap: int = 50
+    seed: int = 0
+    device: str = "cpu"
+    val_queries: int = 300
+
+
+StepCallback = Callable[[int, int, int, dict[str, float]], None]
+
+
+def _roll_batch(bevs: np.ndarray, rolls: np.ndarray) -> np.ndarray:
+    """Each BEV [H, R, S] rolled along sectors by its own amount."""
+    s = bevs.shape[-1]
+    cols = (np.arange(s)[None, :] - rolls[:, None]) % s
+    return np.take_along_axis(bevs, cols[:, None, None, :], axis=-1)
+
+
+def _pool_signatures(net: Any, data: TrainData, rows: np.ndarray, device: str,
+                     crop: tuple[int, int]) -> np.ndarray:
+    out = []
+    net.eval()
+    with torch.no_grad():
+        for s in range(0, len(rows), 64):
+            x = torch.from_numpy(data.float_bevs(rows[s : s + 64])).to(device)
+            out.append(signatures_torch(net(x), crop).cpu().numpy())
+    return np.concatenate(out)
+
+
+def train(
+    data: TrainData,
+    bev_config: Any,
+    opts: TrainOptions,
+    out_path: str | Path,
+    command: str = "",
+    resume: bool = False,
+    val: TrainData | None = None,
+    on_step: StepCallback | None = None,
+    log: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Train and write checkpoints to out_path; the per-epoch history is returned."""
+    out_path = Path(out_path)
+    device = opts.device
+    model_config = default_model_config(data.bevs.shape[1], opts.width)
+    crop = tuple(model_config["crop"])
+    torch.manual_seed(opts.seed)
+    net = build_net(model_config).to(device)
+    optim = torch.optim.Adam(net.parameters(), lr=opts.lr)
+    start_epoch, history = 0, []
+    if resume and out_path.is_file():
+        ckpt = read_checkpoint(out_path)
+        if dict(ckpt.get("model_config", {})) != model_config:
+            raise ModelError(f"{out_path}: was trained with another model configuration; cannot resume")
+        net.load_state_dict(ckpt["state_dict"])
+        state = ckpt.get("train_state", {})
+        if "optimizer" in state:
+            optim.load_state_dict(state["optimizer"])
+        start_epoch = int(state.get("epoch", -1)) + 1
+        history = list(ckpt.get("metrics", {}).get("history", []))
+        log(f"resuming {out_path} after epoch {start_epoch}")
+
+    miner = PairMiner(data, opts.d_pos, opts.d_neg, opts.self_supervised, opts.time_gap)
+    steps = opts.steps or max(1, len(miner.queries) // opts.batch)
+    k = opts.negatives
+    per = 3 + k
+    sectors = data.sectors
+    for epoch in range(start_epoch, opts.epochs):
+        rng = np.random.default_rng([opts.seed, epoch])
+        torch.manual_seed(opts.seed * 100_003 + epoch)
+        if epoch >= opts.hard_after and len(miner.pool) > per:
+            miner.update_hard(_pool_signatures(net, data, miner.pool, device, crop))
+        net.train()
+        t0 = time.monotonic()
+        sums = {"loss": 0.0, "quad": 0.0, "yaw": 0.0}
+        for step in range(steps):
+            qs = rng.choice(miner.queries, size=opts.batch)
+            rows = np.empty((opts.batch, per), dtype=np.int64)
+            for b, q in enumerate(qs):
+                negs = miner.negatives(int(q), k, rng)
+                rows[b, 0] = q
+                rows[b, 1] = miner.positive(int(q), rng)
+                rows[b, 2 : 2 + k] = negs
+                rows[b, -1] = miner.other_negative(int(q), negs, rng)
+            flat = rows.ravel()
+            rolls = rng.integers(0, sectors, size=len(flat))
+            x = torch.from_numpy(_roll_batch(data.float_bevs(flat), rolls)).to(device)
+            feats = net(x)
+            sig = signatures_torch(feats, crop).view(opts.batch, per, -1)
+            l_quad = quadruplet_loss(sig[:, 0], sig[:, 1], sig[:, 2 : 2 + k], sig[:, -1],
+                                     opts.margin1, opts.margin2)
+            f = feats.view(opts.batch, per, *feats.shape[1:])
+            log_p = net.corr2soft(correlation_curves_torch(f[:, 0], f[:, 1]))
+            # q ~ roll(p, delta): delta from the headings, plus the two augmentation rolls.
+            r = rolls.reshape(opts.batch, per)
+            head = (data.heading_deg[rows[:, 1]] - data.heading_deg[rows[:, 0]]) * sectors / 360.0
+            shift = torch.as_tensor(head + r[:, 0] - r[:, 1], device=device)
+            l_yaw = yaw_loss(log_p, shift)
+            loss = l_quad + opts.lambda_yaw * l_yaw
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            for key, v in (("loss", loss), ("quad", l_quad), ("yaw", l_yaw)):
+                sums[key] += float(v.detach())
+            if on_step:
+                on_step(epoch, step + 1, steps, {key: v / (step + 1) for key, v in sums.items()})
+        entry: dict[str, Any] = {"epoch": epoch, "seconds": round(time.monotonic() - t0, 1)}
+        entry.update({key: round(v / steps, 5) for key, v in sums.items()})
+        model = DiscoModel(net, bev_config, model_config, name="training", device=device)
+        check = val if val is not None else data
+        metrics = retrieval_metrics(model, check, opts.d_pos, opts.self_supervised and val is None,
+                                    max_queries=opts.val_queries, seed=opts.seed,
+                                    time_gap=opts.time_gap)
+        entry.update({f"{'val' if val is not None else 'train'}_{key}": v for key, v in metrics.items()})
+        history.append(entry)
+        log(" ".join(f"{key}={v:.4g}" if isinstance(v, float) else f"{key}={v}" for key, v in entry.items()))
+        save_checkpoint(out_path, {
+            "state_dict": net.state_dict(),
+            "bev_config": bev_config.to_dict(),
+            "model_config": model_config,
+            "command": command,
+            "train_state": {"epoch": epoch, "optimizer": optim.state_dict(),
+                            "options": {key: v for key, v in asdict(opts).items()}},
+            "metrics": {"history": history},
+        })
+    return history
