@@ -224,13 +224,15 @@ PYBIND11_MODULE(_core, m) {
             .def(
                 "align",
                 [](const disco::PlaneTarget& target, const Eigen::Ref<const RowsX3d>& source,
-                   const Eigen::Matrix4d& initial) {
+                   const Eigen::Matrix4d& initial, int first_stage, int last_stage,
+                   int max_iterations) {
                     disco::Points3d src(static_cast<std::size_t>(source.rows()));
                     for (Eigen::Index i = 0; i < source.rows(); ++i) src[i] = source.row(i);
                     py::gil_scoped_release release;
-                    return target.align(src, initial);
+                    return target.align(src, initial, first_stage, last_stage, max_iterations);
                 },
-                py::arg("source"), py::arg("initial"))
+                py::arg("source"), py::arg("initial"), py::arg("first_stage") = 0,
+                py::arg("last_stage") = -1, py::arg("max_iterations") = -1)
             .def_property_readonly("points",
                                    [icp_to_matrix](const disco::PlaneTarget& t) {
                                        return icp_to_matrix(t.points());

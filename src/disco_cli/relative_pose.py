@@ -46,9 +46,10 @@ class PoseConfig:
     normal_radius: float = 1.0  # neighbourhood of the match's normals (m)
     stages: tuple[float, ...] = (2.0, 1.0, 0.5)  # correspondence distance per stage (m)
     max_iterations: int = 15  # per stage
+    hypothesis_iterations: int = 8  # coarse-stage iterations to judge each yaw hypothesis
     inlier_distance: float = 0.5  # a query point within this of the match is an inlier (m)
     # Verification.
-    min_fitness: float = 0.5  # inlier ratio over non-ground query points
+    min_fitness: float = 0.3  # inlier ratio over non-ground query points
     max_rmse: float = 0.3  # m, point-to-plane, over the inliers
     min_points: int = 100  # fewer downsampled points than this: rejected
 
@@ -62,8 +63,10 @@ class PoseConfig:
         self.stages = tuple(float(s) for s in self.stages)
         if not self.stages or any(not (math.isfinite(s) and s > 0) for s in self.stages):
             raise PoseError(f"pose config: stages must be positive distances, not {self.stages}")
-        if self.max_iterations < 1 or self.min_points < 1:
-            raise PoseError("pose config: max_iterations and min_points must be at least 1")
+        if min(self.max_iterations, self.hypothesis_iterations, self.min_points) < 1:
+            raise PoseError(
+                "pose config: max_iterations, hypothesis_iterations and min_points must be >= 1"
+            )
         if not 0.0 <= self.min_fitness <= 1.0:
             raise PoseError(f"pose config: min_fitness must lie in [0, 1], not {self.min_fitness}")
 
@@ -215,6 +218,10 @@ def estimate_relative_pose(
 
     match_image = _core.height_image(match, 0.0, config.bev_cell, config.bev_extent)
     hypotheses = [yaw0, yaw0 + 180.0] if config.try_flipped_yaw else [yaw0]
+    # Each hypothesis gets only a short coarse stage on every other query point; the
+    # better one goes on to the fine stages with all points. A wrong seed never
+    # converges, so running it to the end would be wasted time.
+    sparse_source = np.ascontiguousarray(source[::2])
     best = None
     for yaw in hypotheses:
         yaw_rad = math.radians(yaw)
@@ -225,10 +232,11 @@ def estimate_relative_pose(
         initial = np.eye(4)
         initial[:3, :3] = _rot_z(yaw_rad)
         initial[:3, 3] = (tx, ty, 0.0)
-        r = target.align(source, initial)
-        if best is None or r.fitness > best.fitness:
-            best = r
+        coarse = target.align(sparse_source, initial, 0, 1, config.hypothesis_iterations)
+        if best is None or coarse.fitness > best.fitness:
+            best = coarse
     assert best is not None
+    best = target.align(source, np.array(best.transform), 1 if len(config.stages) > 1 else 0, -1)
     return _result(np.array(best.transform), best.fitness, best.rmse, config)
 
 

@@ -51,28 +51,49 @@ Points3d prepare_source(const CloudView& points, const IcpConfig& config) {
 }
 
 PlaneTarget::PlaneTarget(const CloudView& points, const IcpConfig& config) : config_(config) {
-    points_ = voxel_downsample(crop_points(points, config.max_range), config.target_voxel);
+    const Points3d cropped = crop_points(points, config.max_range);
+    points_ = voxel_downsample(cropped, config.target_voxel);
 
-    // Normals: the eigenvector of the smallest eigenvalue of the local covariance.
-    normals_.assign(points_.size(), Eigen::Vector3d::Constant(kNaN));
-    const NeighborGrid normal_grid(points_, config.normal_radius);
-    std::vector<int> nbrs;
-    for (std::size_t i = 0; i < points_.size(); ++i) {
-        normal_grid.within(points_[i], &nbrs);
-        if (static_cast<int>(nbrs.size()) < config.normal_min_neighbors) continue;
-        Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-        for (int j : nbrs) mean += points_[j];
-        mean /= static_cast<double>(nbrs.size());
-        Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-        for (int j : nbrs) {
-            const Eigen::Vector3d d = points_[j] - mean;
-            cov.noalias() += d * d.transpose();
-        }
+    // Normals from the covariance of the full-resolution points in each cell of
+    // edge normal_radius: one small eigenproblem per cell rather than a
+    // neighbour search per point, and many more points behind each normal.
+    const double inv = 1.0 / config.normal_radius;
+    VoxelIndex cells(cropped.size() / 8);
+    struct Moments {
+        Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+        Eigen::Matrix3d outer = Eigen::Matrix3d::Zero();
+        int n = 0;
+    };
+    std::vector<Moments> moments;
+    const auto key_of = [inv](const Eigen::Vector3d& p) {
+        const Eigen::Vector3i v = voxel_of(p, inv);
+        return pack_voxel(v.x(), v.y(), v.z());
+    };
+    for (const auto& p : cropped) {
+        const int slot = cells.insert(key_of(p));
+        if (slot == static_cast<int>(moments.size())) moments.emplace_back();
+        // Moments about the cell's corner keep the sums small and well conditioned.
+        const Eigen::Vector3d d = p - (p * inv).array().floor().matrix() * config.normal_radius;
+        moments[slot].sum += d;
+        moments[slot].outer.noalias() += d * d.transpose();
+        ++moments[slot].n;
+    }
+    std::vector<Eigen::Vector3d> cell_normal(moments.size(), Eigen::Vector3d::Constant(kNaN));
+    for (std::size_t c = 0; c < moments.size(); ++c) {
+        const Moments& m = moments[c];
+        if (m.n < config.normal_min_neighbors) continue;
+        const Eigen::Vector3d mean = m.sum / m.n;
+        const Eigen::Matrix3d cov = m.outer / m.n - mean * mean.transpose();
         Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig;
         eig.computeDirect(cov);
         // A line of points (one scan ring) has no defined normal: two tiny eigenvalues.
         if (eig.eigenvalues()(1) < 1e-3 * eig.eigenvalues()(2)) continue;
-        normals_[i] = eig.eigenvectors().col(0);
+        cell_normal[c] = eig.eigenvectors().col(0);
+    }
+    normals_.resize(points_.size());
+    for (std::size_t i = 0; i < points_.size(); ++i) {
+        const int slot = cells.find(key_of(points_[i]));
+        normals_[i] = slot >= 0 ? cell_normal[slot] : Eigen::Vector3d::Constant(kNaN);
     }
 
     stage_grids_.reserve(config.stages.size());
@@ -80,7 +101,8 @@ PlaneTarget::PlaneTarget(const CloudView& points, const IcpConfig& config) : con
     inlier_grid_ = NeighborGrid(points_, config.inlier_distance);
 }
 
-IcpResult PlaneTarget::align(const Points3d& source, const Eigen::Matrix4d& initial) const {
+IcpResult PlaneTarget::align(const Points3d& source, const Eigen::Matrix4d& initial,
+                             int first_stage, int last_stage, int max_iterations) const {
     IcpResult result;
     result.transform = initial;
     result.source_points = static_cast<int>(source.size());
@@ -90,11 +112,14 @@ IcpResult PlaneTarget::align(const Points3d& source, const Eigen::Matrix4d& init
     Eigen::Matrix4d T = initial;
     using Vec6 = Eigen::Matrix<double, 6, 1>;
     using Mat6 = Eigen::Matrix<double, 6, 6>;
-    for (std::size_t s = 0; s < stage_grids_.size(); ++s) {
+    const int n_stages = static_cast<int>(stage_grids_.size());
+    const int end = last_stage < 0 ? n_stages : std::min(last_stage, n_stages);
+    for (int s = std::max(first_stage, 0); s < end; ++s) {
         const NeighborGrid& grid = stage_grids_[s];
         // Geman-McClure scale: a third of the stage's correspondence distance.
         const double k2 = std::pow(config_.stages[s] / 3.0, 2);
-        for (int it = 0; it < config_.max_iterations; ++it) {
+        const int iterations = max_iterations < 0 ? config_.max_iterations : max_iterations;
+        for (int it = 0; it < iterations; ++it) {
             ++result.iterations;
             const Eigen::Matrix3d R = T.topLeftCorner<3, 3>();
             const Eigen::Vector3d t = T.topRightCorner<3, 1>();

@@ -29,7 +29,7 @@ struct IcpConfig {
     // Maximum correspondence distance of each coarse-to-fine stage (m).
     std::vector<double> stages = {2.0, 1.0, 0.5};
     int max_iterations = 15;     // per stage
-    double convergence = 1e-4;   // stop a stage when the update is smaller (rad and m)
+    double convergence = 5e-4;   // stop a stage when the update is smaller (rad and m)
     double inlier_distance = 0.5;  // a source point is an inlier within this distance (m)
     // A surface with |normal_z| above this is ground-like: left out of `fitness`,
     // since any two flat grounds overlap whether the places match or not.
@@ -54,8 +54,11 @@ class PlaneTarget {
    public:
     PlaneTarget(const CloudView& points, const IcpConfig& config);
 
-    // Align the (cropped, downsampled) source to the target, starting from `initial`.
-    IcpResult align(const Points3d& source, const Eigen::Matrix4d& initial) const;
+    // Align the (cropped, downsampled) source to the target, starting from
+    // `initial`, through stages [first_stage, last_stage) (-1: to the last) of at most
+    // max_iterations each (-1: the config's), then score.
+    IcpResult align(const Points3d& source, const Eigen::Matrix4d& initial, int first_stage = 0,
+                    int last_stage = -1, int max_iterations = -1) const;
 
     const Points3d& points() const { return points_; }
     const Points3d& normals() const { return normals_; }  // NaN where too few neighbours

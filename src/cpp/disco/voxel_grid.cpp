@@ -20,7 +20,7 @@ Points3d voxel_downsample(const Points3d& points, double voxel) {
 }
 
 NeighborGrid::NeighborGrid(const Points3d& points, double radius)
-    : points_(&points), radius_(radius), inv_cell_(1.0 / (2.0 * radius)), index_(points.size()) {
+    : points_(&points), radius_(radius), inv_cell_(1.0 / radius), index_(points.size()) {
     // Counting sort of the points by cell: slots first, then offsets.
     std::vector<int> slot_of(points.size());
     std::vector<int> count;
@@ -39,35 +39,42 @@ NeighborGrid::NeighborGrid(const Points3d& points, double radius)
 }
 
 template <typename Visit>
-void NeighborGrid::visit_block(const Eigen::Vector3d& q, Visit&& visit) const {
-    // With cells of edge 2r, the ball of radius r around q spans at most two
-    // cells per axis: q's own and the neighbour on the side q is nearer to.
+void NeighborGrid::visit_cells(const Eigen::Vector3d& q, const double* bound2, Visit&& visit) const {
+    // Cells have edge r, so the ball of radius r around q lies in the 3 x 3 x 3
+    // block around q's cell. q's own cell goes first; a neighbour is skipped when
+    // its box is farther from q than *bound2 (which `visit` may shrink).
     const Eigen::Vector3d c = q * inv_cell_;
     const Eigen::Vector3d f = c.array().floor();
-    int lo[3], hi[3];
+    const Eigen::Vector3d frac = c - f;
+    const int bx = static_cast<int>(f.x()), by = static_cast<int>(f.y()),
+              bz = static_cast<int>(f.z());
+    const double cell2 = radius_ * radius_;
+    // Squared gap from q to the neighbouring slab on each side, per axis (in cells^2 * cell2).
+    double gap[3][3];
     for (int a = 0; a < 3; ++a) {
-        const int base = static_cast<int>(f[a]);
-        if (c[a] - f[a] < 0.5) {
-            lo[a] = base - 1;
-            hi[a] = base;
-        } else {
-            lo[a] = base;
-            hi[a] = base + 1;
-        }
+        gap[a][0] = frac[a] * frac[a] * cell2;
+        gap[a][1] = 0.0;
+        gap[a][2] = (1.0 - frac[a]) * (1.0 - frac[a]) * cell2;
     }
-    for (int x = lo[0]; x <= hi[0]; ++x)
-        for (int y = lo[1]; y <= hi[1]; ++y)
-            for (int z = lo[2]; z <= hi[2]; ++z) {
-                const int slot = index_.find(pack_voxel(x, y, z));
-                if (slot < 0) continue;
-                for (int k = start_[slot]; k < start_[slot + 1]; ++k) visit(order_[k]);
+    auto scan = [&](int x, int y, int z) {
+        const int slot = index_.find(pack_voxel(bx + x, by + y, bz + z));
+        if (slot < 0) return;
+        for (int k = start_[slot]; k < start_[slot + 1]; ++k) visit(order_[k]);
+    };
+    scan(0, 0, 0);
+    for (int x = -1; x <= 1; ++x)
+        for (int y = -1; y <= 1; ++y)
+            for (int z = -1; z <= 1; ++z) {
+                if (x == 0 && y == 0 && z == 0) continue;
+                if (gap[0][x + 1] + gap[1][y + 1] + gap[2][z + 1] > *bound2) continue;
+                scan(x, y, z);
             }
 }
 
 int NeighborGrid::nearest(const Eigen::Vector3d& q, double* d2) const {
     int best = -1;
     double best_d2 = radius_ * radius_;
-    visit_block(q, [&](int i) {
+    visit_cells(q, &best_d2, [&](int i) {
         const double d = ((*points_)[i] - q).squaredNorm();
         if (d <= best_d2) {
             best_d2 = d;
@@ -81,7 +88,7 @@ int NeighborGrid::nearest(const Eigen::Vector3d& q, double* d2) const {
 void NeighborGrid::within(const Eigen::Vector3d& q, std::vector<int>* out) const {
     out->clear();
     const double r2 = radius_ * radius_;
-    visit_block(q, [&](int i) {
+    visit_cells(q, &r2, [&](int i) {
         if (((*points_)[i] - q).squaredNorm() <= r2) out->push_back(i);
     });
 }

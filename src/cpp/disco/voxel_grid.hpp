@@ -36,14 +36,14 @@ class VoxelIndex {
         while (capacity < 2 * expected + 1) capacity <<= 1;
         keys_.assign(capacity, kEmpty);
         slots_.assign(capacity, -1);
-        mask_ = capacity - 1;
+        set_capacity(capacity);
         size_ = 0;
     }
 
     // The slot of `key`, inserting a new one (== size() before the call) when absent.
     int insert(std::int64_t key) {
         if (2 * (size_ + 1) > keys_.size()) grow();
-        std::size_t i = hash(key) & mask_;
+        std::size_t i = hash(key);
         while (keys_[i] != kEmpty) {
             if (keys_[i] == key) return slots_[i];
             i = (i + 1) & mask_;
@@ -55,7 +55,7 @@ class VoxelIndex {
 
     // The slot of `key`, or -1.
     int find(std::int64_t key) const {
-        std::size_t i = hash(key) & mask_;
+        std::size_t i = hash(key);
         while (keys_[i] != kEmpty) {
             if (keys_[i] == key) return slots_[i];
             i = (i + 1) & mask_;
@@ -68,10 +68,20 @@ class VoxelIndex {
    private:
     static constexpr std::int64_t kEmpty = std::numeric_limits<std::int64_t>::min();
 
-    static std::size_t hash(std::int64_t key) {
-        // Fibonacci hashing spreads the packed coordinates over the table.
-        auto h = static_cast<std::uint64_t>(key) * 0x9E3779B97F4A7C15ull;
-        return static_cast<std::size_t>(h ^ (h >> 29));
+    // Fibonacci hashing: the top bits of key * 2^64 / phi, which depend on every
+    // bit of the key (the low bits of a product would see only the z index).
+    std::size_t hash(std::int64_t key) const {
+        return static_cast<std::size_t>((static_cast<std::uint64_t>(key) * 0x9E3779B97F4A7C15ull) >>
+                                        shift_);
+    }
+
+    void set_capacity(std::size_t capacity) {
+        mask_ = capacity - 1;
+        shift_ = 64;
+        while (capacity > 1) {
+            capacity >>= 1;
+            --shift_;
+        }
     }
 
     void grow() {
@@ -79,10 +89,10 @@ class VoxelIndex {
         std::vector<int> old_slots = std::move(slots_);
         keys_.assign(old_keys.size() * 2, kEmpty);
         slots_.assign(old_keys.size() * 2, -1);
-        mask_ = keys_.size() - 1;
+        set_capacity(keys_.size());
         for (std::size_t j = 0; j < old_keys.size(); ++j) {
             if (old_keys[j] == kEmpty) continue;
-            std::size_t i = hash(old_keys[j]) & mask_;
+            std::size_t i = hash(old_keys[j]);
             while (keys_[i] != kEmpty) i = (i + 1) & mask_;
             keys_[i] = old_keys[j];
             slots_[i] = old_slots[j];
@@ -92,14 +102,15 @@ class VoxelIndex {
     std::vector<std::int64_t> keys_;
     std::vector<int> slots_;
     std::size_t mask_ = 0;
+    int shift_ = 64;
     std::size_t size_ = 0;
 };
 
 // The centroid of the points in each occupied voxel of edge `voxel`.
 Points3d voxel_downsample(const Points3d& points, double voxel);
 
-// Points bucketed by voxels of edge 2 * radius, so that every point within
-// `radius` of a query lies in the 2 x 2 x 2 block of voxels nearest to it.
+// Points bucketed by voxels of edge `radius`, so that every point within
+// `radius` of a query lies in the 3 x 3 x 3 block of voxels around it.
 class NeighborGrid {
    public:
     NeighborGrid() = default;
@@ -115,7 +126,7 @@ class NeighborGrid {
 
    private:
     template <typename Visit>
-    void visit_block(const Eigen::Vector3d& q, Visit&& visit) const;
+    void visit_cells(const Eigen::Vector3d& q, const double* bound2, Visit&& visit) const;
 
     const Points3d* points_ = nullptr;
     double radius_ = 0.0;
