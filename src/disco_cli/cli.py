@@ -17,6 +17,7 @@ import typer
 from disco_cli.commands import gt_loops, simulate
 from disco_cli.commands import evaluate
 from disco_cli.commands import bev
+from disco_cli.commands import train
 
 app = typer.Typer(
     name="disco",
@@ -34,6 +35,7 @@ app.command("gt-loops", rich_help_panel="Data")(gt_loops.gt_loops)
 app.command("eval", rich_help_panel="Evaluate")(evaluate.evaluate)
 app.command("eval-loops", rich_help_panel="Evaluate")(evaluate.evaluate_loops)
 app.command("bev", rich_help_panel="Inspect")(bev.bev)
+app.command("train", rich_help_panel="Model")(train.train)
 
 
 def _print_version(value: bool) -> None:
