@@ -91,7 +91,7 @@ def finish_scan(rng: np.random.Generator, sensor: Sensor, dirs: np.ndarray, pose
     p_lost += 0.6 * rel**3 * (1.0 - refl)
     keep = rng.random(len(r)) >= p_lost
     noisy = r + rng.normal(0.0, sensor.range_noise, len(r)) * (1.0 + rel)
-    intensity = refl * (0.35 + 0.65 * cos_i) * (1.0 - 0.3 * rel) + rng.normal(0, 0.01, len(r))
+    intensity = refl * (0.55 + 0.45 * cos_i) * (1.0 - 0.3 * rel) + rng.normal(0, 0.01, len(r))
     points = np.empty((int(keep.sum()), 4), np.float32)
     points[:, :3] = d[keep] * noisy[keep, None]
     points[:, 3] = np.clip(intensity[keep], 0.0, 1.0)

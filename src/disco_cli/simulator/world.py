@@ -24,7 +24,7 @@ import numpy as np
 from disco_cli.errors import DiscoError
 
 BOX, CYLINDER, ELLIPSOID = 0, 1, 2
-_GRASS = 0.17  # reflectivity of the ground off the roads
+_GRASS = 0.3  # reflectivity of the ground off the roads
 
 
 @dataclass
@@ -113,6 +113,7 @@ class Town:
         self._make_network(rng)
         self.static = _Prims()
         self._texture: tuple[float, float, float, np.ndarray] | None = None
+        self._last_built = False  # whether the last lot got a building
         self._changeable: list[tuple[float, _Prims]] = []  # (presence probability, things)
         self._parking: list[tuple[np.ndarray, float, float]] = []  # (x y, yaw, occupancy)
         self._occupied = _Occupancy(self.bounds(margin=p.outskirts_m + 10))
@@ -208,16 +209,16 @@ class Town:
                       "park": (3, 6), "mixed": (5, 22)}[style]
         density = {"downtown": 1.0, "residential": 0.85, "industrial": 0.75, "park": 0.25,
                    "mixed": 0.85}[style] * rng.uniform(0.8, 1.0)
-        setback = {"downtown": (0.3, 1.0), "residential": (1.0, 6.0), "industrial": (2.0, 8.0),
+        setback = {"downtown": (0.3, 1.0), "residential": (1.0, 4.5), "industrial": (2.0, 8.0),
                    "park": (5.0, 15.0), "mixed": (0.5, 5.0)}[style]
         setback = rng.uniform(*setback)
         frontage = rng.choice(["none", "wall", "fence", "hedge"],
-                              p=[0.55, 0.15, 0.15, 0.15] if style != "downtown" else [1, 0, 0, 0])
+                              p=[0.3, 0.25, 0.2, 0.25] if style != "downtown" else [0.8, 0.2, 0, 0])
         tree_gap = rng.uniform(6, 14) if rng.random() < {"park": 0.95, "residential": 0.7}.get(
             style, 0.35) else 0.0
         light_gap = rng.uniform(18, 40)
         parking = rng.uniform(0.3, 0.9) if s.half_width >= 5.0 and rng.random() < 0.7 else 0.0
-        sidewalk_refl = rng.uniform(0.2, 0.35)
+        sidewalk_refl = rng.uniform(0.3, 0.45)
 
         b = self._builder()
         mid = s.a + s.dir * (t0 + t1) / 2 + s.left * side * (kerb + s.sidewalk / 2)
@@ -238,6 +239,19 @@ class Town:
                 turn = rng.normal(0, 0.03) if rng.random() < 0.3 else 0.0
                 self._building(rng, b, centre, width - rng.uniform(0.5, 3), depth, yaw + turn,
                                height, style, s.left * side)
+            # Yard and verge plants: bushes in front, trees where no house stands.
+            yard = max(setback, 0.0) + (0.0 if self._last_built else 12.0)
+            if style != "downtown" and yard > 1.5:
+                for _ in range(rng.integers(0, 4)):
+                    c = s.a + s.dir * (t + rng.uniform(0, width)) + s.left * side * (
+                        back + rng.uniform(0.8, yard))
+                    if self.road_clearance(c[None])[0] > 0.5:
+                        if self._last_built or rng.random() < 0.6:
+                            b.ellipsoid(c, rng.uniform(0.6, 1.6), 0.4, rng.uniform(0.5, 1.2),
+                                        Material(rng.uniform(0.3, 0.45)), rng.uniform(0.6, 0.9))
+                        else:
+                            _tree(rng, b, c, rng.uniform(0.6, 1.3))
+            self._last_built = False
             t += width
         # Frontage along the back of the sidewalk (a gap for each gate or drive).
         if frontage != "none":
@@ -298,6 +312,7 @@ class Town:
         if not self._site_free(centre, width / 2, depth / 2, yaw):
             return
         self._occupied.mark(centre, width / 2, depth / 2, yaw)
+        self._last_built = True
         glass = {"downtown": 0.25, "industrial": 0.02}.get(style, 0.08) * rng.uniform(0.5, 1.5)
         mat = Material(rng.uniform(0.12, 0.6), glass)
         b.box(centre, width, depth, yaw, 0.0, height, mat)
@@ -361,23 +376,33 @@ class Town:
         return False
 
     def _outskirts(self, rng: np.random.Generator) -> None:
-        """Scattered trees, sheds and a few big halls around the town."""
+        """Trees, bushes, sheds, halls and low mounds in the blocks and around the town."""
         p = self.params
         x0, y0, x1, y1 = self.bounds(margin=p.outskirts_m)
         b = self._builder()
         area = (x1 - x0) * (y1 - y0)
-        for _ in range(int(area / 400)):
+        for _ in range(int(area / 200)):
             c = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
             if self.road_clearance(c[None])[0] < 3:
                 continue
-            if rng.random() < 0.8:
+            u = rng.random()
+            if u < 0.6:
                 if self._occupied.free(c, 1.5, 1.5, 0.0):
                     _tree(rng, b, c, rng.uniform(0.7, 1.5))
+            elif u < 0.75:  # a clump of bushes
+                for _ in range(rng.integers(2, 6)):
+                    q = c + rng.normal(0, 1.5, 2)
+                    b.ellipsoid(q, rng.uniform(0.6, 1.8), 0.3, rng.uniform(0.5, 1.3),
+                                Material(rng.uniform(0.3, 0.45)), rng.uniform(0.6, 0.9))
+            elif u < 0.9:  # a low mound: the ground is not a perfect plane
+                r = rng.uniform(4, 12)
+                h = rng.uniform(0.3, 1.2)
+                b.ellipsoid(c, r, -0.3 * h, h, Material(_GRASS), 1.0)
             else:
-                w, d, yaw = rng.uniform(6, 30), rng.uniform(6, 20), rng.uniform(0, np.pi)
+                w, d, yaw = rng.uniform(4, 30), rng.uniform(4, 20), rng.uniform(0, np.pi)
                 if self._site_free(c, w / 2, d / 2, yaw):
                     self._occupied.mark(c, w / 2, d / 2, yaw)
-                    b.box(c, w, d, yaw, 0.0, rng.uniform(3, 12), Material(rng.uniform(0.15, 0.5)))
+                    b.box(c, w, d, yaw, 0.0, rng.uniform(2.5, 12), Material(rng.uniform(0.15, 0.5)))
         self.static.extend(b.prims)
 
     # -- sessions -------------------------------------------------------------
@@ -428,7 +453,7 @@ class Town:
             gy = y0 + (np.arange(j0, j1) + 0.5) * cell
             return slice(i0, i1), slice(j0, j1), gx[:, None], gy[None, :]
 
-        asphalt, paint = round(0.09 * 255), round(0.6 * 255)
+        asphalt, paint = round(0.2 * 255), round(0.75 * 255)
         for n, node in enumerate(self.nodes):
             r = self.node_clear[n] - 1.0
             si, sj, gx, gy = window(node[0], node[1], r)
@@ -499,10 +524,10 @@ def _tree(rng: np.random.Generator, b: _Builder, c: np.ndarray, size: float) -> 
     """A trunk and a partly see-through crown (sometimes two lobes)."""
     trunk_h = rng.uniform(1.8, 3.5) * size
     b.cylinder(c, rng.uniform(0.12, 0.3) * size, 0.0, trunk_h + 0.5, Material(0.35))
-    radius = rng.uniform(1.5, 3.5) * size
+    radius = rng.uniform(2.0, 4.5) * size
     half_h = radius * rng.uniform(0.8, 1.5)
-    prob = rng.uniform(0.3, 0.6)
-    b.ellipsoid(c, radius, trunk_h + half_h * 0.8, half_h, Material(rng.uniform(0.3, 0.5)), prob)
+    prob = rng.uniform(0.45, 0.8)
+    b.ellipsoid(c, radius, trunk_h + half_h * 0.8, half_h, Material(rng.uniform(0.4, 0.6)), prob)
     if rng.random() < 0.3:
         off = rng.normal(0, radius * 0.4, 2)
         b.ellipsoid(c + off, radius * 0.7, trunk_h + half_h * 1.6, half_h * 0.6,
