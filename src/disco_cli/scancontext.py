@@ -4,9 +4,14 @@ Written from the paper's description. The descriptor is the 20 x 60 polar max-he
 image (rings x sectors, 80 m): each cell holds the height of its highest point above
 `z_min` (0 when empty), which is `polar_bev` in `max_height` mode. Search has two steps:
 
-1. the ring key, the fraction of occupied cells in each ring, is rotation-invariant
-   and serves as the signature: the database returns the `rerank_candidates` nearest
-   ring keys (Euclidean);
+1. the ring key, one number per ring, is rotation-invariant and serves as the
+   signature: the database returns the `rerank_candidates` nearest ring keys
+   (Euclidean). The paper's ring key is each ring's occupancy (the fraction of
+   non-empty cells); ours is by default each ring's mean cell height, because with the
+   ground inside the height window nearly every cell is occupied and occupancy stops
+   telling places apart: on a held-out simulated world (docs/results.md) the true
+   place was among the 10 nearest occupancy keys for 78 % of the queries, among the
+   10 nearest mean keys for 100 %. `ring_key="occupancy"` gives the paper's;
 2. `rerank` compares the full descriptors with the column-shift cosine distance
 
        d(Q, C) = min over n of  mean over columns j of  1 - cos(Q[:, j], C[:, j - n])
@@ -36,6 +41,7 @@ MAX_RANGE = 80.0
 Z_MIN = -2.0
 Z_MAX = 38.0
 CANDIDATES = 10
+RING_KEYS = ("mean", "occupancy")
 
 
 def _default_bev_config() -> Any:
@@ -53,10 +59,15 @@ def _default_bev_config() -> Any:
     )
 
 
-def ring_keys(descriptors: np.ndarray) -> np.ndarray:
-    """[B, R] float32: the fraction of non-empty cells in each ring of [B, R, S] descriptors."""
-    d = np.asarray(descriptors)
-    return (d > 0).mean(axis=-1, dtype=np.float64).astype(np.float32)
+def ring_keys(descriptors: np.ndarray, kind: str = "mean") -> np.ndarray:
+    """[B, R] float32 ring keys of [B, R, S] descriptors: each ring's mean cell height
+    (`mean`) or its fraction of non-empty cells (`occupancy`, the paper's)."""
+    d = np.asarray(descriptors, dtype=np.float64)
+    if kind == "mean":
+        return d.mean(axis=-1).astype(np.float32)
+    if kind == "occupancy":
+        return (d > 0).mean(axis=-1).astype(np.float32)
+    raise ValueError(f"unknown ring key {kind!r} (known: {', '.join(RING_KEYS)})")
 
 
 def _unit_columns(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,12 +124,15 @@ class ScanContextModel:
 
     rerank_candidates = CANDIDATES
 
-    def __init__(self, bev_config: Any = None, rerank_candidates: int = CANDIDATES):
+    def __init__(self, bev_config: Any = None, rerank_candidates: int = CANDIDATES, ring_key: str = "mean"):
         self.name = "scancontext"
         self.bev_config = bev_config if bev_config is not None else _default_bev_config()
         if self.bev_config.mode != "max_height" or self.bev_config.heights != 1:
             raise ValueError("Scan Context needs a single-layer max_height BEV")
+        if ring_key not in RING_KEYS:
+            raise ValueError(f"unknown ring key {ring_key!r} (known: {', '.join(RING_KEYS)})")
         self.rerank_candidates = int(rerank_candidates)
+        self.ring_key = ring_key
         blob = json.dumps(self.config_dict(), sort_keys=True).encode()
         self.fingerprint = hashlib.sha256(blob).hexdigest()[:16]
 
@@ -127,6 +141,7 @@ class ScanContextModel:
             "model": self.name,
             "kind": "scancontext",
             "rerank_candidates": self.rerank_candidates,
+            "ring_key": self.ring_key,
             "bev_config": self.bev_config.to_dict(),
         }
 
@@ -137,7 +152,7 @@ class ScanContextModel:
         if b.ndim != 4 or b.shape[1:] != want:
             raise ValueError(f"bevs must be [B, {want[0]}, {want[1]}, {want[2]}], got {b.shape}")
         features = np.ascontiguousarray(b[:, 0])
-        return ring_keys(features), features
+        return ring_keys(features, self.ring_key), features
 
     def rerank(self, query_features: np.ndarray, candidate_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(column-shift cosine distances [K] in [0, 2], yaw_deg [K]) of the candidates."""
