@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -184,24 +185,35 @@ def simulate(
     dirs = spec.directions()
     total, done = sessions * frames, 0
     batch = 8
-    for k, plan in enumerate(plans):
-        world = town.session_world(k)
-        folder = out / plan.name
-        (folder / "velodyne").mkdir(parents=True, exist_ok=True)
-        for start in range(0, frames, batch):
-            idx = np.arange(start, min(start + batch, frames))
-            seeds = np.array([_scan_seed(seed, k, int(i)) for i in idx], np.uint64)
-            ranges, ids, cosi = cast(world, plan.poses[idx], spec, seeds, threads)
-            for j, i in enumerate(idx):
-                rng = np.random.default_rng([seed, 9, k, int(i)])
-                pts = finish_scan(rng, spec, dirs, plan.poses[i], ranges[j], ids[j], cosi[j],
-                                  world, town)
-                pts.tofile(folder / "velodyne" / f"{i:06d}.bin")
-                done += 1
-                if on_scan is not None:
-                    on_scan(done, total)
-        write_kitti_poses(folder / "poses.txt", plan.poses)
-        write_times(folder / "times.txt", plan.times)
+    town.ground_reflectivity(np.zeros((1, 2)))  # paint the ground before the workers start
+    # Cast the next batch (C++, GIL released) while NumPy finishes this one.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for k, plan in enumerate(plans):
+            world = town.session_world(k)
+            folder = out / plan.name
+            (folder / "velodyne").mkdir(parents=True, exist_ok=True)
+            batches = [np.arange(a, min(a + batch, frames)) for a in range(0, frames, batch)]
+
+            def submit(idx: np.ndarray, world: SessionWorld = world, k: int = k,
+                       plan: SimulatedSession = plan) -> Future:
+                seeds = np.array([_scan_seed(seed, k, int(i)) for i in idx], np.uint64)
+                return pool.submit(cast, world, plan.poses[idx], spec, seeds, threads)
+
+            pending = submit(batches[0])
+            for b, idx in enumerate(batches):
+                ranges, ids, cosi = pending.result()
+                if b + 1 < len(batches):
+                    pending = submit(batches[b + 1])
+                for j, i in enumerate(idx):
+                    rng = np.random.default_rng([seed, 9, k, int(i)])
+                    pts = finish_scan(rng, spec, dirs, plan.poses[i], ranges[j], ids[j], cosi[j],
+                                      world, town)
+                    pts.tofile(folder / "velodyne" / f"{i:06d}.bin")
+                    done += 1
+                    if on_scan is not None:
+                        on_scan(done, total)
+            write_kitti_poses(folder / "poses.txt", plan.poses)
+            write_times(folder / "times.txt", plan.times)
 
     meta = {
         "format": FORMAT,

@@ -114,6 +114,7 @@ class Town:
         self.static = _Prims()
         self._texture: tuple[float, float, float, np.ndarray] | None = None
         self._last_built = False  # whether the last lot got a building
+        self._seg: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._changeable: list[tuple[float, _Prims]] = []  # (presence probability, things)
         self._parking: list[tuple[np.ndarray, float, float]] = []  # (x y, yaw, occupancy)
         self._occupied = _Occupancy(self.bounds(margin=p.outskirts_m + 10))
@@ -180,13 +181,17 @@ class Town:
         Negative inside a road or its sidewalks.
         """
         xy = np.atleast_2d(xy)
-        best = np.full(len(xy), np.inf)
-        for s in self.streets:
-            d = _segment_distance(xy, s.a, s.b) - s.half_width - s.sidewalk
-            best = np.minimum(best, d)
-        for n, node in enumerate(self.nodes):
-            best = np.minimum(best, np.hypot(*(xy - node).T) - self.node_clear[n])
-        return best
+        if self._seg is None:
+            a = np.array([s.a for s in self.streets])
+            v = np.array([s.b - s.a for s in self.streets])
+            w = np.array([s.half_width + s.sidewalk for s in self.streets])
+            self._seg = (a, v, w)
+        a, v, w = self._seg
+        rel = xy[:, None, :] - a[None]  # [M, S, 2]
+        t = np.clip((rel * v).sum(-1) / (v * v).sum(-1), 0.0, 1.0)
+        d_street = np.hypot(*(rel - t[..., None] * v).transpose(2, 0, 1)) - w
+        d_node = np.hypot(*(xy[:, None, :] - self.nodes[None]).transpose(2, 0, 1)) - self.node_clear
+        return np.minimum(d_street.min(axis=1), d_node.min(axis=1))
 
     # -- scenery --------------------------------------------------------------
     def _builder(self) -> _Builder:
@@ -446,9 +451,12 @@ class Town:
         tex = np.full((int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1),
                       round(_GRASS * 255), np.uint8)
 
-        def window(cx: float, cy: float, r: float) -> tuple[slice, slice, np.ndarray, np.ndarray]:
-            i0, i1 = max(0, int((cx - r - x0) / cell)), min(tex.shape[0], int((cx + r - x0) / cell) + 1)
-            j0, j1 = max(0, int((cy - r - y0) / cell)), min(tex.shape[1], int((cy + r - y0) / cell) + 1)
+        def window(cx: float, cy: float, rx: float,
+                   ry: float) -> tuple[slice, slice, np.ndarray, np.ndarray]:
+            i0 = max(0, int((cx - rx - x0) / cell))
+            i1 = min(tex.shape[0], int((cx + rx - x0) / cell) + 1)
+            j0 = max(0, int((cy - ry - y0) / cell))
+            j1 = min(tex.shape[1], int((cy + ry - y0) / cell) + 1)
             gx = x0 + (np.arange(i0, i1) + 0.5) * cell
             gy = y0 + (np.arange(j0, j1) + 0.5) * cell
             return slice(i0, i1), slice(j0, j1), gx[:, None], gy[None, :]
@@ -456,11 +464,12 @@ class Town:
         asphalt, paint = round(0.2 * 255), round(0.75 * 255)
         for n, node in enumerate(self.nodes):
             r = self.node_clear[n] - 1.0
-            si, sj, gx, gy = window(node[0], node[1], r)
+            si, sj, gx, gy = window(node[0], node[1], r, r)
             tex[si, sj][np.hypot(gx - node[0], gy - node[1]) < r] = asphalt
         for s in self.streets:
             mid = (s.a + s.b) / 2
-            si, sj, gx, gy = window(mid[0], mid[1], s.length / 2 + s.half_width)
+            ext = np.abs(s.dir) * s.length / 2 + np.abs(s.left) * s.half_width
+            si, sj, gx, gy = window(mid[0], mid[1], ext[0], ext[1])
             along = (gx - s.a[0]) * s.dir[0] + (gy - s.a[1]) * s.dir[1]
             across = (gx - s.a[0]) * s.left[0] + (gy - s.a[1]) * s.left[1]
             road = (along > 0) & (along < s.length) & (np.abs(across) < s.half_width)
