@@ -283,66 +283,98 @@ void fast_codes_xyzw(const float* rows, int n, const Binning& b, const SimdBinni
 
 DISCO_AVX2_FMA inline __m256 select8(__m256 mask, __m256 a, __m256 b) { return _mm256_blendv_ps(b, a, mask); }
 
-DISCO_AVX2_FMA inline __m256 index8(__m256 a, float n, float margin, __m256& ok) {
-    const __m256 nn = _mm256_set1_ps(n);
-    const __m256 clamped = _mm256_min_ps(_mm256_max_ps(a, _mm256_setzero_ps()), nn);  // NaN -> 0
-    const __m256 i = _mm256_round_ps(clamped, _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC);
+// The constants of codes8, broadcast once per chunk (held in registers, not
+// reloaded from a Binning that the compiler must assume the code stores alias).
+struct Binning8 {
+    __m256 ring_scale, sector_scale, height_scale, z_min;
+    __m256 ring_lo, ring_hi, ring_max_out, height_lo_out, height_max_out;
+    __m256 rings, sectors, heights;
+    __m256 ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin, height_margin_hi;
+
+    DISCO_AVX2_FMA explicit Binning8(const Binning& b)
+        : ring_scale(_mm256_set1_ps(b.ring_scale)),
+          sector_scale(_mm256_set1_ps(b.sector_scale)),
+          height_scale(_mm256_set1_ps(b.height_scale)),
+          z_min(_mm256_set1_ps(b.z_min_f)),
+          ring_lo(_mm256_set1_ps(b.ring_min - b.ring_margin)),
+          ring_hi(_mm256_set1_ps(b.ring_min + b.ring_margin)),
+          ring_max_out(_mm256_set1_ps(b.rings_f + b.ring_margin)),
+          height_lo_out(_mm256_set1_ps(-b.height_margin)),
+          height_max_out(_mm256_set1_ps(b.heights_f + b.height_margin)),
+          rings(_mm256_set1_ps(b.rings_f)),
+          sectors(_mm256_set1_ps(static_cast<float>(b.sectors))),
+          heights(_mm256_set1_ps(b.heights_f)),
+          ring_margin(_mm256_set1_ps(b.ring_margin)),
+          ring_margin_hi(_mm256_set1_ps(1.0f - b.ring_margin)),
+          sector_margin(_mm256_set1_ps(b.sector_margin)),
+          sector_margin_hi(_mm256_set1_ps(1.0f - b.sector_margin)),
+          height_margin(_mm256_set1_ps(b.height_margin)),
+          height_margin_hi(_mm256_set1_ps(1.0f - b.height_margin)) {}
+};
+
+// trunc(a) and the mask of lanes where it is certainly the cell index. No clamp is
+// needed: a negative, NaN or huge `a` gives frac <= 0 or NaN, so the lane is not ok,
+// and a lane with a too large is dropped (codes8 lets drop win over ok).
+DISCO_AVX2_FMA inline __m256 index8(__m256 a, __m256 margin, __m256 margin_hi, __m256& ok) {
+    const __m256 i = _mm256_round_ps(a, _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC);
     const __m256 frac = _mm256_sub_ps(a, i);
-    ok = _mm256_and_ps(_mm256_cmp_ps(a, nn, _CMP_LT_OQ),
-                       _mm256_and_ps(_mm256_cmp_ps(frac, _mm256_set1_ps(margin), _CMP_GT_OQ),
-                                     _mm256_cmp_ps(frac, _mm256_set1_ps(1.0f - margin), _CMP_LT_OQ)));
+    ok = _mm256_and_ps(_mm256_cmp_ps(frac, margin, _CMP_GT_OQ), _mm256_cmp_ps(frac, margin_hi, _CMP_LT_OQ));
     return i;
 }
 
-DISCO_AVX2_FMA inline __m256i codes8(__m256 x, __m256 y, __m256 z, const Binning& b) {
-    const __m256 zero = _mm256_setzero_ps();
+DISCO_AVX2_FMA inline __m256i codes8(__m256 x, __m256 y, __m256 z, const Binning8& s) {
     const __m256 r2 = _mm256_fmadd_ps(x, x, _mm256_mul_ps(y, y));
-    const __m256 a_ring = _mm256_mul_ps(_mm256_sqrt_ps(r2), _mm256_set1_ps(b.ring_scale));
-    const __m256 a_height = _mm256_mul_ps(_mm256_sub_ps(z, _mm256_set1_ps(b.z_min_f)), _mm256_set1_ps(b.height_scale));
+    const __m256 a_ring = _mm256_mul_ps(_mm256_sqrt_ps(r2), s.ring_scale);
+    const __m256 a_height = _mm256_mul_ps(_mm256_sub_ps(z, s.z_min), s.height_scale);
 
     const __m256 abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
     const __m256 ax = _mm256_and_ps(x, abs_mask);
     const __m256 ay = _mm256_and_ps(y, abs_mask);
     const __m256 t = _mm256_div_ps(_mm256_min_ps(ax, ay), _mm256_max_ps(ax, ay));
     const __m256 u = _mm256_mul_ps(t, t);
-    __m256 p = _mm256_fmadd_ps(_mm256_set1_ps(kA6), u, _mm256_set1_ps(kA5));
-    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA4));
-    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA3));
-    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA2));
-    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA1));
-    p = _mm256_fmadd_ps(p, u, _mm256_set1_ps(kA0));
-    p = _mm256_mul_ps(p, t);
+    // Estrin's scheme: a shorter dependency chain than Horner's, so more points are
+    // in flight at once.
+    const __m256 u2 = _mm256_mul_ps(u, u);
+    const __m256 u4 = _mm256_mul_ps(u2, u2);
+    const __m256 q01 = _mm256_fmadd_ps(_mm256_set1_ps(kA1), u, _mm256_set1_ps(kA0));
+    const __m256 q23 = _mm256_fmadd_ps(_mm256_set1_ps(kA3), u, _mm256_set1_ps(kA2));
+    const __m256 q45 = _mm256_fmadd_ps(_mm256_set1_ps(kA5), u, _mm256_set1_ps(kA4));
+    const __m256 q456 = _mm256_fmadd_ps(_mm256_set1_ps(kA6), u2, q45);
+    const __m256 q0123 = _mm256_fmadd_ps(q23, u2, q01);
+    const __m256 p = _mm256_mul_ps(_mm256_fmadd_ps(q456, u4, q0123), t);
     __m256 theta = select8(_mm256_cmp_ps(ay, ax, _CMP_GT_OQ),
                            _mm256_sub_ps(_mm256_set1_ps(static_cast<float>(kPi / 2.0)), p), p);
-    theta = select8(_mm256_cmp_ps(x, zero, _CMP_LT_OQ),
-                    _mm256_sub_ps(_mm256_set1_ps(static_cast<float>(kPi)), theta), theta);
-    theta = select8(_mm256_cmp_ps(y, zero, _CMP_LT_OQ),
-                    _mm256_sub_ps(_mm256_set1_ps(static_cast<float>(kTwoPi)), theta), theta);
-    const __m256 a_sector = _mm256_mul_ps(theta, _mm256_set1_ps(b.sector_scale));
+    // blendv reads only the sign bit, so x and y serve as their own masks (a -0.0
+    // lands on an edge, which the margins send to the exact path).
+    theta = select8(x, _mm256_sub_ps(_mm256_set1_ps(static_cast<float>(kPi)), theta), theta);
+    theta = select8(y, _mm256_sub_ps(_mm256_set1_ps(static_cast<float>(kTwoPi)), theta), theta);
+    const __m256 a_sector = _mm256_mul_ps(theta, s.sector_scale);
 
     __m256 ok_ring, ok_sector, ok_height;
-    const __m256 ring = index8(a_ring, b.rings_f, b.ring_margin, ok_ring);
-    const __m256 sector = index8(a_sector, static_cast<float>(b.sectors), b.sector_margin, ok_sector);
-    const __m256 height = index8(a_height, b.heights_f, b.height_margin, ok_height);
-    const __m256 ring_in = _mm256_cmp_ps(a_ring, _mm256_set1_ps(b.ring_min + b.ring_margin), _CMP_GT_OQ);
+    const __m256 ring = index8(a_ring, s.ring_margin, s.ring_margin_hi, ok_ring);
+    // theta <= 2 pi (+ float error), so a_sector > sectors only right at the edge,
+    // where frac < margin: no separate bound is needed.
+    const __m256 sector = index8(a_sector, s.sector_margin, s.sector_margin_hi, ok_sector);
+    const __m256 height = index8(a_height, s.height_margin, s.height_margin_hi, ok_height);
+    const __m256 ring_in = _mm256_cmp_ps(a_ring, s.ring_hi, _CMP_GT_OQ);
     const __m256 ok = _mm256_and_ps(_mm256_and_ps(ok_ring, ring_in), _mm256_and_ps(ok_sector, ok_height));
     const __m256 drop = _mm256_or_ps(
-        _mm256_or_ps(_mm256_cmp_ps(a_ring, _mm256_set1_ps(b.ring_min - b.ring_margin), _CMP_LT_OQ),
-                     _mm256_cmp_ps(a_ring, _mm256_set1_ps(b.rings_f + b.ring_margin), _CMP_GT_OQ)),
-        _mm256_or_ps(_mm256_cmp_ps(a_height, _mm256_set1_ps(-b.height_margin), _CMP_LT_OQ),
-                     _mm256_cmp_ps(a_height, _mm256_set1_ps(b.heights_f + b.height_margin), _CMP_GT_OQ)));
-    const __m256 cell_f = _mm256_fmadd_ps(_mm256_fmadd_ps(height, _mm256_set1_ps(b.rings_f), ring),
-                                          _mm256_set1_ps(static_cast<float>(b.sectors)), sector);
+        _mm256_or_ps(_mm256_cmp_ps(a_ring, s.ring_lo, _CMP_LT_OQ), _mm256_cmp_ps(a_ring, s.ring_max_out, _CMP_GT_OQ)),
+        _mm256_or_ps(_mm256_cmp_ps(a_height, s.height_lo_out, _CMP_LT_OQ),
+                     _mm256_cmp_ps(a_height, s.height_max_out, _CMP_GT_OQ)));
+    const __m256 cell_f = _mm256_fmadd_ps(_mm256_fmadd_ps(height, s.rings, ring), s.sectors, sector);
     const __m256i cell = _mm256_cvttps_epi32(cell_f);
-    const __m256i other = _mm256_sub_epi32(_mm256_set1_epi32(kExact), _mm256_castps_si256(drop));
-    return _mm256_blendv_epi8(other, cell, _mm256_castps_si256(ok));
+    // ok ? cell : kExact, then kDrop (all ones) wherever surely outside.
+    const __m256i code = _mm256_blendv_epi8(_mm256_set1_epi32(kExact), cell, _mm256_castps_si256(ok));
+    return _mm256_or_si256(code, _mm256_castps_si256(drop));
 }
 
 DISCO_AVX2_FMA void fast_codes_simd8(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
                                      int32_t* codes) {
+    const Binning8 s(b);
     int i = 0;
     for (; i + 8 <= n; i += 8) {
-        const __m256i c = codes8(_mm256_load_ps(xs + i), _mm256_load_ps(ys + i), _mm256_load_ps(zs + i), b);
+        const __m256i c = codes8(_mm256_load_ps(xs + i), _mm256_load_ps(ys + i), _mm256_load_ps(zs + i), s);
         _mm256_store_si256(reinterpret_cast<__m256i*>(codes + i), c);
     }
     if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
@@ -351,6 +383,7 @@ DISCO_AVX2_FMA void fast_codes_simd8(const float* xs, const float* ys, const flo
 DISCO_AVX2_FMA void fast_codes_xyzw8(const float* rows, int n, const Binning& b, int32_t* codes) {
     // Lanes come out as points 0 2 4 6 | 1 3 5 7; this puts them back in order.
     const __m256i unshuffle = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+    const Binning8 s(b);
     int i = 0;
     for (; i + 8 <= n; i += 8) {
         const float* r = rows + 4 * i;
@@ -365,7 +398,7 @@ DISCO_AVX2_FMA void fast_codes_xyzw8(const float* rows, int n, const Binning& b,
         const __m256 x = _mm256_shuffle_ps(lo01, lo23, _MM_SHUFFLE(1, 0, 1, 0));
         const __m256 y = _mm256_shuffle_ps(lo01, lo23, _MM_SHUFFLE(3, 2, 3, 2));
         const __m256 z = _mm256_shuffle_ps(hi01, hi23, _MM_SHUFFLE(1, 0, 1, 0));
-        const __m256i c = _mm256_permutevar8x32_epi32(codes8(x, y, z, b), unshuffle);
+        const __m256i c = _mm256_permutevar8x32_epi32(codes8(x, y, z, s), unshuffle);
         _mm256_store_si256(reinterpret_cast<__m256i*>(codes + i), c);
     }
     for (; i < n; ++i) {
