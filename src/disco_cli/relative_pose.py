@@ -52,6 +52,9 @@ class PoseConfig:
     min_fitness: float = 0.3  # inlier ratio over non-ground query points
     max_rmse: float = 0.3  # m, point-to-plane, over the inliers
     min_points: int = 100  # fewer downsampled points than this: rejected
+    # Reject without the fine stages when the best coarse fitness is below this: a
+    # wrong place never gets there, and refining it would cost most of the time.
+    early_reject_fitness: float = 0.15
 
     def __post_init__(self) -> None:
         positive = ("bev_cell", "bev_extent", "max_translation", "source_voxel", "target_voxel",
@@ -67,8 +70,10 @@ class PoseConfig:
             raise PoseError(
                 "pose config: max_iterations, hypothesis_iterations and min_points must be >= 1"
             )
-        if not 0.0 <= self.min_fitness <= 1.0:
-            raise PoseError(f"pose config: min_fitness must lie in [0, 1], not {self.min_fitness}")
+        for name in ("min_fitness", "early_reject_fitness"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise PoseError(f"pose config: {name} must lie in [0, 1], not {value}")
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -236,6 +241,8 @@ def estimate_relative_pose(
         if best is None or coarse.fitness > best.fitness:
             best = coarse
     assert best is not None
+    if best.fitness < config.early_reject_fitness:
+        return _result(np.array(best.transform), best.fitness, best.rmse, config)
     best = target.align(source, np.array(best.transform), 1 if len(config.stages) > 1 else 0, -1)
     return _result(np.array(best.transform), best.fitness, best.rmse, config)
 

@@ -35,11 +35,13 @@ NeighborGrid::NeighborGrid(const Points3d& points, double radius)
     for (std::size_t s = 0; s < count.size(); ++s) start_[s + 1] = start_[s] + count[s];
     std::vector<int> fill(start_.begin(), start_.end() - 1);
     order_.resize(points.size());
-    for (std::size_t i = 0; i < points.size(); ++i) order_[fill[slot_of[i]]++] = static_cast<int>(i);
+    for (std::size_t i = 0; i < points.size(); ++i)
+        order_[fill[slot_of[i]]++] = static_cast<int>(i);
 }
 
 template <typename Visit>
-void NeighborGrid::visit_cells(const Eigen::Vector3d& q, const double* bound2, Visit&& visit) const {
+void NeighborGrid::visit_cells(const Eigen::Vector3d& q, const double* bound2,
+                               Visit&& visit) const {
     // Cells have edge r, so the ball of radius r around q lies in the 3 x 3 x 3
     // block around q's cell. q's own cell goes first; a neighbour is skipped when
     // its box is farther from q than *bound2 (which `visit` may shrink).
