@@ -34,7 +34,8 @@ class SignatureIndex:
     """Signatures `[N, D]` held once as one float32 matrix, searched exactly.
 
     `search` takes, per query, an optional `limit` (only rows `< limit` count, for
-    online loop detection) and an optional boolean `exclude` mask over rows.
+    online loop detection) and an optional boolean `exclude` mask over rows. Besides
+    the matrix it holds one float32 norm per row.
     """
 
     def __init__(self, signatures: np.ndarray):
@@ -45,7 +46,7 @@ class SignatureIndex:
         self.matrix = np.ascontiguousarray(sig, dtype=np.float32)
         if not np.isfinite(self.matrix).all():
             raise ValueError("signatures must be finite")
-        self.sq_norms = np.einsum("ij,ij->i", self.matrix, self.matrix, dtype=np.float64)
+        self.sq_norms = np.einsum("ij,ij->i", self.matrix, self.matrix, dtype=np.float32)
         self._max_norm = float(np.sqrt(self.sq_norms.max())) if len(self.matrix) else 0.0
 
     def __len__(self) -> int:
@@ -68,9 +69,11 @@ class SignatureIndex:
         """
         q = np.asarray(queries, dtype=np.float32)
         single = q.ndim == 1
-        q = np.atleast_2d(q)
+        q = np.ascontiguousarray(np.atleast_2d(q))
         if q.shape[1] != self.dim:
             raise ValueError(f"queries must be [B, {self.dim}], got {q.shape}")
+        if not np.isfinite(q).all():
+            raise ValueError("queries must be finite")
         b, n = len(q), len(self.matrix)
         if limit is not None:
             limit = np.broadcast_to(np.asarray(limit, dtype=np.int64), (b,))
@@ -87,44 +90,48 @@ class SignatureIndex:
         step = max(1, _BLOCK_ELEMS // max(n, 1))
         for s in range(0, b, step):
             qs = q[s:s + step]
-            # [n, bs]: one BLAS call for the whole block of queries.
-            dots = self.matrix @ qs.T
+            # [n, bs]: one BLAS call for the whole block of queries (a matrix-vector
+            # product for one query).
+            dots = self.matrix @ qs[0] if len(qs) == 1 else self.matrix @ qs.T
+            dots = dots.reshape(n, len(qs))
             for j in range(len(qs)):
                 i = s + j
                 lim = n if limit is None else int(min(max(limit[i], 0), n))
                 ex = None if exclude is None else exclude[i, :lim]
-                r, d = self._topk_one(q[i], dots[:lim, j], lim, k, ex)
+                r, d = self._topk(q[i], dots[:lim, j], lim, k, ex)
                 rows[i, :len(r)] = r
                 dists[i, :len(d)] = d
         return (rows[0], dists[0]) if single else (rows, dists)
 
-    def _topk_one(
+    def _exact(self, q: np.ndarray, cand: np.ndarray) -> np.ndarray:
+        diff = self.matrix[cand].astype(np.float64) - q.astype(np.float64)
+        return np.einsum("ij,ij->i", diff, diff)
+
+    def _topk(
         self, q: np.ndarray, dots: np.ndarray, lim: int, k: int, exclude: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray]:
         if lim == 0:
             return np.empty(0, np.int64), np.empty(0)
-        q_sq = float(np.dot(q.astype(np.float64), q.astype(np.float64)))
-        approx = self.sq_norms[:lim] + (q_sq - 2.0 * dots.astype(np.float64))
+        q_sq = float(np.dot(q, q))
+        approx = self.sq_norms[:lim] - 2.0 * dots
+        approx += np.float32(q_sq)
+        valid = lim
         if exclude is not None:
             approx[exclude] = np.inf
-            valid = lim - int(np.count_nonzero(exclude))
-        else:
-            valid = lim
+            valid -= int(np.count_nonzero(exclude))
         kk = min(k, valid)
         if kk <= 0:
             return np.empty(0, np.int64), np.empty(0)
-        if kk < lim:
-            part = np.argpartition(approx, kk - 1)[:kk]
-        else:
-            part = np.flatnonzero(np.isfinite(approx))
-        kth = float(approx[part].max())
-        # Worst-case rounding of a float32 dot product of length D is D*eps*|q||d|; the
-        # squared norms are float64. Everything within twice that of the k-th is rechecked.
+        part = np.argpartition(approx, kk - 1)[:kk] if kk < lim else np.arange(lim)
+        kth = float(approx[part][np.isfinite(approx[part])].max())
+        # Worst-case rounding: D*eps*|q||d| for a float32 dot product of length D, and
+        # eps*(|q| + |d|)^2 for the float32 sums. Whatever lies within twice that of the
+        # k-th is re-measured exactly.
         qn = np.sqrt(q_sq)
-        tol = 2.0 * (2.0 * self.dim * _EPS32 * qn * self._max_norm) + 1e-12
+        tol = 2.0 * (2.0 * self.dim * _EPS32 * qn * self._max_norm
+                     + 4.0 * _EPS32 * (qn + self._max_norm) ** 2) + 1e-30
         cand = np.flatnonzero(approx <= kth + tol)
-        diff = self.matrix[cand].astype(np.float64) - q.astype(np.float64)
-        exact = np.einsum("ij,ij->i", diff, diff)
+        exact = self._exact(q, cand)
         order = np.lexsort((cand, exact))[:kk]
         return cand[order], np.sqrt(exact[order])
 

@@ -1,0 +1,132 @@
+"""build-db throughput: scans/s of `disco build-db` on 30k-point scans.
+
+    .venv/bin/python benchmarks/bench_build_db.py [--scans 300] [--model default]
+
+The `default` model when its weights are shipped; until then a checkpoint of the same
+architecture with untrained weights (the same compute). Scans are written to a temp
+folder first (30k points each: boxes and poles around the sensor). Measured:
+
+1. `disco build-db` as a user runs it (fresh process; the rate it prints covers
+   reading, voxelizing, the network and writing, overlapped), for --workers 1 and 2;
+2. the baseline in this process: the same stages one after the other, no overlap.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_query import synthetic_scan  # noqa: E402
+
+
+def model_arg(name: str, tmp: Path) -> tuple[str, str]:
+    """The --model argument to use, and what it is."""
+    from disco_cli.model import DEFAULT_WEIGHTS
+
+    if name != "default" or DEFAULT_WEIGHTS.is_file():
+        return name, name
+    from disco_cli.bev import BEVConfig
+    from disco_cli.model.checkpoint import save_checkpoint
+    from disco_cli.model.disco import build_net, default_model_config
+
+    bev = BEVConfig()
+    cfg = default_model_config(bev.heights)
+    path = tmp / "untrained-default.pt"
+    save_checkpoint(path, {"state_dict": build_net(cfg).state_dict(), "bev_config": bev.to_dict(),
+                           "model_config": cfg, "command": "bench_build_db"})
+    return str(path), "default architecture, untrained weights (no shipped weights yet)"
+
+
+def run_cli(scans: Path, out: Path, model: str, workers: int, batch: int) -> tuple[float, float]:
+    exe = Path(sys.executable).parent / "disco"
+    t = time.perf_counter()
+    proc = subprocess.run(
+        [str(exe), "build-db", str(scans), "-o", str(out), "--model", model,
+         "--workers", str(workers), "--batch", str(batch)],
+        capture_output=True, text=True, check=True,
+    )
+    wall = time.perf_counter() - t
+    m = re.search(r"\(([\d.]+) scans/s\)", proc.stderr)
+    return float(m.group(1)) if m else float("nan"), wall
+
+
+def serial_baseline(paths: list[Path], model_name: str, batch: int, out: Path) -> dict:
+    from disco_cli.bev import polar_bev
+    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.model import load_model
+    from disco_cli.readers import read_scan
+
+    model = load_model(model_name)
+    info = ModelInfo.of(model)
+    t_read = t_bev = t_net = t_write = 0.0
+    db = None
+    start = time.perf_counter()
+    for s in range(0, len(paths), batch):
+        chunk = paths[s:s + batch]
+        t0 = time.perf_counter()
+        pts = [read_scan(p) for p in chunk]
+        t1 = time.perf_counter()
+        bevs = np.stack([polar_bev(p, model.bev_config) for p in pts])
+        t2 = time.perf_counter()
+        sigs, feats = model.embed(bevs)
+        t3 = time.perf_counter()
+        b = ScanBatch([str(p) for p in chunk], sigs, feats)
+        if db is None:
+            db = Database.create(out, info, b)
+        else:
+            db.append(b)
+        t4 = time.perf_counter()
+        t_read += t1 - t0
+        t_bev += t2 - t1
+        t_net += t3 - t2
+        t_write += t4 - t3
+    db.close()
+    total = time.perf_counter() - start
+    n = len(paths)
+    return {"rate": n / total, "read_ms": 1e3 * t_read / n, "bev_ms": 1e3 * t_bev / n,
+            "net_ms": 1e3 * t_net / n, "write_ms": 1e3 * t_write / n}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scans", type=int, default=300)
+    ap.add_argument("--points", type=int, default=30000)
+    ap.add_argument("--model", default="default")
+    ap.add_argument("--batch", type=int, default=32)
+    args = ap.parse_args()
+    import torch
+
+    print(f"cores: {os.cpu_count()}, torch threads: {torch.get_num_threads()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        model, what = model_arg(args.model, tmp)
+        scans = tmp / "scans"
+        scans.mkdir()
+        paths = []
+        for i in range(args.scans):
+            p = scans / f"{i:06d}.bin"
+            synthetic_scan(i, args.points).tofile(p)
+            paths.append(p)
+        print(f"{args.scans} scans of {args.points} points; model: {what}")
+        base = serial_baseline(paths, model, args.batch, tmp / "serial.db")
+        print(f"serial baseline (this process): {base['rate']:.1f} scans/s = read "
+              f"{base['read_ms']:.2f} + voxelize {base['bev_ms']:.2f} + network "
+              f"{base['net_ms']:.2f} + write {base['write_ms']:.2f} ms/scan")
+        for workers in (1, 2):
+            rate, wall = run_cli(scans, tmp / f"cli{workers}.db", model, workers, args.batch)
+            print(f"disco build-db --workers {workers} --batch {args.batch}: {rate:.1f} scans/s "
+                  f"(as printed; {args.scans / wall:.1f} scans/s including process start, "
+                  f"{wall:.1f} s wall); {rate / base['rate']:.2f}x the serial baseline")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,253 @@
+"""Query speed: search alone at 100k signatures, and streaming queries against a 10k map.
+
+    .venv/bin/python benchmarks/bench_query.py [--model spectral] [--n-search 100000]
+
+1. Search alone: `SignatureIndex.search` for one query at a time over N synthetic
+   signatures, median per query, against a plain NumPy float64 brute force in the
+   same process (the baseline), plus the memory the index holds.
+2. Streaming query: a database of 10k scans (synthetic signatures and features of the
+   model's shapes, written with the Database API) and 30k-point query scans on disk;
+   per query: read, voxelize, embed, search, yaw of the top 10; median of each stage.
+3. Time to the first result of `disco query` as a fresh process, by stage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def median_ms(ts: list[float]) -> float:
+    return float(np.median(ts)) * 1e3
+
+
+def rss_mib() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def synthetic_scan(seed: int, n: int = 30000) -> np.ndarray:
+    """Points on random boxes and a ground ring around the sensor (float32 N x 4)."""
+    rng = np.random.default_rng(seed)
+    boxes = 60
+    r = rng.uniform(4.0, 60.0, boxes)
+    a = rng.uniform(0.0, 2 * np.pi, boxes)
+    centre = np.stack([r * np.cos(a), r * np.sin(a)], 1)
+    size = rng.uniform(0.5, 6.0, (boxes, 2))
+    height = rng.uniform(0.5, 8.0, boxes)
+    k = rng.integers(0, boxes, n)
+    xy = centre[k] + (rng.random((n, 2)) - 0.5) * size[k]
+    z = rng.random(n) * height[k] - 1.7
+    return np.column_stack([xy, z, rng.random(n)]).astype(np.float32)
+
+
+def bench_search(n: int, dim: int, reps: int) -> dict:
+    from disco_cli.search import SignatureIndex, brute_force_topk
+
+    rng = np.random.default_rng(0)
+    sigs = rng.random((n, dim), dtype=np.float32)
+    queries = rng.random((reps, dim), dtype=np.float32)
+    rss0 = rss_mib()
+    t = time.perf_counter()
+    index = SignatureIndex(sigs)  # takes the matrix as is: no copy
+    build = time.perf_counter() - t
+    del sigs
+    held = rss_mib() - rss0
+    ts = []
+    for q in queries:
+        t = time.perf_counter()
+        index.search(q, 10)
+        ts.append(time.perf_counter() - t)
+    base = []
+    for q in queries[: max(3, reps // 5)]:
+        t = time.perf_counter()
+        brute_force_topk(index.matrix, q, 10)
+        base.append(time.perf_counter() - t)
+    # The same answers as the baseline (the point of an exact search).
+    for q in queries[:3]:
+        r, _ = index.search(q, 10)
+        assert (r == brute_force_topk(index.matrix, q, 10)[0]).all()
+    return {
+        "n": n, "dim": dim, "search_ms": median_ms(ts[2:]),
+        "brute_ms": median_ms(base), "sig_mib": n * dim * 4 / 2**20, "index_extra_mib": held,
+        "build_s": build,
+    }
+
+
+def build_synthetic_db(path: Path, model, n: int) -> None:
+    from disco_cli.database import Database, ModelInfo, ScanBatch
+
+    rng = np.random.default_rng(1)
+    info = ModelInfo.of(model)
+    # Shapes from one real embedding, values random: search and yaw cost the same.
+    bev = polar_bev_of(model, synthetic_scan(0, 2000))
+    sig, feat = model.embed(bev[None])
+    db = None
+    for s in range(0, n, 1000):
+        m = min(1000, n - s)
+        batch = ScanBatch(
+            [f"map/{i:06d}.bin" for i in range(s, s + m)],
+            np.abs(rng.normal(size=(m, sig.shape[1]))).astype(np.float32),
+            rng.random((m, *feat.shape[1:]), dtype=np.float32),
+        )
+        if db is None:
+            db = Database.create(path, info, batch)
+        else:
+            db.append(batch)
+    db.close()
+
+
+def polar_bev_of(model, points: np.ndarray) -> np.ndarray:
+    from disco_cli.bev import polar_bev
+
+    return polar_bev(points, model.bev_config)
+
+
+def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict:
+    from disco_cli.database import Database
+    from disco_cli.model import load_model
+    from disco_cli.readers import read_scan
+    from disco_cli.search import SignatureIndex, match_queries
+
+    model = load_model(model_name)
+    db_path = tmp / "map10k.db"
+    build_synthetic_db(db_path, model, n_map)
+    scans = []
+    for i in range(n_queries):
+        p = tmp / f"q{i:04d}.bin"
+        synthetic_scan(100 + i).tofile(p)
+        scans.append(p)
+    db = Database.open(db_path)
+    ids, sigs = db.signatures()
+    index = SignatureIndex(sigs)
+    stages = {k: [] for k in ("read", "bev", "embed", "search", "yaw_rows", "total")}
+    for p in scans:
+        t0 = time.perf_counter()
+        pts = read_scan(p)
+        t1 = time.perf_counter()
+        bev = polar_bev_of(model, pts)
+        t2 = time.perf_counter()
+        sig, feat = model.embed(bev[None])
+        t3 = time.perf_counter()
+        index.search(sig, 10)
+        t4 = time.perf_counter()
+        match_queries(index, ids, db, model, sig, feat, 10)  # search again + rows + yaw
+        t5 = time.perf_counter()
+        for k, v in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, (t5 - t4) - (t4 - t3),
+                                 (t3 - t0) + (t5 - t4))):
+            stages[k].append(v)
+    db.close()
+    return {k: median_ms(v[2:]) for k, v in stages.items()} | {"db": str(db_path), "scan": str(scans[0])}
+
+
+def bench_first_result(db: str, scan: str) -> dict:
+    """Wall time of a fresh `disco query` process, and how it splits (from -X importtime
+    is too fine; instead time the phases in a fresh interpreter)."""
+    exe = Path(sys.executable).parent / "disco"
+    t = time.perf_counter()
+    subprocess.run([str(exe), "query", scan, "--db", db, "--format", "tsv"], check=True,
+                   capture_output=True)
+    total = time.perf_counter() - t
+    code = f"""
+import time; t0 = time.perf_counter()
+import disco_cli.cli; t1 = time.perf_counter()
+import numpy; from disco_cli.model import load_model; from disco_cli.database import Database
+from disco_cli.search import SignatureIndex, match_queries; from disco_cli.pipeline import load_bev
+t2 = time.perf_counter()
+db = Database.open({db!r}); m = load_model(db.model.name); t3 = time.perf_counter()
+ids, s = db.signatures(); ix = SignatureIndex(s); t4 = time.perf_counter()
+sig, f = m.embed(load_bev({scan!r}, m.bev_config)[None]); match_queries(ix, ids, db, m, sig, f, 10)
+t5 = time.perf_counter()
+print(t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)
+"""
+    t = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    interp = time.perf_counter() - t
+    cli, imports, model, sigs, first = (float(v) for v in out.stdout.split())
+    startup = interp - (cli + imports + model + sigs + first)
+    return {"total_ms": total * 1e3, "python_ms": startup * 1e3, "cli_import_ms": cli * 1e3,
+            "imports_ms": imports * 1e3, "model_ms": model * 1e3, "signatures_ms": sigs * 1e3,
+            "first_query_ms": first * 1e3}
+
+
+def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
+    """Peak RSS of `disco query` (one query, fresh process) against n scans vs 100 scans."""
+    from disco_cli.model import load_model
+
+    model = load_model(model_name)
+    scan = tmp / "mq.bin"
+    synthetic_scan(7).tofile(scan)
+    exe = Path(sys.executable).parent / "disco"
+    out = {}
+    for rows in (100, n):
+        db = tmp / f"mem{rows}.db"
+        build_synthetic_db(db, model, rows)
+        code = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, "
+                "stdout=subprocess.DEVNULL); "
+                "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+        res = subprocess.run([sys.executable, "-c", code, str(exe), "query", str(scan), "--db",
+                              str(db)], capture_output=True, text=True, check=True)
+        out[rows] = int(res.stdout.split()[-1]) / 1024
+        out[f"size{rows}"] = db.stat().st_size / 2**20
+        sig_dim = 1024
+        db.unlink()
+    out["sig_mib"] = n * sig_dim * 4 / 2**20
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default="spectral")
+    ap.add_argument("--n-search", type=int, default=100_000)
+    ap.add_argument("--dim", type=int, default=1024)
+    ap.add_argument("--n-map", type=int, default=10_000)
+    ap.add_argument("--queries", type=int, default=30)
+    ap.add_argument("--memory", type=int, default=0,
+                    help="also measure the peak RSS of `disco query` against this many scans")
+    args = ap.parse_args()
+    print(f"cores: {os.cpu_count()}, numpy {np.__version__}")
+
+    for n in (10_000, args.n_search):
+        r = bench_search(n, args.dim, 30)
+        print(f"search alone, random signatures, {r['n']} x {r['dim']} float32 "
+              f"({r['sig_mib']:.0f} MiB): {r['search_ms']:.2f} ms/query (median), NumPy brute "
+              f"force {r['brute_ms']:.1f} ms ({r['brute_ms'] / r['search_ms']:.1f}x); index "
+              f"built in {r['build_s']:.2f} s and holds +{r['index_extra_mib']:.1f} MiB beyond "
+              "the signature matrix")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"  peak RSS of this process so far: {peak:.0f} MiB")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        s = bench_stream(args.model, args.n_map, args.queries, Path(tmp))
+        print(f"streaming query vs {args.n_map} scans ({args.model}): total {s['total']:.2f} ms/query"
+              f" = read {s['read']:.2f} + voxelize {s['bev']:.2f} + embed {s['embed']:.2f} + "
+              f"search {s['search']:.2f} + rows & yaw of top 10 {s['yaw_rows']:.2f} (medians)")
+        f = bench_first_result(s["db"], s["scan"])
+        print(f"first result of a fresh `disco query` process: {f['total_ms']:.0f} ms; a fresh "
+              f"interpreter spends: python {f['python_ms']:.0f}, cli import {f['cli_import_ms']:.0f}, "
+              f"numpy/model/db imports {f['imports_ms']:.0f}, open db + load model "
+              f"{f['model_ms']:.0f}, read {args.n_map} signatures + index {f['signatures_ms']:.0f}, "
+              f"first query {f['first_query_ms']:.0f} ms")
+        if args.memory:
+            m = bench_memory(args.model, args.memory, Path(tmp))
+            print(f"peak RSS of `disco query` (one query): {m[100]:.0f} MiB against 100 scans, "
+                  f"{m[args.memory]:.0f} MiB against {args.memory} scans "
+                  f"({m[f'size{args.memory}']:.0f} MiB on disk); the difference "
+                  f"{m[args.memory] - m[100]:.0f} MiB = "
+                  f"{(m[args.memory] - m[100]) / m['sig_mib']:.2f}x the {m['sig_mib']:.0f} MiB "
+                  "of signatures")
+
+
+if __name__ == "__main__":
+    main()
