@@ -99,7 +99,54 @@ for spec in $DATA; do
   done
 done
 
-# The table (and, with PLOTS=1, the combined plots for docs/images/).
+# Single-sequence loop closure: session 00 of each world drives a closed loop, so its last
+# scans revisit its first; each scan searches the scans at least 100 frames (100 m) before it.
+LOOPS="sim-hdl32 sim-vlp16"
+for name in $LOOPS; do
+  for model in $MODELS; do
+    "$DISCO" eval-loops "$OUT/$name/00" --model "$model" --radius 3 --exclude-frames 100 \
+      --format tsv --report "$OUT/reports/loops-$name-$model" >/dev/null
+  done
+done
+
+# Scan Context's first stage: how often the true place is among the 10 candidates of the
+# ring-key search, with the paper's occupancy ring key and with our default mean-height one.
+"$PY" - "$OUT" $DATA <<'PYEOF' >"$OUT/ringkey.md"
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from disco_cli.bev import polar_bev_batch
+from disco_cli.poses import read_kitti_poses
+from disco_cli.readers import list_scans, read_scan
+from disco_cli.scancontext import ScanContextModel, ring_keys
+
+model = ScanContextModel()
+print("| data | true place among the 10 nearest ring keys: occupancy (paper) | mean height (ours) |")
+print("| --- | ---: | ---: |")
+for spec in sys.argv[2:]:
+    name, map_dir, query_dir = spec.split(":")
+    if name.startswith("kitti"):
+        continue
+    feats, xy = [], []
+    for folder in (Path(map_dir), Path(query_dir)):
+        clouds = [read_scan(p) for p in list_scans(folder)]
+        feats.append(model.embed(polar_bev_batch(clouds, model.bev_config))[1])
+        xy.append(read_kitti_poses(folder / "poses.txt")[:, :2, 3])
+    near = np.linalg.norm(xy[1][:, None] - xy[0][None], axis=-1) <= 3.0
+    has = near.any(axis=1)
+    cells = []
+    for kind in ("occupancy", "mean"):
+        km, kq = ring_keys(feats[0], kind), ring_keys(feats[1], kind)
+        d = np.linalg.norm(kq[:, None] - km[None], axis=-1)
+        top = np.argsort(d, axis=1, kind="stable")[:, :10]
+        hit = np.take_along_axis(near, top, axis=1).any(axis=1)
+        cells.append(f"{100 * hit[has].mean():.1f} %")
+    print(f"| {name} | {cells[0]} | {cells[1]} |")
+PYEOF
+
+# The tables (and, with PLOTS=1, the combined plots for docs/images/).
 "$PY" - "$OUT" "${PLOTS:-0}" $DATA <<'PYEOF'
 import json
 import sys
@@ -134,6 +181,28 @@ for name in names:
             f"| {deg(m['yaw_err_mean_deg'])} / {deg(m['yaw_err_median_deg'])} "
             f"| {m['num_queries']} ({m['num_queries_with_match']}) / {m['num_database']} |"
         )
+lines += [
+    "",
+    "| sequence (loop closure) | model | F1max | R@100%P | AUC | Recall@1 | yaw err mean / median (deg) | queries (with loop) |",
+    "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+]
+runs = []
+for f in (out / "reports").glob("loops-*/metrics.json"):
+    name = f.parent.name[len("loops-"):]
+    model = next((o for o in order if name.endswith("-" + o)), None)
+    if model is not None:
+        runs.append((name[: -len(model) - 1], order.index(model), model, f))
+for seq, _, model, f in sorted(runs):
+    m = json.loads(f.read_text())
+    name = f"{seq}-{model}"
+    lines.append(
+        f"| {name[: -len(model) - 1]}/00 | {model} | {pct(m['f1_max'])} | {pct(m['recall@100%precision'])} "
+        f"| {pct(m['auc'])} | {pct(m['recall@1'])} "
+        f"| {deg(m['yaw_err_mean_deg'])} / {deg(m['yaw_err_median_deg'])} "
+        f"| {m['num_queries']} ({m['num_queries_with_match']}) |"
+    )
+if (out / "ringkey.md").is_file():
+    lines += ["", (out / "ringkey.md").read_text().strip()]
 (out / "results.md").write_text("\n".join(lines) + "\n")
 print("\n".join(lines))
 
