@@ -1,0 +1,129 @@
+"""Benchmark: the C++ polar BEV voxelizer against a vectorized NumPy implementation.
+
+Times, in one process, on a ~30k-point scan and a ~120k-point HDL-64 scan (KITTI
+frame 0 from ../shared/realdata when present, else a synthetic 64-beam scan):
+the C++ voxelizer through `disco_cli.polar_bev` (each SIMD kernel), a vectorized
+NumPy implementation of the same binning, and `polar_bev_batch` on 1 and 2 threads.
+Prints medians and ratios. Run: `.venv/bin/python benchmarks/bench_voxelizer.py`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from disco_cli import _core
+from disco_cli.bev import BEVConfig, polar_bev, polar_bev_batch
+
+REPO = Path(__file__).resolve().parent.parent
+KITTI = REPO.parent / "shared" / "realdata" / "kitti00" / "velodyne"
+
+
+def numpy_bev(points: np.ndarray, config: BEVConfig) -> np.ndarray:
+    """Occupancy BEV in vectorized float32 NumPy: the baseline a Python user would write."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    r = np.sqrt(x * x + y * y)
+    keep = (r >= config.min_range) & (r < config.max_range) & (z >= config.z_min) & (z < config.z_max)
+    x, y, z, r = x[keep], y[keep], z[keep], r[keep]
+    theta = np.arctan2(y, x)
+    theta[theta < 0] += np.float32(2 * np.pi)
+    ring = np.minimum((r * np.float32(config.rings / config.max_range)).astype(np.int32), config.rings - 1)
+    sector = np.minimum(
+        (theta * np.float32(config.sectors / (2 * np.pi))).astype(np.int32), config.sectors - 1
+    )
+    scale = np.float32(config.heights / (config.z_max - config.z_min))
+    height = np.minimum(((z - np.float32(config.z_min)) * scale).astype(np.int32), config.heights - 1)
+    out = np.zeros(config.shape, np.float32)
+    out.reshape(-1)[(height * config.rings + ring) * config.sectors + sector] = 1.0
+    return out
+
+
+def synthetic_scan(rng: np.random.Generator) -> np.ndarray:
+    """A 64-beam, 2000-step scan of a street: ground, two building faces, poles."""
+    elev = np.radians(np.linspace(-24.8, 2.0, 64))[:, None]
+    azim = np.linspace(-np.pi, np.pi, 2000, endpoint=False)[None, :]
+    dx, dy, dz = np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)
+    dist = np.full((64, 2000), 120.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ground = np.where(dz < 0, -1.73 / dz, np.inf)
+        walls = np.where(np.abs(dy) > 1e-6, np.where(dy > 0, 9.0, -7.0) / dy, np.inf)
+    dist = np.minimum(dist, np.minimum(ground, np.where(walls > 0, walls, np.inf)))
+    keep = dist < 100
+    pts = np.stack([dx * dist, dy * dist, dz * dist], -1)[keep]
+    pts += rng.normal(0, 0.02, pts.shape)
+    return np.hstack([pts, rng.uniform(0, 1, (len(pts), 1))]).astype(np.float32)
+
+
+def load_scans(rng: np.random.Generator) -> tuple[list[np.ndarray], str]:
+    files = sorted(KITTI.glob("*.bin")) if KITTI.is_dir() else []
+    if files:
+        return [np.fromfile(f, np.float32).reshape(-1, 4) for f in files], f"KITTI 00 ({len(files)} frames)"
+    scans = [synthetic_scan(rng) for _ in range(4)]
+    return scans, "synthetic 64-beam scans (../shared/realdata absent)"
+
+
+def median_ms(fn, repeats: int, warmup: int = 3) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter_ns()
+        fn()
+        times.append(time.perf_counter_ns() - t0)
+    return float(np.median(times)) / 1e6
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=300, help="timed calls per C++ measurement")
+    parser.add_argument("--batch", type=int, default=32, help="scans per batch call")
+    args = parser.parse_args()
+
+    rng = np.random.default_rng(0)
+    scans, source = load_scans(rng)
+    full = scans[0]
+    pick = np.sort(rng.choice(len(full), 30_000, replace=False))
+    small = np.ascontiguousarray(full[pick])  # a real-looking 30k-point scan, in scan order
+    config = BEVConfig()
+    # The baseline must compute the same thing, or the comparison means nothing (its
+    # float32 binning may differ from the exact definition for a point on an edge).
+    differ = int(np.count_nonzero(numpy_bev(full, config) != polar_bev(full, config)))
+    assert differ <= 5, f"NumPy baseline and C++ differ in {differ} cells"
+
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; data: {source}")
+    print(f"grid {config.shape}, mode {config.mode}; medians of {args.repeats} calls (C++), "
+          f"{max(10, args.repeats // 10)} (NumPy)")
+    levels = {2: "AVX2+FMA", 1: "SSE2", 0: "scalar"}
+    best = _core._bev_kernel_level()
+    for name, pts in (("30k", small), (f"{len(full) // 1000}k HDL-64", full)):
+        numpy_ms = median_ms(lambda: numpy_bev(pts, config), max(10, args.repeats // 10))
+        print(f"\n{name} points ({len(pts)}), float32 N x 4:")
+        print(f"  NumPy vectorized        {numpy_ms:8.3f} ms")
+        for level in (2, 1, 0):
+            _core._set_bev_kernel_level(level)
+            if _core._bev_kernel_level() != level:
+                continue
+            ms = median_ms(lambda: polar_bev(pts, config), args.repeats)
+            print(f"  C++ {levels[level]:<20s}{ms:8.3f} ms   {numpy_ms / ms:6.1f}x NumPy")
+        _core._set_bev_kernel_level(2)
+        for mode in ("density", "max_height"):
+            cfg = BEVConfig(mode=mode)
+            ms = median_ms(lambda: polar_bev(pts, cfg), args.repeats)
+            print(f"  C++ {levels[best]}, {mode:<10s}{ms:8.3f} ms")
+
+    batch = [scans[i % len(scans)] for i in range(args.batch)]
+    reps = max(5, args.repeats // 20)
+    print(f"\nbatch of {args.batch} full scans, medians of {reps} calls:")
+    one = median_ms(lambda: polar_bev_batch(batch, config, threads=1), reps)
+    two = median_ms(lambda: polar_bev_batch(batch, config, threads=2), reps)
+    print(f"  1 thread   {one:8.2f} ms  ({args.batch / one * 1e3:7.0f} scans/s)")
+    print(f"  2 threads  {two:8.2f} ms  ({args.batch / two * 1e3:7.0f} scans/s)   {one / two:4.2f}x throughput")
+
+
+if __name__ == "__main__":
+    main()
