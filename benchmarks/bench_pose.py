@@ -175,6 +175,23 @@ def calibrate(config: PoseConfig) -> None:
                 wrong.append(estimate_relative_pose(scan(*a), scan(*b), rng.uniform(-180, 180),
                                                     config))
         report("simulated revisits within 3 m (data/samples)", right)
+        # Farther pairs, 3-14 m (beyond max_translation some must fail): the fitness of
+        # those registered right (within 0.2 m of the truth) and of those registered wrong.
+        good, bad = [], []
+        for a in items:
+            for b in items:
+                T = np.linalg.inv(poses[b[0]][b[1]]) @ poses[a[0]][a[1]]
+                d = float(np.linalg.norm(T[:2, 3]))
+                if not (3.0 <= d < 14.0 and a[0] <= b[0] and a != b):
+                    continue
+                yaw = math.degrees(math.atan2(T[1, 0], T[0, 0])) + rng.uniform(-3, 3)
+                r = estimate_relative_pose(scan(*a), scan(*b), yaw, config)
+                err = float(np.linalg.norm((np.linalg.inv(T) @ r.T)[:3, 3]))
+                (good if err < 0.2 else bad).append((d, r.fitness))
+        g, w = np.array(good), np.array(bad)
+        print(f"simulated pairs 3-14 m apart: {len(g)} registered within 0.2 m, fitness min "
+              f"{g[:, 1].min():.2f} (min {g[g[:, 0] < 10, 1].min():.2f} within 10 m); "
+              f"{len(w)} registered wrong, fitness max {w[:, 1].max():.2f}")
         report("simulated wrong places (> 20 m apart, random yaw)", wrong)
         # Why ground-like points are left out of fitness: ICP from identity on wrong pairs.
         icp = _icp_config(config)

@@ -221,6 +221,27 @@ def test_reverse_direction_revisit(samples):
         assert r.accepted, (q.name, m.name, r.reason)
 
 
+@pytest.mark.parametrize("hint_error", [-3.0, 1.5])
+def test_consecutive_sample_scans_along_a_street(samples, hint_error):
+    """Frames 17 and 18 of session 00 are 12.7 m apart on a street of look-alike facades:
+    with the translation search limited to 10 m this pair was mis-registered a few metres
+    short and accepted; within the default 15 m it must be recovered."""
+    from disco_cli.poses import read_kitti_poses
+
+    poses = read_kitti_poses(samples / "00" / "poses.txt")
+    T = np.linalg.inv(poses[18]) @ poses[17]
+    assert np.linalg.norm(T[:3, 3]) > 12.0
+    yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+    scans = [read_bin(samples / "00" / "velodyne" / f"{k:06d}.bin") for k in (17, 18)]
+    r = estimate_relative_pose(scans[0], scans[1], yaw + hint_error)
+    dt, dr = pose_errors(T, r.T)
+    assert dt < TRANSLATION_TOL and dr < ROTATION_TOL, (dt, dr)
+    assert r.accepted
+    # Out of reach (25 m, beyond max_translation) the same street is not accepted.
+    far = read_bin(samples / "00" / "velodyne" / "000016.bin")
+    assert not estimate_relative_pose(far, scans[1], yaw + hint_error).accepted
+
+
 # --- other places are rejected -----------------------------------------------------------
 
 def test_two_synthetic_places_rejected(street):

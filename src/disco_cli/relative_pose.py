@@ -37,7 +37,7 @@ class PoseConfig:
     # Phase correlation of Cartesian height images (seeds the translation).
     bev_cell: float = 0.4  # m per cell
     bev_extent: float = 40.0  # half width of the image (m)
-    max_translation: float = 10.0  # ignore correlation peaks farther than this (m)
+    max_translation: float = 15.0  # ignore correlation peaks farther than this (m)
     try_flipped_yaw: bool = True  # also try yaw + 180 degrees
     # ICP (point-to-plane, coarse to fine).
     source_voxel: float = 1.0  # query downsampling (m)
@@ -49,7 +49,7 @@ class PoseConfig:
     hypothesis_iterations: int = 8  # coarse-stage iterations to judge each yaw hypothesis
     inlier_distance: float = 0.5  # a query point within this of the match is an inlier (m)
     # Verification.
-    min_fitness: float = 0.3  # inlier ratio over non-ground query points
+    min_fitness: float = 0.35  # inlier ratio over non-ground query points
     max_rmse: float = 0.3  # m, point-to-plane, over the inliers
     min_points: int = 100  # fewer downsampled points than this: rejected
     # Reject without the fine stages when the best coarse fitness is below this: a
