@@ -64,11 +64,12 @@ def bench_search(n: int, dim: int, reps: int) -> dict:
     build = time.perf_counter() - t
     del sigs
     held = rss_mib() - rss0
-    ts = []
+    ts, cpu = [], []
     for q in queries:
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         index.search(q, 10)
         ts.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
     base = []
     for q in queries[: max(3, reps // 5)]:
         t = time.perf_counter()
@@ -79,7 +80,7 @@ def bench_search(n: int, dim: int, reps: int) -> dict:
         r, _ = index.search(q, 10)
         assert (r == brute_force_topk(index.matrix, q, 10)[0]).all()
     return {
-        "n": n, "dim": dim, "search_ms": median_ms(ts[2:]),
+        "n": n, "dim": dim, "search_ms": median_ms(ts[2:]), "cpu_ms": median_ms(cpu[2:]),
         "brute_ms": median_ms(base), "sig_mib": n * dim * 4 / 2**20, "index_extra_mib": held,
         "build_s": build,
     }
@@ -206,6 +207,52 @@ def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
     return out
 
 
+def bench_yaw_f16(model_name: str, map_dir: Path, query_dir: Path, tmp: Path,
+                  radius: float = 5.0) -> dict:
+    """Yaw from features stored as float16 (through a real database) vs float32, on
+    revisits: each query scan with its nearest map scan within `radius` m (poses.txt)."""
+    from disco_cli.bev import polar_bev
+    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.model import load_model
+    from disco_cli.poses import read_kitti_poses, wrap_deg, xy_yaw
+    from disco_cli.readers import list_scans, read_scan
+
+    model = load_model(model_name)
+
+    def embed(folder: Path) -> tuple[list[Path], np.ndarray, np.ndarray, np.ndarray]:
+        paths = list_scans(folder)
+        sig, feat = model.embed(np.stack([polar_bev(read_scan(p), model.bev_config)
+                                          for p in paths]))
+        return paths, sig, feat, read_kitti_poses(folder / "poses.txt")
+
+    m_paths, m_sig, m_feat, m_pose = embed(map_dir)
+    q_paths, _, q_feat, q_pose = embed(query_dir)
+    db = Database.create(tmp / "yaw.db", ModelInfo.of(model),
+                         ScanBatch([str(p) for p in m_paths], m_sig, m_feat))
+    ids, _ = db.signatures()
+    m_feat16 = db.rows(ids).features
+    db.close()
+    mx, my, myaw = xy_yaw(m_pose)
+    qx, qy, qyaw = xy_yaw(q_pose)
+    diffs, err32, err16 = [], [], []
+    for i in range(len(q_paths)):
+        d = np.hypot(mx - qx[i], my - qy[i])
+        j = int(np.argmin(d))
+        if d[j] > radius:
+            continue
+        truth = wrap_deg(np.degrees(qyaw[i] - myaw[j]))
+        y32 = float(model.yaw(q_feat[i], m_feat[j:j + 1])[0])
+        y16 = float(model.yaw(q_feat[i], m_feat16[j:j + 1])[0])
+        diffs.append(abs(wrap_deg(y16 - y32)))
+        err32.append(abs(wrap_deg(y32 - truth)))
+        err16.append(abs(wrap_deg(y16 - truth)))
+    diffs = np.asarray(diffs)
+    return {"pairs": len(diffs), "max_diff": float(diffs.max()), "mean_diff": float(diffs.mean()),
+            "changed": int(np.count_nonzero(diffs > 1e-3)),
+            "err32": float(np.median(err32)), "err16": float(np.median(err16)),
+            "mean32": float(np.mean(err32)), "mean16": float(np.mean(err16))}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="spectral")
@@ -215,13 +262,26 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=30)
     ap.add_argument("--memory", type=int, default=0,
                     help="also measure the peak RSS of `disco query` against this many scans")
+    ap.add_argument("--yaw-f16", nargs=2, type=Path, metavar=("MAP_DIR", "QUERY_DIR"),
+                    help="only measure the yaw cost of float16 features on two sessions")
     args = ap.parse_args()
-    print(f"cores: {os.cpu_count()}, numpy {np.__version__}")
+    if args.yaw_f16:
+        with tempfile.TemporaryDirectory() as tmp:
+            y = bench_yaw_f16(args.model, *args.yaw_f16, Path(tmp))
+        print(f"yaw from float16 vs float32 features ({args.model}), {y['pairs']} revisit pairs: "
+              f"|difference| mean {y['mean_diff']:.4f}, max {y['max_diff']:.4f} deg, "
+              f"{y['changed']} pairs changed by > 0.001 deg; |error| vs ground truth: median "
+              f"{y['err32']:.3f} (float32) / {y['err16']:.3f} (float16), mean {y['mean32']:.3f} "
+              f"/ {y['mean16']:.3f} deg")
+        return
+    print(f"cores: {os.cpu_count()}, numpy {np.__version__}, load average "
+          f"{os.getloadavg()[0]:.1f}")
 
     for n in (10_000, args.n_search):
         r = bench_search(n, args.dim, 30)
         print(f"search alone, random signatures, {r['n']} x {r['dim']} float32 "
-              f"({r['sig_mib']:.0f} MiB): {r['search_ms']:.2f} ms/query (median), NumPy brute "
+              f"({r['sig_mib']:.0f} MiB): {r['search_ms']:.2f} ms/query (median; CPU time of all "
+              f"threads {r['cpu_ms']:.2f} ms), NumPy brute "
               f"force {r['brute_ms']:.1f} ms ({r['brute_ms'] / r['search_ms']:.1f}x); index "
               f"built in {r['build_s']:.2f} s and holds +{r['index_extra_mib']:.1f} MiB beyond "
               "the signature matrix")
