@@ -400,6 +400,14 @@ def test_normals_of_a_tilted_plane():
     assert np.all(np.abs(n[valid] @ truth) > 0.999)
 
 
+def test_phase_correlation_of_an_empty_image_is_zero_shift():
+    empty = np.zeros((50, 50), np.float32)
+    some = np.zeros((50, 50), np.float32)
+    some[10:20, 5] = 3.0
+    assert phase_correlation_shift(empty, some, 0.4, 10.0) == (0.0, 0.0)
+    assert phase_correlation_shift(some, empty, 0.4, 10.0) == (0.0, 0.0)
+
+
 def test_phase_correlation_finds_a_known_shift(street):
     cell = 0.4
     shift = np.array([2.4, -1.6, 0.0])  # whole cells: 6 and -4
@@ -409,3 +417,63 @@ def test_phase_correlation_finds_a_known_shift(street):
     b = _core.height_image(street, 0.0, cell, 40.0)
     tx, ty = phase_correlation_shift(a, b, cell, 10.0)
     assert (tx, ty) == pytest.approx((2.4, -1.6), abs=0.1)
+
+
+# --- the boundary between Python and C++ ---------------------------------------------------
+
+def test_strided_views_give_the_same_answer_as_copies(street):
+    T = make_transform(-75.0, (2.0, 1.0, 0.0))
+    query = query_from(street, T, np.random.default_rng(12))
+    wide_q = np.zeros((len(query), 7), np.float32)
+    wide_q[:, :4] = query
+    wide_m = np.zeros((len(street), 5), np.float32)
+    wide_m[:, :4] = street
+    a = estimate_relative_pose(query, street, -75.0)
+    b = estimate_relative_pose(wide_q[:, :4], wide_m[:, :3], -75.0)
+    assert np.array_equal(a.T, b.T) and a.fitness == b.fitness
+    # Reversed rows (a negative stride) are copied once; only summation order differs.
+    c = estimate_relative_pose(query[::-1], street[::-1], -75.0)
+    assert np.allclose(a.T, c.T, atol=1e-6)
+
+
+def test_nan_and_inf_rows_are_ignored_exactly(street):
+    T = make_transform(12.0, (1.0, -1.0, 0.0))
+    query = query_from(street, T, np.random.default_rng(13))
+    dirty = np.insert(query, [0, 100, 5000], [[np.nan, 0, 0, 0], [np.inf, 1, 1, 0],
+                                              [0, -np.inf, np.nan, 0]], axis=0)
+    a = estimate_relative_pose(query, street, 12.0)
+    b = estimate_relative_pose(dirty, street, 12.0)
+    assert np.array_equal(a.T, b.T) and a.fitness == b.fitness
+    all_nan = np.full((500, 4), np.nan, np.float32)
+    r = estimate_relative_pose(all_nan, street, 12.0)
+    assert not r.accepted and "too few points" in r.reason
+
+
+def test_core_empty_and_wrong_shapes():
+    cfg = _core.IcpConfig()
+    empty = np.zeros((0, 4), np.float32)
+    target = _core.PlaneTarget(empty, cfg)
+    assert target.points.shape == (0, 3)
+    r = target.align(np.zeros((0, 3)), np.eye(4))
+    assert r.fitness == 0.0 and r.source_points == 0 and np.array_equal(r.transform, np.eye(4))
+    assert _core.icp_prepare_source(empty, cfg).shape == (0, 3)
+    assert not _core.height_image(empty, 0.0, 0.5, 10.0).any()
+    with pytest.raises(ValueError):
+        _core.height_image(np.zeros((5, 2), np.float32), 0.0, 0.5, 10.0)
+    with pytest.raises(ValueError):
+        _core.PlaneTarget(np.zeros(12, np.float32), cfg)
+
+
+def test_points_exactly_on_voxel_and_cell_edges():
+    # Multiples of 0.5 are exact in binary: each point opens its own voxel/cell, the
+    # lower-left one (floor), as the NumPy definition says.
+    g = np.arange(-4.0, 4.0, 0.5)
+    pts = np.array(np.meshgrid(g, g, [0.0, 0.5])).reshape(3, -1).T
+    pts32 = np.c_[pts, np.zeros(len(pts))].astype(np.float32)
+    down = _core.icp_voxel_downsample(pts32, 0.5)
+    assert len(down) == len(pts)
+    assert set(map(tuple, down)) == set(map(tuple, pts))
+    img = _core.height_image(pts32, 0.0, 0.5, 4.0)
+    assert img.shape == (16, 16)
+    # Every cell holds the two points z = 0 and z = 0.5 of one grid node.
+    assert np.array_equal(img, np.full((16, 16), 0.5, np.float32))

@@ -161,11 +161,15 @@ def phase_correlation_shift(
     `max_shift` and refined to sub-cell precision.
     """
     n = match_image.shape[0]
-    window = _hann(n)
+    window = _hann(n).astype(np.float64)
     fm = np.fft.rfft2(match_image * window)
     fq = np.fft.rfft2(query_image * window)
     cross = fm * np.conj(fq)
-    cross /= np.abs(cross) + 1e-9 * (np.abs(cross).max() + 1e-30)
+    mag = np.abs(cross)
+    if not mag.max() > 0.0:
+        return 0.0, 0.0  # an image without structure: nothing to correlate
+    # Whiten, but do not blow up the frequencies where either image has no energy.
+    cross /= np.maximum(mag, 1e-6 * mag.max())
     corr = np.fft.irfft2(cross, s=match_image.shape)
     # Keep shifts within max_shift (indices wrap: k and k - n are the same shift).
     k = np.fft.fftfreq(n, d=1.0 / n)
