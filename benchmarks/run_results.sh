@@ -241,3 +241,19 @@ if plots:
         plt.close(fig)
         print(f"wrote {images / f'results-{name}.png'}")
 PYEOF
+
+# With UPDATE_DOCS=1, put the tables into docs/results.md between its markers.
+if [[ "${UPDATE_DOCS:-0}" == 1 ]]; then
+  "$PY" - "$OUT/results.md" docs/results.md <<'PYEOF'
+import re
+import sys
+from pathlib import Path
+
+table, doc = Path(sys.argv[1]).read_text().strip(), Path(sys.argv[2])
+text = doc.read_text()
+begin, end = "<!-- results:begin -->", "<!-- results:end -->"
+new = re.sub(f"{begin}.*?{end}", lambda _: f"{begin}\n{table}\n{end}", text, flags=re.S)
+doc.write_text(new)
+print(f"updated {doc}")
+PYEOF
+fi
