@@ -85,7 +85,8 @@ def main() -> None:
         simulate(tmp, sessions=2, frames=args.scans, step_m=2.0, seed=args.seed, threads=0)
         wall = time.perf_counter() - t
     print(f"3. simulate(), 2 sessions x {args.scans} scans, all cores: {wall:.1f} s incl. town "
-          f"generation = {n / wall:.1f} scans/s; 2,000 scans at this rate: {2000 / (n / wall):.0f} s")
+          f"generation = {n / wall:.1f} scans/s; 2,000 scans at this rate: "
+          f"{2000 / (n / wall):.0f} s")
 
 
 if __name__ == "__main__":

@@ -57,7 +57,8 @@ def test_calib_turns_camera_poses_into_lidar_poses(tmp_path):
     Tr = np.eye(4)
     Tr[:3, :3], Tr[:3, 3] = R, t
     (tmp_path / "calib.txt").write_text(
-        "P0: " + " ".join(["0"] * 12) + "\nTr: " + " ".join(f"{v:.6f}" for v in Tr[:3].ravel()) + "\n"
+        "P0: " + " ".join(["0"] * 12) + "\n"
+        + "Tr: " + " ".join(f"{v:.6f}" for v in Tr[:3].ravel()) + "\n"
     )
     # Frame 0: identity. Frame 1: camera 1 m ahead (camera z). Frame 2: camera
     # turned +90 deg about its y axis (which points down).
@@ -137,7 +138,8 @@ def test_relative_yaw_follows_the_convention():
     rng = np.random.default_rng(1)
     for _ in range(50):
         psi_q, psi_m = rng.uniform(-360, 360, size=2)
-        got = relative_yaw_deg(pose(*rng.normal(size=2) * 50, psi_m), pose(*rng.normal(size=2), psi_q))
+        T_match = pose(*rng.normal(size=2) * 50, psi_m)
+        got = relative_yaw_deg(T_match, pose(*rng.normal(size=2), psi_q))
         want = (psi_q - psi_m + 180.0) % 360.0 - 180.0
         want = 180.0 if want == -180.0 else want
         assert got == pytest.approx(want, abs=1e-9)

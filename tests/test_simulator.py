@@ -217,7 +217,8 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path):
     simulate(tmp_path / "a", seed=4, threads=1, **kw)
     simulate(tmp_path / "b", seed=4, threads=2, **kw)
     simulate(tmp_path / "c", seed=5, threads=1, **kw)
-    files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    root = tmp_path / "a"
+    files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
     assert len(files) == 2 * (3 + 2) + 1
     for f in files:
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f

@@ -50,7 +50,8 @@ def _floats(path: str | Path, lineno: int, fields: list[str], want: int) -> np.n
     try:
         values = np.array([float(f) for f in fields], dtype=np.float64)
     except ValueError:
-        raise PoseFileError(f"{path}, line {lineno}: not a number in {' '.join(fields)!r}") from None
+        bad = " ".join(fields)
+        raise PoseFileError(f"{path}, line {lineno}: not a number in {bad!r}") from None
     if not np.all(np.isfinite(values)):
         raise PoseFileError(f"{path}, line {lineno}: NaN or Inf")
     return values
@@ -199,7 +200,8 @@ def gt_pairs_within(
     return pairs[keep]
 
 
-def nearest_distance(query_poses: np.ndarray, map_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def nearest_distance(query_poses: np.ndarray,
+                     map_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For each query pose: (distance to the nearest map pose, its index)."""
     from scipy.spatial import cKDTree
 

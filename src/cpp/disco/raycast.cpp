@@ -283,7 +283,8 @@ void RaycastWorld::cast(const Eigen::Vector3d& origin, const float* dirs, std::i
                     const double t_cell_out = std::min({tmi, tmj, t_exit});
                     // Skip cells whose objects all lie below the ray here.
                     const std::size_t c = static_cast<std::size_t>(j) * nx_ + i;
-                    const double z_low = origin.z() + std::min(t_cell_in * d.z(), t_cell_out * d.z());
+                    const double z_low =
+                        origin.z() + std::min(t_cell_in * d.z(), t_cell_out * d.z());
                     if (z_low <= cell_zmax_[c]) {
                         for (std::int32_t q = cell_start_[c]; q < cell_start_[c + 1]; ++q) {
                             const std::int32_t k = cell_items_[q];
@@ -338,7 +339,8 @@ void cast_scans(const RaycastWorld& world, const double* poses, std::int64_t b, 
         for (std::int64_t r = 0; r < n; ++r) {
             const double x = dirs[3 * r], y = dirs[3 * r + 1], z = dirs[3 * r + 2];
             for (int a = 0; a < 3; ++a)
-                wdirs[3 * r + a] = static_cast<float>(T[4 * a] * x + T[4 * a + 1] * y + T[4 * a + 2] * z);
+                wdirs[3 * r + a] =
+                    static_cast<float>(T[4 * a] * x + T[4 * a + 1] * y + T[4 * a + 2] * z);
         }
         world.cast(origin, wdirs.data(), n, max_range, seeds[s], range + s * n, id + s * n,
                    cos_incidence + s * n);

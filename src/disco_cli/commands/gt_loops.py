@@ -44,7 +44,8 @@ def gt_loops(
         if not (seq / "poses.txt").is_file():
             raise fail(f"{seq}: no poses.txt")
         c = seq / "calib.txt"
-        poses.append(read_kitti_poses(seq / "poses.txt", calib=c if calib and c.is_file() else None))
+        use = c if calib and c.is_file() else None
+        poses.append(read_kitti_poses(seq / "poses.txt", calib=use))
 
     writer = RowWriter(COLUMNS, fmt, digits=3)
     if len(seqs) == 1:

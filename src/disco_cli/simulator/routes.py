@@ -146,7 +146,8 @@ def _smooth(points: np.ndarray, window: int, closed: bool) -> np.ndarray:
     if closed:
         ext = np.concatenate([points[-pad:], points, points[:pad]])
     else:
-        ext = np.concatenate([np.repeat(points[:1], pad, 0), points, np.repeat(points[-1:], pad, 0)])
+        first, last = np.repeat(points[:1], pad, 0), np.repeat(points[-1:], pad, 0)
+        ext = np.concatenate([first, points, last])
     out = np.stack([np.convolve(ext[:, i], kernel, mode="same") for i in range(2)], axis=1)
     return out[pad:pad + len(points)]
 
@@ -187,7 +188,8 @@ def lane_path(nodes: np.ndarray, path: list[int], offset: float, closed: bool,
     return line, s
 
 
-def _wiggle(rng: np.random.Generator, x: np.ndarray, amplitude: float, periods: tuple) -> np.ndarray:
+def _wiggle(rng: np.random.Generator, x: np.ndarray, amplitude: float,
+            periods: tuple[float, float]) -> np.ndarray:
     """A smooth random function: a few sinusoids of random phase."""
     out = np.zeros_like(x, dtype=np.float64)
     for _ in range(3):

@@ -50,7 +50,8 @@ class Sensor:
         el = np.radians(np.asarray(self.elevations_deg, dtype=np.float64))[:, None]
         az = np.radians(np.arange(self.columns) * (360.0 / self.columns))[None, :]
         d = np.stack(
-            np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), axis=-1
+            np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)),
+            axis=-1,
         )
         return d.reshape(-1, 3).astype(np.float32)
 

@@ -131,8 +131,10 @@ class Town:
         p = self.params
         if p.blocks_x < 1 or p.blocks_y < 1:
             raise DiscoError("a town needs at least one block in x and in y")
-        xs = np.concatenate([[0.0], np.cumsum(rng.uniform(p.block_min_m, p.block_max_m, p.blocks_x))])
-        ys = np.concatenate([[0.0], np.cumsum(rng.uniform(p.block_min_m, p.block_max_m, p.blocks_y))])
+        xs = np.concatenate([[0.0], np.cumsum(rng.uniform(p.block_min_m, p.block_max_m,
+                                                          p.blocks_x))])
+        ys = np.concatenate([[0.0], np.cumsum(rng.uniform(p.block_min_m, p.block_max_m,
+                                                          p.blocks_y))])
         nx, ny = len(xs), len(ys)
         gx, gy = np.meshgrid(xs - xs[-1] / 2, ys - ys[-1] / 2, indexing="ij")
         nodes = np.stack([gx.ravel(), gy.ravel()], axis=1)
