@@ -7,8 +7,9 @@ match's frame, at the model's ~3 degree resolution). Here:
    Cartesian bird's-eye height images, the query's turned by the yaw first;
 2. point-to-plane ICP in the compiled core refines (yaw, dx, dy) into the full
    T_match<-query in SE(3) and scores it (fitness: inlier ratio, rmse);
-3. both steps run for yaw and yaw + 180 degrees (the classic ambiguity of
-   corridors and of a symmetric road) and the better fitness wins;
+3. yaw and yaw + 180 degrees (the classic ambiguity of corridors and of streets
+   that look alike both ways) each get step 1 and a short coarse ICP stage; the
+   one with the better fitness goes on to the fine stages;
 4. the loop is accepted when fitness and rmse pass the `PoseConfig` thresholds.
 
 See docs/relative_pose.md for the method, the thresholds and how they were chosen.
