@@ -12,7 +12,10 @@ from typer.testing import CliRunner
 from disco_cli.evaluation import metrics as m
 from disco_cli.evaluation import plots, report
 
-KEYS = ["recall@1", "recall@1%", "recall@N", "auc", "f1_max", "yaw_err_mean_deg", "yaw_err_std_deg", "yaw_err_median_deg"]
+KEYS = [
+    "recall@1", "recall@1%", "recall@N", "auc", "f1_max",
+    "yaw_err_mean_deg", "yaw_err_std_deg", "yaw_err_median_deg",
+]
 
 # --- a tiny world -----------------------------------------------------------------------------
 # Boxes of random size and height on flat ground; a scan is every world point within 50 m of
@@ -34,7 +37,7 @@ def world_points(rng: np.random.Generator) -> np.ndarray:
     return np.vstack(parts)
 
 
-def scan_at(world: np.ndarray, x: float, y: float, yaw: float, rng: np.random.Generator) -> np.ndarray:
+def scan_at(world: np.ndarray, x: float, y: float, yaw: float, rng) -> np.ndarray:
     rel = world - [x, y, 1.8]
     keep = np.hypot(rel[:, 0], rel[:, 1]) < 50.0
     rel = rel[keep]
@@ -44,7 +47,7 @@ def scan_at(world: np.ndarray, x: float, y: float, yaw: float, rng: np.random.Ge
     return np.c_[local, np.zeros(len(local))].astype(np.float32)
 
 
-def write_session(folder: Path, world: np.ndarray, poses_xyyaw: list[tuple[float, float, float]], rng) -> None:
+def write_session(folder: Path, world: np.ndarray, poses_xyyaw: list[tuple], rng) -> None:
     (folder / "velodyne").mkdir(parents=True)
     lines, times = [], []
     for i, (x, y, yaw) in enumerate(poses_xyyaw):
@@ -64,7 +67,8 @@ def tiny_world(tmp_path_factory) -> Path:
     rng = np.random.default_rng(7)
     world = world_points(rng)
     a = [(x, 0.0, 0.0) for x in np.arange(0.0, 63.0, 3.0)]
-    b = [(x, 0.7, np.pi) for x in np.arange(61.5, 0.0, -3.0)] + [(x, 0.0, 0.3) for x in (230.0, 260.0, 290.0)]
+    b = [(x, 0.7, np.pi) for x in np.arange(61.5, 0.0, -3.0)]
+    b += [(x, 0.0, 0.3) for x in (230.0, 260.0, 290.0)]
     write_session(root / "00", world, a, rng)
     write_session(root / "01", world, b, rng)
     return root
@@ -92,7 +96,8 @@ def databases(tiny_world, tmp_path_factory) -> dict[str, Path]:
 def truth_counts(world: Path, radius: float) -> tuple[int, int]:
     """(queries, queries with a map scan within radius), by a plain loop over the poses."""
     def xy(f: Path):
-        return [tuple(float(v) for v in (ln.split()[3], ln.split()[7])) for ln in f.read_text().split("\n") if ln]
+        rows = [ln.split() for ln in f.read_text().splitlines() if ln]
+        return [(float(r[3]), float(r[7])) for r in rows]
 
     q, d = xy(world / "01" / "poses.txt"), xy(world / "00" / "poses.txt")
     return len(q), sum(any(np.hypot(a - c, b - e) <= radius for c, e in d) for a, b in q)
@@ -101,7 +106,10 @@ def truth_counts(world: Path, radius: float) -> tuple[int, int]:
 @pytest.mark.parametrize("model", ["spectral", "scancontext"])
 def test_eval_writes_metrics_json(tiny_world, databases, tmp_path, model):
     out = tmp_path / "report"
-    result = run("eval", tiny_world / "01", "--db", databases[model], "--topk", "5", "--report", out, "--format", "jsonl")
+    result = run(
+        "eval", tiny_world / "01", "--db", databases[model], "--topk", "5",
+        "--report", out, "--format", "jsonl",
+    )
     assert result.exit_code == 0, result.output
     got = json.loads((out / "metrics.json").read_text())
     for key in KEYS:
@@ -128,7 +136,10 @@ def test_scancontext_finds_the_reverse_revisits(tiny_world, databases, tmp_path)
     # The revisits drive the other way: the yaw is 180 deg, and Scan Context's shift search
     # must find it (within a sector) for the places it retrieves.
     out = tmp_path / "r"
-    result = run("eval", tiny_world / "01", "--db", databases["scancontext"], "--topk", "3", "--report", out, "--format", "jsonl")
+    result = run(
+        "eval", tiny_world / "01", "--db", databases["scancontext"], "--topk", "3",
+        "--report", out, "--format", "jsonl",
+    )
     assert result.exit_code == 0, result.output
     got = json.loads((out / "metrics.json").read_text())
     assert got["recall@1"] >= 0.8
@@ -145,10 +156,13 @@ def test_eval_loops_runs(tiny_world, tmp_path):
         for f in sorted((tiny_world / s / "velodyne").glob("*.bin")):
             (seq / "velodyne" / f"{len(lines):06d}.bin").write_bytes(f.read_bytes())
             lines.append(None)
-    poses = (tiny_world / "00" / "poses.txt").read_text() + (tiny_world / "01" / "poses.txt").read_text()
+    poses = "".join((tiny_world / s / "poses.txt").read_text() for s in ("00", "01"))
     (seq / "poses.txt").write_text(poses)
     out = tmp_path / "loops"
-    result = run("eval-loops", seq, "--model", "scancontext", "--exclude-frames", "10", "--report", out, "--format", "jsonl")
+    result = run(
+        "eval-loops", seq, "--model", "scancontext", "--exclude-frames", "10",
+        "--report", out, "--format", "jsonl",
+    )
     assert result.exit_code == 0, result.output
     got = json.loads((out / "metrics.json").read_text())
     # Queries: frames 10..44 (35). With a true loop: by a plain loop over the poses, a frame
@@ -183,6 +197,35 @@ def test_eval_pose_count_mismatch(tiny_world, databases, tmp_path):
     assert "1 poses for 24" in result.output
 
 
+def test_eval_needs_a_database_with_poses(tiny_world, tmp_path):
+    pytest.importorskip("disco_cli.bev")
+    bare = tmp_path / "bare"
+    (bare / "velodyne").mkdir(parents=True)
+    for f in sorted((tiny_world / "00" / "velodyne").glob("*.bin"))[:3]:
+        (bare / "velodyne" / f.name).write_bytes(f.read_bytes())
+    db = tmp_path / "bare.db"
+    assert run("build-db", bare, "-o", db, "--model", "spectral").exit_code == 0
+    result = run("eval", tiny_world / "01", "--db", db)
+    assert result.exit_code == 1
+    assert "no pose" in result.output and "bare.db" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_eval_loops_bad_exclusion_options(tiny_world, tmp_path):
+    seq = tmp_path / "notimes"
+    (seq / "velodyne").mkdir(parents=True)
+    for f in sorted((tiny_world / "00" / "velodyne").glob("*.bin"))[:3]:
+        (seq / "velodyne" / f.name).write_bytes(f.read_bytes())
+    poses = (tiny_world / "00" / "poses.txt").read_text().splitlines()[:3]
+    (seq / "poses.txt").write_text("\n".join(poses) + "\n")
+    # The default exclusion is 30 s, which needs timestamps.
+    result = run("eval-loops", seq, "--model", "spectral")
+    assert result.exit_code == 1 and "no times" in result.output
+    both = run("eval-loops", seq, "--model", "spectral", "--exclude-frames", "2",
+               "--exclude-seconds", "3")
+    assert both.exit_code == 1 and "not both" in both.output
+
+
 # --- the report files, without any model ------------------------------------------------------
 
 
@@ -191,14 +234,16 @@ def hand_evaluation() -> m.Evaluation:
     truth[0, 0] = truth[1, 1] = True
     retrieved = np.array([[0, 2], [2, 1], [5, 6]])
     distances = np.array([[0.1, 0.2], [0.3, 0.4], [0.2, 0.5]])
-    return m.retrieval_evaluation(retrieved, distances, truth, np.array([5.0, 0, 0]), np.array([1.0, 0, 0]))
+    yaw_est, yaw_true = np.array([5.0, 0, 0]), np.array([1.0, 0, 0])
+    return m.retrieval_evaluation(retrieved, distances, truth, yaw_est, yaw_true)
 
 
 def test_report_files(tmp_path):
     ev = hand_evaluation()
     written = report.write_report(tmp_path, ev, {"model": "hand", "protocol": "multi-session"})
     names = {p.name for p in written}
-    assert {"metrics.json", "curves.json", "summary.md", "recall_at_n.png", "precision_recall.png", "yaw_error.png", "rejection.png"} <= names
+    assert {"metrics.json", "curves.json", "summary.md"} <= names
+    assert {"recall_at_n.png", "precision_recall.png", "yaw_error.png", "rejection.png"} <= names
     got = json.loads((tmp_path / "metrics.json").read_text())
     # By hand: q0 right at rank 1, q1 at rank 2, q2 has no true match.
     assert got["recall@N"] == [0.5, 1.0]

@@ -131,15 +131,18 @@ def test_pr_curve_matches_a_naive_count(seed):
 
 
 def test_perfect_ranking_has_auc_one():
-    pr = m.precision_recall(np.array([0.1, 0.2, 0.9]), np.array([True, True, False]), np.array([True, True, False]))
+    right = np.array([True, True, False])
+    pr = m.precision_recall(np.array([0.1, 0.2, 0.9]), right, right)
     assert pr.auc == pytest.approx(1.0)
     assert pr.f1_max == pytest.approx(1.0)
     assert pr.recall_at_full_precision == pytest.approx(1.0)
 
 
 def test_yaw_wraps_at_180():
-    np.testing.assert_allclose(m.wrap_deg([190.0, -190.0, 180.0, -180.0, 540.0, 0.0]), [-170, 170, 180, 180, 180, 0])
-    np.testing.assert_allclose(m.yaw_errors_deg([179.0, -170.0, 180.0, 90.0], [-179.0, 170.0, -180.0, -90.0]), [2, 20, 0, 180])
+    wrapped = m.wrap_deg([190.0, -190.0, 180.0, -180.0, 540.0, 0.0])
+    np.testing.assert_allclose(wrapped, [-170, 170, 180, 180, 180, 0])
+    errors = m.yaw_errors_deg([179.0, -170.0, 180.0, 90.0], [-179.0, 170.0, -180.0, -90.0])
+    np.testing.assert_allclose(errors, [2, 20, 0, 180])
 
 
 def test_yaw_stats_empty_is_nan():

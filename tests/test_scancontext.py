@@ -102,7 +102,8 @@ def street_scan(seed: int = 0) -> np.ndarray:
         cx, cy = rng.uniform(-60, 60, 2)
         h = rng.uniform(0.5, 12)
         n = 300
-        objs.append(np.c_[cx + rng.normal(0, 1.0, n), cy + rng.normal(0, 1.0, n), rng.uniform(-1.8, h, n)])
+        xy = np.c_[cx + rng.normal(0, 1.0, n), cy + rng.normal(0, 1.0, n)]
+        objs.append(np.c_[xy, rng.uniform(-1.8, h, n)])
     pts = np.vstack([ground, *objs])
     return np.c_[pts, np.zeros(len(pts))].astype(np.float32)
 
@@ -156,6 +157,7 @@ def test_real_scan_rotated(model, realdata):
 
     scan = read_scan(realdata / "kitti00" / "velodyne" / "000000.bin")
     for deg in (47.0, -120.0):
-        _, feats = model.embed(np.stack([polar_bev(scan, model.bev_config), polar_bev(rotate(scan, deg), model.bev_config)]))
+        pair = [polar_bev(scan, model.bev_config), polar_bev(rotate(scan, deg), model.bev_config)]
+        _, feats = model.embed(np.stack(pair))
         _, yaw = model.rerank(feats[1], feats[:1])
         assert abs((yaw[0] + deg + 180.0) % 360.0 - 180.0) <= 6.0

@@ -87,7 +87,7 @@ def shift_distances(query: np.ndarray, candidates: np.ndarray) -> np.ndarray:
     q = np.asarray(query, dtype=np.float64)
     c = np.asarray(candidates, dtype=np.float64)
     if q.ndim != 2 or c.ndim != 3 or c.shape[1:] != q.shape:
-        raise ValueError(f"query [R, S] and candidates [K, R, S] must agree, got {q.shape} and {c.shape}")
+        raise ValueError(f"query [R, S] and candidates [K, R, S] disagree: {q.shape}, {c.shape}")
     sectors = q.shape[1]
     qu, qv = _unit_columns(q)
     cu, cv = _unit_columns(c)
@@ -109,7 +109,9 @@ def best_shift(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     left, mid, right = d[k, (n - 1) % sectors], d[k, n], d[k, (n + 1) % sectors]
     curvature = left - 2.0 * mid + right
     # Vertex of the parabola through the three points; flat curves keep the integer shift.
-    offset = np.divide(0.5 * (left - right), curvature, out=np.zeros_like(mid), where=curvature > 1e-12)
+    offset = np.divide(
+        0.5 * (left - right), curvature, out=np.zeros_like(mid), where=curvature > 1e-12
+    )
     return mid, n + np.clip(offset, -0.5, 0.5)
 
 
@@ -124,7 +126,9 @@ class ScanContextModel:
 
     rerank_candidates = CANDIDATES
 
-    def __init__(self, bev_config: Any = None, rerank_candidates: int = CANDIDATES, ring_key: str = "mean"):
+    def __init__(
+        self, bev_config: Any = None, rerank_candidates: int = CANDIDATES, ring_key: str = "mean"
+    ):
         self.name = "scancontext"
         self.bev_config = bev_config if bev_config is not None else _default_bev_config()
         if self.bev_config.mode != "max_height" or self.bev_config.heights != 1:
@@ -154,7 +158,9 @@ class ScanContextModel:
         features = np.ascontiguousarray(b[:, 0])
         return ring_keys(features, self.ring_key), features
 
-    def rerank(self, query_features: np.ndarray, candidate_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def rerank(
+        self, query_features: np.ndarray, candidate_features: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(column-shift cosine distances [K] in [0, 2], yaw_deg [K]) of the candidates."""
         candidates = np.asarray(candidate_features)
         if candidates.shape[0] == 0:

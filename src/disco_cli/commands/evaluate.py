@@ -95,7 +95,9 @@ def _model_for(db: Any, name: str | None, device: str) -> Any:
     return model
 
 
-def _report_and_print(ev: Any, run: dict[str, Any], report: Path | None, fmt: OutputFormat | None) -> None:
+def _report_and_print(
+    ev: Any, run: dict[str, Any], report: Path | None, fmt: OutputFormat | None
+) -> None:
     from disco_cli.console import stderr
     from disco_cli.evaluation.report import print_metrics, write_report
 
@@ -105,58 +107,103 @@ def _report_and_print(ev: Any, run: dict[str, Any], report: Path | None, fmt: Ou
     print_metrics(ev.metrics, fmt, title=f"{run.get('protocol')}: {run.get('model')}")
 
 
+# Options shared by both commands.
+CalibOpt = Annotated[
+    Optional[Path],
+    typer.Option(
+        "--calib", help="KITTI calib.txt: camera poses -> LiDAR poses.", rich_help_panel=PANEL_INPUT
+    ),
+]
+ScanFormatOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--scan-format", help="Scan format; default: guessed.", rich_help_panel=PANEL_INPUT
+    ),
+]
+RadiusOpt = Annotated[
+    float,
+    typer.Option(
+        "--radius",
+        min=0.0,
+        help="True match within this many metres.",
+        rich_help_panel=PANEL_PROTOCOL,
+    ),
+]
+DeviceOpt = Annotated[
+    str, typer.Option("--device", help="cpu or cuda.", rich_help_panel=PANEL_PROTOCOL)
+]
+ReportOpt = Annotated[
+    Optional[Path],
+    typer.Option(
+        "--report",
+        help="Write metrics.json, curves.json, summary.md and PNG plots into this folder.",
+        rich_help_panel=PANEL_OUTPUT,
+    ),
+]
+FormatOpt = Annotated[
+    Optional[OutputFormat],
+    typer.Option(
+        "--format",
+        help="table (default on a terminal), tsv (default in a pipe) or jsonl (one object).",
+        rich_help_panel=PANEL_OUTPUT,
+    ),
+]
+
+
 @handle_errors
 def evaluate(
     queries: Annotated[
         list[Path],
-        typer.Argument(help="Query scans: files or folders (KITTI-style velodyne/ layout).", show_default=False),
+        typer.Argument(
+            help="Query scans: files or folders (velodyne/ layout).", show_default=False
+        ),
     ],
     db_path: Annotated[
-        Path, typer.Option("--db", help="Map database built from another session, with poses.", rich_help_panel=PANEL_INPUT)
+        Path,
+        typer.Option(
+            "--db", help="Map database of another session, with poses.", rich_help_panel=PANEL_INPUT
+        ),
     ],
     query_poses: Annotated[
         Optional[Path],
         typer.Option(
             "--query-poses",
-            help="KITTI poses of the queries (default: poses.txt beside a single query folder).",
+            help="KITTI poses of the queries; default: poses.txt in a single query folder.",
             rich_help_panel=PANEL_INPUT,
         ),
     ] = None,
-    calib: Annotated[
-        Optional[Path],
-        typer.Option("--calib", help="KITTI calib.txt turning camera poses into LiDAR poses.", rich_help_panel=PANEL_INPUT),
-    ] = None,
-    scan_format: Annotated[
-        Optional[str], typer.Option("--scan-format", help="Scan file format (default: guessed).", rich_help_panel=PANEL_INPUT)
-    ] = None,
+    calib: CalibOpt = None,
+    scan_format: ScanFormatOpt = None,
     model_name: Annotated[
         Optional[str],
         typer.Option(
-            "--model", help="Model name or checkpoint (default: the database's own).", rich_help_panel=PANEL_PROTOCOL
+            "--model",
+            help="Model name or checkpoint; default: the one that built the database.",
+            rich_help_panel=PANEL_PROTOCOL,
         ),
     ] = None,
-    radius: Annotated[
-        float, typer.Option("--radius", min=0.0, help="A match is true within this many metres.", rich_help_panel=PANEL_PROTOCOL)
-    ] = 3.0,
+    radius: RadiusOpt = 3.0,
     topk: Annotated[
-        int, typer.Option("--topk", min=1, help="Recall@1..N up to this N.", rich_help_panel=PANEL_PROTOCOL)
+        int,
+        typer.Option(
+            "--topk", min=1, help="Recall@1..N up to this N.", rich_help_panel=PANEL_PROTOCOL
+        ),
     ] = 25,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda.", rich_help_panel=PANEL_PROTOCOL)] = "cpu",
-    report: Annotated[
-        Optional[Path],
-        typer.Option("--report", help="Write metrics.json, curves.json, summary.md and plots here.", rich_help_panel=PANEL_OUTPUT),
-    ] = None,
-    fmt: Annotated[
-        Optional[OutputFormat],
-        typer.Option("--format", help="table (terminal default), tsv (pipe default) or jsonl.", rich_help_panel=PANEL_OUTPUT),
-    ] = None,
+    device: DeviceOpt = "cpu",
+    report: ReportOpt = None,
+    fmt: FormatOpt = None,
 ) -> None:
-    """Multi-session evaluation: Recall@N, Recall@1%, PR AUC, F1max and yaw error of queries vs a database."""
+    """Multi-session evaluation: Recall@N, Recall@1%, PR AUC, F1max, yaw error vs a database."""
     import numpy as np
 
     from disco_cli.database import Database
     from disco_cli.errors import DatabaseError, PoseFileError
-    from disco_cli.evaluation.metrics import one_percent_n, retrieval_evaluation, within_radius, wrap_deg
+    from disco_cli.evaluation.metrics import (
+        one_percent_n,
+        retrieval_evaluation,
+        within_radius,
+        wrap_deg,
+    )
     from disco_cli.poses import xy_yaw
     from disco_cli.search import SignatureIndex, match_queries
 
@@ -169,7 +216,7 @@ def evaluate(
         model = _model_for(db, model_name, device)
         db_poses, _ = db.poses()
         if not np.isfinite(db_poses[:, :2]).all():
-            raise DatabaseError(db.path, "some scans have no pose; build it with --poses to evaluate")
+            raise DatabaseError(db.path, "some scans have no pose; build it with --poses")
         ids, db_sigs = db.signatures()
         sigs, feats = embed_scans(paths, model, scan_format)
         depth = max(topk, one_percent_n(len(ids)))
@@ -207,50 +254,62 @@ def evaluate(
 @handle_errors
 def evaluate_loops(
     sequence: Annotated[
-        list[Path], typer.Argument(help="One sequence: a folder (velodyne/ layout) or its scan files in order.", show_default=False)
+        list[Path],
+        typer.Argument(
+            help="One sequence: a folder (velodyne/ layout) or its scans in order.",
+            show_default=False,
+        ),
     ],
     poses: Annotated[
         Optional[Path],
-        typer.Option("--poses", help="KITTI poses of the scans (default: poses.txt in the folder).", rich_help_panel=PANEL_INPUT),
+        typer.Option(
+            "--poses",
+            help="KITTI poses; default: poses.txt in the folder.",
+            rich_help_panel=PANEL_INPUT,
+        ),
     ] = None,
-    calib: Annotated[
-        Optional[Path],
-        typer.Option("--calib", help="KITTI calib.txt turning camera poses into LiDAR poses.", rich_help_panel=PANEL_INPUT),
-    ] = None,
+    calib: CalibOpt = None,
     times: Annotated[
         Optional[Path],
-        typer.Option("--times", help="Timestamps, one per scan (default: times.txt in the folder).", rich_help_panel=PANEL_INPUT),
+        typer.Option(
+            "--times",
+            help="Timestamps, one per scan; default: times.txt in the folder.",
+            rich_help_panel=PANEL_INPUT,
+        ),
     ] = None,
-    scan_format: Annotated[
-        Optional[str], typer.Option("--scan-format", help="Scan file format (default: guessed).", rich_help_panel=PANEL_INPUT)
-    ] = None,
+    scan_format: ScanFormatOpt = None,
     model_name: Annotated[
-        str, typer.Option("--model", help="default, spectral, scancontext or a checkpoint path.", rich_help_panel=PANEL_PROTOCOL)
+        str,
+        typer.Option(
+            "--model",
+            help="default, spectral, scancontext or a checkpoint path.",
+            rich_help_panel=PANEL_PROTOCOL,
+        ),
     ] = "default",
-    radius: Annotated[
-        float, typer.Option("--radius", min=0.0, help="A loop is true within this many metres.", rich_help_panel=PANEL_PROTOCOL)
-    ] = 3.0,
+    radius: RadiusOpt = 3.0,
     exclude_seconds: Annotated[
         Optional[float],
         typer.Option(
-            "--exclude-seconds", min=0.0, help="Search only scans at least this long before (default 30).", rich_help_panel=PANEL_PROTOCOL
+            "--exclude-seconds",
+            min=0.0,
+            help="Search only scans at least this long before (default 30; needs times).",
+            rich_help_panel=PANEL_PROTOCOL,
         ),
     ] = None,
     exclude_frames: Annotated[
         Optional[int],
-        typer.Option("--exclude-frames", min=1, help="Search only scans at least N frames before.", rich_help_panel=PANEL_PROTOCOL),
+        typer.Option(
+            "--exclude-frames",
+            min=1,
+            help="Search only scans at least N frames before.",
+            rich_help_panel=PANEL_PROTOCOL,
+        ),
     ] = None,
-    device: Annotated[str, typer.Option("--device", help="cpu or cuda.", rich_help_panel=PANEL_PROTOCOL)] = "cpu",
-    report: Annotated[
-        Optional[Path],
-        typer.Option("--report", help="Write metrics.json, curves.json, summary.md and plots here.", rich_help_panel=PANEL_OUTPUT),
-    ] = None,
-    fmt: Annotated[
-        Optional[OutputFormat],
-        typer.Option("--format", help="table (terminal default), tsv (pipe default) or jsonl.", rich_help_panel=PANEL_OUTPUT),
-    ] = None,
+    device: DeviceOpt = "cpu",
+    report: ReportOpt = None,
+    fmt: FormatOpt = None,
 ) -> None:
-    """Loop-closure evaluation along one sequence: precision-recall, F1max, recall at 100% precision."""
+    """Loop closure along one sequence: precision-recall, F1max, recall at 100% precision."""
     import numpy as np
 
     from disco_cli.database import MatchRows
@@ -293,11 +352,13 @@ def evaluate_loops(
 
         def rows(self, ids: np.ndarray) -> MatchRows:
             ids = np.asarray(ids, np.int64)
-            return MatchRows(ids, [str(paths[i]) for i in ids], np.full((len(ids), 4), np.nan), feats[ids])
+            no_pose = np.full((len(ids), 4), np.nan)
+            return MatchRows(ids, [str(paths[i]) for i in ids], no_pose, feats[ids])
 
     queries = np.flatnonzero(limit > 0)
     matches = match_queries(
-        SignatureIndex(sigs), np.arange(n), _Memory(), model, sigs[queries], feats[queries], 1, limit=limit[queries]
+        SignatureIndex(sigs), np.arange(n), _Memory(), model, sigs[queries], feats[queries], 1,
+        limit=limit[queries],
     )
     xy = T[:, :2, 3]
     near = within_radius(xy[queries], xy, radius)

@@ -39,7 +39,7 @@ def yaw_error_stats(errors: np.ndarray) -> dict[str, float]:
 
 
 def within_radius(query_xy: np.ndarray, db_xy: np.ndarray, radius: float) -> np.ndarray:
-    """[Q, M] bool: which database positions lie within `radius` metres of each query (x, y only)."""
+    """[Q, M] bool: which database positions lie within `radius` metres of each query (x, y)."""
     query_xy = np.asarray(query_xy, np.float64).reshape(-1, 2)
     db_xy = np.asarray(db_xy, np.float64).reshape(-1, 2)
     out = np.empty((len(query_xy), len(db_xy)), dtype=bool)
@@ -111,7 +111,7 @@ class PRCurve:
 
     @property
     def auc(self) -> float:
-        """Area under the curve, step-wise (average precision): sum of (R_k - R_{k-1}) P_k, R_0 = 0."""
+        """Area under the curve, step-wise (average precision): sum (R_k - R_{k-1}) P_k, R_0 = 0."""
         if self.n_positive == 0 or self.thresholds.size == 0:
             return float("nan") if self.n_positive == 0 else 0.0
         steps = np.diff(np.concatenate([[0.0], self.recall]))
@@ -145,7 +145,9 @@ class PRCurve:
         return float(self.recall[full].max()) if full.any() else 0.0
 
 
-def precision_recall(top1_distance: np.ndarray, top1_correct: np.ndarray, has_true: np.ndarray) -> PRCurve:
+def precision_recall(
+    top1_distance: np.ndarray, top1_correct: np.ndarray, has_true: np.ndarray
+) -> PRCurve:
     """The precision-recall curve over the top-1 distance threshold (see `PRCurve`).
 
     The thresholds are the distinct finite top-1 distances, ascending; tied
@@ -165,7 +167,7 @@ def precision_recall(top1_distance: np.ndarray, top1_correct: np.ndarray, has_tr
     tp = np.cumsum(correct)
     fp = np.cumsum(~correct)
     # Keep the last index of each run of equal distances: ties are accepted together.
-    last = np.flatnonzero(np.append(dist[1:] != dist[:-1], True)) if dist.size else np.array([], int)
+    last = np.flatnonzero(np.append(dist[1:] != dist[:-1], True)) if dist.size else np.zeros(0, int)
     tp, fp = tp[last].astype(np.float64), fp[last].astype(np.float64)
     precision = tp / np.maximum(tp + fp, 1.0)
     recall = tp / n_pos if n_pos else np.full_like(tp, np.nan)
@@ -188,8 +190,10 @@ class RejectionCurve:
     n_seen: int
 
 
-def rejection_curve(top1_distance: np.ndarray, top1_correct: np.ndarray, has_true: np.ndarray) -> RejectionCurve:
-    """The unseen-place rejection curve (see `RejectionCurve`); thresholds as in `precision_recall`."""
+def rejection_curve(
+    top1_distance: np.ndarray, top1_correct: np.ndarray, has_true: np.ndarray
+) -> RejectionCurve:
+    """The unseen-place rejection curve (see `RejectionCurve`), thresholds as `precision_recall`."""
     dist = np.asarray(top1_distance, dtype=np.float64)
     correct = np.asarray(top1_correct, dtype=bool)
     has_true = np.asarray(has_true, dtype=bool)
@@ -238,7 +242,9 @@ def retrieval_evaluation(
     db_size = truth.shape[1]
     correct = retrieval_correct(retrieved, truth)
     has_true = truth.any(axis=1)
-    top1_dist = np.where(retrieved[:, 0] >= 0, distances[:, 0], np.nan) if retrieved.size else np.array([])
+    top1_dist = (
+        np.where(retrieved[:, 0] >= 0, distances[:, 0], np.nan) if retrieved.size else np.zeros(0)
+    )
     top1_ok = correct[:, 0] if correct.size else np.zeros(len(truth), bool)
     recalls = recall_at_n(correct, has_true)
     n1 = one_percent_n(db_size)

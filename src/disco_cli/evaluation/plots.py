@@ -52,7 +52,8 @@ def write_plots(directory: Path, ev: Evaluation, title: str = "") -> list[Path]:
         fig, ax = plt.subplots(figsize=(5, 3.5))
         n = np.arange(1, ev.recall_curve.size + 1)
         ax.plot(n, 100 * ev.recall_curve, marker="o", markersize=3)
-        ax.set(xlabel="N (top-N results)", ylabel="Recall@N [%]", title=f"Recall@N{suffix}", ylim=(0, 101))
+        ax.set(xlabel="N (top-N results)", ylabel="Recall@N [%]", ylim=(0, 101))
+        ax.set_title(f"Recall@N{suffix}")
         ax.grid(alpha=0.3)
         save(fig, "recall_at_n.png")
 
