@@ -316,3 +316,20 @@ def test_sample_is_small_and_complete(samples):
         assert len(read_kitti_poses(samples / s / "poses.txt")) == n
     a = read_kitti_poses(samples / "00" / "poses.txt")
     assert len(gt_pairs_within(a, 3.0, exclude_frames=5)) > 0
+
+
+def test_sample_regenerates_byte_for_byte(samples, tmp_path):
+    # The command recorded in the sample's README and world.json rewrites it exactly.
+    meta = json.loads((samples / "world.json").read_text())
+    readme = (samples / "README.md").read_text()
+    args = meta["command"].split()[3:]  # after "disco simulate OUT"
+    assert meta["command"].replace("OUT", "data/samples") + " --force" in readme
+    res = CliRunner().invoke(app, ["simulate", str(tmp_path / "again"), *args])
+    assert res.exit_code == 0, res.output
+    committed = sorted(p.relative_to(samples) for p in samples.rglob("*")
+                       if p.is_file() and p.name != "README.md")
+    again = sorted(p.relative_to(tmp_path / "again") for p in (tmp_path / "again").rglob("*")
+                   if p.is_file())
+    assert committed == again
+    for rel in committed:
+        assert (samples / rel).read_bytes() == (tmp_path / "again" / rel).read_bytes(), rel
