@@ -465,3 +465,103 @@ def test_info_and_check(map_db: Path, tmp_path: Path) -> None:
     assert code == 1 and "scan 2" in err
     code, _, err = run("info", str(tmp_path / "none.db"))
     assert code == 1 and "no such database" in err
+
+
+# -- relative pose: query --pose/--verify, loops --verify -o ----------------------
+
+
+def _gt_relative(samples: Path, query: tuple[str, int], match: tuple[str, int]) -> np.ndarray:
+    """T_match<-query from the sessions' poses.txt (the simulator's truth)."""
+    from disco_cli.poses import read_kitti_poses
+
+    Tq = read_kitti_poses(samples / query[0] / "poses.txt")[query[1]]
+    Tm = read_kitti_poses(samples / match[0] / "poses.txt")[match[1]]
+    return np.linalg.inv(Tm) @ Tq
+
+
+def _yaw_of(T: np.ndarray) -> float:
+    return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
+
+
+def _angle_diff(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def test_quaternion_of_known_rotations() -> None:
+    from disco_cli.loop_export import quaternion
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        angle = rng.uniform(-np.pi, np.pi)
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K  # Rodrigues
+        want = np.append(axis * np.sin(angle / 2), np.cos(angle / 2))
+        want = -want if want[3] < 0 else want
+        np.testing.assert_allclose(quaternion(R), want, atol=1e-12)
+    np.testing.assert_allclose(quaternion(np.diag([1.0, -1.0, -1.0])), [1, 0, 0, 0], atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def samples_db(samples: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("samples") / "s00.db"
+    assert run("build-db", str(samples / "00"), "-o", str(out), "--model", "spectral")[0] == 0
+    return out
+
+
+def test_query_pose_matches_the_simulator_truth(samples: Path, samples_db: Path) -> None:
+    # 01/000005 drives past 00/000004 in the opposite direction, about 1.9 m away.
+    q = samples / "01" / "velodyne" / "000005.bin"
+    code, out, err = run("query", str(q), "--db", str(samples_db), "--topk", "5", "--pose",
+                         "--format", "jsonl")
+    assert code == 0, err
+    rows = jsonl(out)
+    assert len(rows) == 5 and {"dx", "dy", "dz", "fitness", "accepted"} <= set(rows[0])
+    hit = [r for r in rows if r["match"].endswith("00/velodyne/000004.bin")]
+    assert hit and hit[0]["accepted"]
+    T = _gt_relative(samples, ("01", 5), ("00", 4))
+    assert np.hypot(hit[0]["dx"] - T[0, 3], hit[0]["dy"] - T[1, 3]) < 0.3
+    # --verify keeps exactly the accepted ones, in the same order.
+    code, out, _ = run("query", str(q), "--db", str(samples_db), "--topk", "5", "--verify",
+                       "--format", "jsonl")
+    assert [r["match_id"] for r in jsonl(out)] == [r["match_id"] for r in rows if r["accepted"]]
+
+
+def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
+    seq = samples / "00"
+    args = ["loops", str(seq), "--model", "spectral", "--exclude-frames", "5", "--threshold",
+            "0.5", "--verify", "--format", "jsonl"]
+    code, out, err = run(*args, "-o", str(tmp_path / "loops.g2o"))
+    assert code == 0, err
+    rows = jsonl(out)
+    assert rows, "no verified loops in data/samples/00"
+    edges = [ln.split() for ln in (tmp_path / "loops.g2o").read_text().splitlines()]
+    assert len(edges) == len(rows)
+    for e, r in zip(edges, rows):
+        assert e[0] == "EDGE_SE3:QUAT" and len(e) == 3 + 7 + 21
+        assert (int(e[1]), int(e[2])) == (r["match_index"], r["query_index"])
+        t, q = np.array(e[3:6], float), np.array(e[6:10], float)
+        T = _gt_relative(samples, ("00", r["query_index"]), ("00", r["match_index"]))
+        assert np.linalg.norm(t - T[:3, 3]) < 0.3
+        assert abs(np.linalg.norm(q) - 1.0) < 1e-6
+        yaw = np.degrees(2 * np.arctan2(q[2], q[3]))  # near-planar: rotation about z
+        assert _angle_diff(yaw, _yaw_of(T)) < 1.0
+        info = np.array(e[10:], float)
+        assert info[0] > 0 and info[[1, 2, 3, 4, 5]].tolist() == [0, 0, 0, 0, 0]
+    code, _, _ = run(*args, "-o", str(tmp_path / "loops.tum"))
+    tum = (tmp_path / "loops.tum").read_text().splitlines()
+    assert tum[0].startswith("#") and len(tum) == len(rows) + 1
+    times = np.loadtxt(seq / "times.txt")
+    first = tum[1].split()
+    assert float(first[0]) == pytest.approx(times[rows[0]["query_index"]], abs=1e-6)
+    assert float(first[1]) == pytest.approx(times[rows[0]["match_index"]], abs=1e-6)
+    code, _, _ = run(*args, "-o", str(tmp_path / "loops.csv"))
+    import csv
+
+    with open(tmp_path / "loops.csv") as fh:
+        table = list(csv.DictReader(fh))
+    assert [int(t["query_index"]) for t in table] == [r["query_index"] for r in rows]
+    assert all(t["accepted"] == "true" for t in table)
+    code, _, err = run(*args, "-o", str(tmp_path / "loops.txt"))
+    assert code == 1 and "loops.txt" in err

@@ -33,6 +33,7 @@ class Loaded:
     path: str  # as given
     bev: np.ndarray | None = None
     error: DiscoError | None = None
+    points: np.ndarray | None = None  # kept only when asked for (relative pose)
 
 
 @dataclass
@@ -48,6 +49,12 @@ class Embedded:
 def load_bev(path: str, bev_config: Any, scan_format: str | None = None) -> np.ndarray:
     """Read one scan and voxelize it; `ScanReadError` when it is unreadable or holds
     no point inside the BEV's range."""
+    return _load_points_bev(path, bev_config, scan_format)[1]
+
+
+def _load_points_bev(
+    path: str, bev_config: Any, scan_format: str | None
+) -> tuple[np.ndarray, np.ndarray]:
     from disco_cli.bev import polar_bev
     from disco_cli.readers import read_scan
 
@@ -60,12 +67,15 @@ def load_bev(path: str, bev_config: Any, scan_format: str | None = None) -> np.n
         raise ScanReadError(path, f"cannot voxelize ({exc})") from None
     if not np.any(bev):
         raise ScanReadError(path, f"no points in range ({len(points)} points, none in the BEV)")
-    return bev
+    return points, bev
 
 
-def _load_one(index: int, path: str, bev_config: Any, scan_format: str | None) -> Loaded:
+def _load_one(
+    index: int, path: str, bev_config: Any, scan_format: str | None, keep_points: bool
+) -> Loaded:
     try:
-        return Loaded(index, path, bev=load_bev(path, bev_config, scan_format))
+        points, bev = _load_points_bev(path, bev_config, scan_format)
+        return Loaded(index, path, bev=bev, points=points if keep_points else None)
     except DiscoError as exc:
         return Loaded(index, path, error=exc)
     except (OSError, MemoryError) as exc:
@@ -78,6 +88,7 @@ def load_stream(
     workers: int = 2,
     prefetch: int = 8,
     scan_format: str | None = None,
+    keep_points: bool = False,
 ) -> Iterator[Loaded]:
     """Loaded scans in input order, each as soon as it (and those before it) are ready.
 
@@ -103,7 +114,7 @@ def load_stream(
             for i, p in enumerate(paths):
                 if stop.is_set():
                     return
-                fut = pool.submit(_load_one, i, str(p), bev_config, scan_format)
+                fut = pool.submit(_load_one, i, str(p), bev_config, scan_format, keep_points)
                 if not put(fut):
                     return
         except BaseException as exc:  # e.g. stdin went away: the consumer re-raises it

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from disco_cli.console import OutputFormat, fail, handle_errors, progress, warn
+from disco_cli.console import OutputFormat, fail, handle_errors, progress, stderr, warn
 from disco_cli.readers import FormatName
 
 if TYPE_CHECKING:
@@ -22,7 +22,9 @@ if TYPE_CHECKING:
     from disco_cli.database import MatchRows
 
 COLUMNS = ["query_index", "query", "match_index", "match", "distance", "yaw_deg"]
+POSE_COLUMNS = ["dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"]
 PANEL_OUT = "Output"
+PANEL_POSE = "Relative pose"
 PANEL_RUN = "Running"
 # Queries searched per block: their results are printed together.
 _BLOCK = 64
@@ -43,6 +45,30 @@ class SequenceRows:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         return MatchRows(ids, [self.paths[i] for i in ids], np.full((len(ids), 4), np.nan),
                          self.features[ids])
+
+
+class _Points:
+    """Scan points by sequence index, the last few kept (pairs reuse recent scans)."""
+
+    def __init__(self, paths: list[str], scan_format: str | None, size: int = 64):
+        from collections import OrderedDict
+
+        self.paths = paths
+        self.scan_format = scan_format
+        self.size = size
+        self._cache: OrderedDict = OrderedDict()
+
+    def get(self, i: int) -> np.ndarray:
+        from disco_cli.readers import read_scan
+
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        pts = read_scan(self.paths[i], self.scan_format)
+        self._cache[i] = pts
+        if len(self._cache) > self.size:
+            self._cache.popitem(last=False)
+        return pts
 
 
 @handle_errors
@@ -74,6 +100,21 @@ def loops(
         Optional[OutputFormat], typer.Option("--format", help="table, tsv or jsonl; default: a "
                                              "table on a terminal, TSV in a pipe.",
                                              rich_help_panel=PANEL_OUT)
+    ] = None,
+    verify: Annotated[
+        bool, typer.Option("--verify", help="Estimate each pair's relative pose (phase "
+                           "correlation + ICP) and keep only the accepted ones.",
+                           rich_help_panel=PANEL_POSE)
+    ] = False,
+    verbose: Annotated[
+        bool, typer.Option("--verbose", "-v", help="Estimate each pair's relative pose and show "
+                           "it (dx, dy, dz, fitness, rmse, accepted, reason), rejected pairs "
+                           "included unless --verify.", rich_help_panel=PANEL_POSE)
+    ] = False,
+    output: Annotated[
+        Optional[Path], typer.Option("--output", "-o", help="Also write the loops with their "
+                                     "relative poses: .g2o (EDGE_SE3:QUAT, accepted loops "
+                                     "only), .tum or .csv.", rich_help_panel=PANEL_OUT)
     ] = None,
     times: Annotated[
         Optional[Path], typer.Option("--times", help="Timestamps (s), one per scan; default: "
@@ -116,11 +157,22 @@ def loops(
         raise fail("give --exclude-frames or --exclude-seconds, not both")
     if device not in ("cpu", "cuda"):
         raise fail(f"--device must be cpu or cuda, not {device!r}")
+    if output is not None:
+        from disco_cli.loop_export import FORMATS
+
+        if output.suffix.lower() not in FORMATS:
+            raise fail(f"{output}: unknown loop file type; use {', '.join(FORMATS)}")
+    with_pose = verify or verbose or output is not None
     fmt_name = scan_format.value if scan_format is not None else None
     paths = [str(p) for p in list_scans(sequence, fmt_name)]
     n = len(paths)
 
     stamps = None
+    all_times = None
+    times_file = times or (sequence / "times.txt" if sequence.is_dir() else None)
+    if with_pose and times_file is not None and Path(times_file).is_file():
+        t = read_times(times_file)
+        all_times = t[frame_rows(paths, len(t), str(times_file))]
     if exclude_seconds is not None:
         times_file = times or (sequence / "times.txt" if sequence.is_dir() else None)
         if times_file is None or not Path(times_file).is_file():
@@ -184,8 +236,11 @@ def loops(
 
     index = SignatureIndex(sigs)
     store = SequenceRows(paths, feats)
-    writer = RowWriter(COLUMNS, fmt, title=f"loops in {sequence}")
+    columns = COLUMNS + (POSE_COLUMNS if verbose else [])
+    writer = RowWriter(columns, fmt, title=f"loops in {sequence}")
     frame_ids = np.arange(n)
+    found_loops = []
+    points = _Points(paths, fmt_name)
     for s in range(0, n, _BLOCK):
         block = np.arange(s, min(n, s + _BLOCK))
         block = block[limit[block] > 0]
@@ -193,10 +248,34 @@ def loops(
             continue
         found = match_queries(index, frame_ids, store, net, sigs[block], feats[block], topk,
                               limit=limit[block], max_distance=threshold)
-        out = [
-            {"query_index": int(i), "query": paths[i], "match_index": m.match_id,
-             "match": m.path, "distance": m.distance, "yaw_deg": m.yaw_deg}
-            for i, matches in zip(block, found) for m in matches
-        ]
+        out = []
+        for i, matches in zip(block, found):
+            for m in matches:
+                row = {"query_index": int(i), "query": paths[i], "match_index": m.match_id,
+                       "match": m.path, "distance": m.distance, "yaw_deg": m.yaw_deg}
+                if with_pose:
+                    from disco_cli.loop_export import Loop
+                    from disco_cli.relative_pose import estimate_relative_pose
+
+                    rp = estimate_relative_pose(points.get(int(i)), points.get(m.match_id),
+                                                m.yaw_deg)
+                    if verify and not rp.accepted:
+                        continue
+                    row.update(dx=rp.dx, dy=rp.dy, dz=rp.dz, fitness=rp.fitness, rmse=rp.rmse,
+                               accepted=rp.accepted, reason=rp.reason)
+                    t = all_times if all_times is not None else None
+                    found_loops.append(Loop(
+                        int(i), m.match_id, paths[i], m.path, m.distance, m.yaw_deg, rp,
+                        float(t[i]) if t is not None else float("nan"),
+                        float(t[m.match_id]) if t is not None else float("nan"),
+                    ))
+                out.append(row)
         if out:
             writer.write(out)
+    if output is not None:
+        from disco_cli.loop_export import write_loops
+
+        keep = [lp for lp in found_loops
+                if lp.pose.accepted or output.suffix.lower() != ".g2o"]
+        write_loops(output, keep)
+        stderr.print(f"{output}: {len(keep)} loops written")

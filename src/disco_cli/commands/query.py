@@ -20,7 +20,9 @@ if TYPE_CHECKING:
     from disco_cli.database import Database
 
 COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
+POSE_COLUMNS = ["dx", "dy", "dz", "fitness", "accepted"]
 PANEL_OUT = "Output"
+PANEL_POSE = "Relative pose"
 PANEL_FILTER = "Filters"
 PANEL_RUN = "Running"
 
@@ -81,6 +83,15 @@ def query(
                                       "signature distance above this.",
                                       rich_help_panel=PANEL_FILTER)
     ] = None,
+    pose: Annotated[
+        bool, typer.Option("--pose", help="Also estimate the full relative pose of each match "
+                           "(phase correlation + ICP on the points): adds dx, dy, dz, fitness, "
+                           "accepted.", rich_help_panel=PANEL_POSE)
+    ] = False,
+    verify: Annotated[
+        bool, typer.Option("--verify", help="Keep only matches whose relative pose is accepted "
+                           "(implies --pose).", rich_help_panel=PANEL_POSE)
+    ] = False,
     model: Annotated[
         Optional[str], typer.Option("--model", "-m", help="The model; default: the one that "
                                     "built the database (needed for checkpoint paths).",
@@ -129,10 +140,13 @@ def query(
                 yield s
 
     n_args = None if "-" in scans else len(scans)
-    writer = RowWriter(COLUMNS, fmt)
+    with_pose = pose or verify
+    writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt)
     failed = 0
+    match_points = PointCache()
     loaded = load_stream(paths(), net.bev_config, workers=workers, prefetch=2 * workers,
-                         scan_format=scan_format.value if scan_format is not None else None)
+                         scan_format=scan_format.value if scan_format is not None else None,
+                         keep_points=with_pose)
     try:
         for chunk in embed_stream(loaded, net, batch=1):
             for item in chunk.errors:
@@ -157,19 +171,57 @@ def query(
                     error(str(exc))
                     failed += 1
                     continue
-                writer.write(
-                    [
-                        {"query": item.path, "rank": m.rank, "match": m.path,
-                         "match_id": m.match_id, "distance": m.distance, "yaw_deg": m.yaw_deg}
-                        for m in matches
-                    ],
-                    title=item.path,
-                )
+                rows = [
+                    {"query": item.path, "rank": m.rank, "match": m.path,
+                     "match_id": m.match_id, "distance": m.distance, "yaw_deg": m.yaw_deg}
+                    for m in matches
+                ]
+                if with_pose:
+                    from disco_cli.relative_pose import estimate_relative_pose
+
+                    kept = []
+                    for row in rows:
+                        try:
+                            rp = estimate_relative_pose(item.points, match_points.get(row["match"]),
+                                                        row["yaw_deg"])
+                        except DiscoError as exc:
+                            error(f"{row['match']}: no relative pose ({exc})")
+                            failed += 1
+                            continue
+                        row.update(dx=rp.dx, dy=rp.dy, dz=rp.dz, fitness=rp.fitness,
+                                   accepted=rp.accepted)
+                        if rp.accepted or not verify:
+                            kept.append(row)
+                    rows = kept
+                    item.points = None
+                writer.write(rows, title=item.path)
     finally:
         loaded.close()
         db.close()
     if failed:
         raise typer.Exit(1)
+
+
+class PointCache:
+    """The points of the last few match scans read (a query's matches often repeat)."""
+
+    def __init__(self, size: int = 32):
+        from collections import OrderedDict
+
+        self.size = size
+        self._cache: OrderedDict = OrderedDict()
+
+    def get(self, path: str) -> Any:
+        from disco_cli.readers import read_scan
+
+        if path in self._cache:
+            self._cache.move_to_end(path)
+            return self._cache[path]
+        points = read_scan(path)
+        self._cache[path] = points
+        if len(self._cache) > self.size:
+            self._cache.popitem(last=False)
+        return points
 
 
 def _exclusion(
