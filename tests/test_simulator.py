@@ -58,11 +58,11 @@ def ref_hit(row: np.ndarray, o: np.ndarray, d: np.ndarray) -> float:
         a = d[0] ** 2 + d[1] ** 2
         b = rel[0] * d[0] + rel[1] * d[1]
         c = rel[0] ** 2 + rel[1] ** 2 - hx**2
-        if b * b - a * c >= 0:
+        if a > 1e-12 and b * b - a * c >= 0:  # the side (a vertical ray never hits it)
             for t in ((-b - np.sqrt(b * b - a * c)) / a, (-b + np.sqrt(b * b - a * c)) / a):
                 if abs(rel[2] + t * d[2]) <= hz:
                     ts.append(t)
-        for zc in (hz, -hz):
+        for zc in (hz, -hz) if abs(d[2]) > 1e-12 else ():  # top and bottom
             t = (zc - rel[2]) / d[2]
             if np.hypot(rel[0] + t * d[0], rel[1] + t * d[1]) <= hx:
                 ts.append(t)
@@ -123,6 +123,54 @@ def test_ray_casting_matches_a_numpy_reference():
             assert ids[0, r] == int(np.argmin(t)), f"ray {r}"
             assert ranges[0, r] == pytest.approx(t.min(), abs=1e-4)
     assert n_objects > 20  # the test exercised the grid, not only the ground
+
+
+@pytest.mark.parametrize("origin", [(1.0, -2.0, 2.0), (-120.0, 75.0, 3.0), (40.0, 40.0, 30.0)])
+def test_axis_aligned_vertical_and_outside_rays_match_the_reference(origin):
+    # Rays along the grid axes, straight up and down, at exactly 45 degrees, and from
+    # outside the grid: the DDA's special cases.
+    rng = np.random.default_rng(1)
+    table = random_table(rng, 40)
+    world = primitives_world(table, (0.0, 0.0, 0.0), cell_size=4.0)
+    dirs = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1),
+            (1, 1, 0), (-1, 1, -0.1), (1, -1, 0.05), (1e-9, 1, 0), (0.3, 0.2, -1)]
+    towards = -np.array(origin) / np.linalg.norm(origin)  # at the town's centre
+    dirs = np.array(dirs + [tuple(towards)] * 1, float)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    o = np.array(origin)
+    ranges, ids, _ = world.caster.cast_scans(pose(*o)[None], dirs.astype(np.float32), 500.0,
+                                             np.array([1], np.uint64), 1)
+    for r, d in enumerate(dirs.astype(np.float32).astype(np.float64)):
+        d /= np.linalg.norm(d)
+        t = np.array([ref_hit(row, o, d) for row in table])
+        tg = -o[2] / d[2] if d[2] < 0 else np.inf
+        if min(t.min(), tg) >= 500.0:
+            assert ids[0, r] == -2
+        elif tg <= t.min():
+            assert ids[0, r] == -1 and ranges[0, r] == pytest.approx(tg, abs=1e-4)
+        else:
+            assert ids[0, r] == int(np.argmin(t)) and ranges[0, r] == pytest.approx(t.min(),
+                                                                                  abs=1e-4)
+
+
+def test_caster_rejects_bad_tables_and_poses():
+    from disco_cli import _core
+
+    with pytest.raises(ValueError, match="N x 9"):
+        _core.RaycastWorld(np.zeros((3, 8)), 0, 0, 0, 4.0)
+    with pytest.raises(ValueError, match="kind"):
+        _core.RaycastWorld(np.array([[7, 0, 0, 0, 1, 1, 1, 0, 1.0]]), 0, 0, 0, 4.0)
+    world = primitives_world(np.zeros((0, 9)))
+    with pytest.raises(ValueError, match="4 x 4"):
+        world.caster.cast_scans(np.eye(3)[None], np.ones((2, 3), np.float32), 10.0,
+                                np.array([1], np.uint64), 1)
+    with pytest.raises(ValueError, match="one seed per pose"):
+        world.caster.cast_scans(np.eye(4)[None], np.ones((2, 3), np.float32), 10.0,
+                                np.array([1, 2], np.uint64), 1)
+    # An empty world still has its ground.
+    r, ids, _ = world.caster.cast_scans(pose(0, 0, 2)[None], np.array([[1, 0, -1]], np.float32),
+                                        10.0, np.array([1], np.uint64), 1)
+    assert ids[0, 0] == -1 and r[0, 0] == pytest.approx(2 * np.sqrt(2), abs=1e-5)
 
 
 def test_wall_at_known_distance_within_noise():
