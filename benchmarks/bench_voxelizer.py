@@ -98,19 +98,19 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; data: {source}")
     print(f"grid {config.shape}, mode {config.mode}; medians of {args.repeats} calls (C++), "
           f"{max(10, args.repeats // 10)} (NumPy)")
-    levels = {2: "AVX2+FMA", 1: "SSE2", 0: "scalar"}
+    levels = {3: "AVX-512", 2: "AVX2+FMA", 1: "SSE2", 0: "scalar"}
     best = _core._bev_kernel_level()
     for name, pts in (("30k", small), (f"{len(full) // 1000}k HDL-64", full)):
         numpy_ms = median_ms(lambda: numpy_bev(pts, config), max(10, args.repeats // 10))
         print(f"\n{name} points ({len(pts)}), float32 N x 4:")
         print(f"  NumPy vectorized        {numpy_ms:8.3f} ms")
-        for level in (2, 1, 0):
+        for level in (3, 2, 1, 0):
             _core._set_bev_kernel_level(level)
             if _core._bev_kernel_level() != level:
                 continue
             ms = median_ms(lambda: polar_bev(pts, config), args.repeats)
             print(f"  C++ {levels[level]:<20s}{ms:8.3f} ms   {numpy_ms / ms:6.1f}x NumPy")
-        _core._set_bev_kernel_level(2)
+        _core._set_bev_kernel_level(3)
         for mode in ("density", "max_height"):
             cfg = BEVConfig(mode=mode)
             ms = median_ms(lambda: polar_bev(pts, cfg), args.repeats)

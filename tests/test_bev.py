@@ -61,7 +61,7 @@ def reference_bev(points: np.ndarray, config: BEVConfig) -> np.ndarray:
     return out
 
 
-@pytest.fixture(params=[2, 1, 0], ids=["avx2", "sse2", "scalar"])
+@pytest.fixture(params=[3, 2, 1, 0], ids=["avx512", "avx2", "sse2", "scalar"])
 def kernel(request):
     """Run a test on each fast-path kernel the CPU has (they must agree exactly)."""
     previous = _core._set_bev_kernel_level(request.param)

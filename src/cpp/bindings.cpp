@@ -94,7 +94,7 @@ PYBIND11_MODULE(_core, m) {
             },
             py::arg("scans"), py::arg("config"), py::arg("threads") = 0,
             "[B, layers, rings, sectors] float32 BEVs, scans spread over threads (0: all cores)");
-        // For tests and benchmarks: cap the SIMD kernel (2 AVX2, 1 SSE2, 0 plain C++).
+        // For tests and benchmarks: cap the SIMD kernel (3 AVX-512, 2 AVX2, 1 SSE2, 0 plain).
         m.def("_set_bev_kernel_level", &disco::set_bev_kernel_level, py::arg("cap"));
         m.def("_bev_kernel_level", &disco::bev_kernel_level);
     }

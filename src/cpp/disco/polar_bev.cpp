@@ -408,12 +408,118 @@ DISCO_AVX2_FMA void fast_codes_xyzw8(const float* rows, int n, const Binning& b,
 }
 #endif
 
+#if DISCO_BEV_AVX2
+// Sixteen points at once with AVX-512 (F only), chosen at run time. Mask
+// registers replace the blends, and one instruction covers twice the points, so
+// more points are in flight in the out-of-order window, which is what limits
+// the AVX2 kernel.
+#define DISCO_AVX512 __attribute__((target("avx512f")))
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic push
+// GCC 12 warns inside its own avx512fintrin.h (_mm512_undefined_ps): a false positive.
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#endif
+
+DISCO_AVX512 inline __mmask16 ok16(__m512 a, __m512& i, float margin) {
+    i = _mm512_roundscale_ps(a, _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC);
+    const __m512 frac = _mm512_sub_ps(a, i);
+    const __mmask16 above = _mm512_cmp_ps_mask(frac, _mm512_set1_ps(margin), _CMP_GT_OQ);
+    return _mm512_mask_cmp_ps_mask(above, frac, _mm512_set1_ps(1.0f - margin), _CMP_LT_OQ);
+}
+
+DISCO_AVX512 inline __m512i codes16(__m512 x, __m512 y, __m512 z, const Binning& b) {
+    const __m512 r2 = _mm512_fmadd_ps(x, x, _mm512_mul_ps(y, y));
+    const __m512 a_ring = _mm512_mul_ps(_mm512_sqrt_ps(r2), _mm512_set1_ps(b.ring_scale));
+    const __m512 a_height = _mm512_mul_ps(_mm512_sub_ps(z, _mm512_set1_ps(b.z_min_f)), _mm512_set1_ps(b.height_scale));
+
+    const __m512 ax = _mm512_abs_ps(x);
+    const __m512 ay = _mm512_abs_ps(y);
+    const __m512 t = _mm512_div_ps(_mm512_min_ps(ax, ay), _mm512_max_ps(ax, ay));
+    const __m512 u = _mm512_mul_ps(t, t);
+    const __m512 u2 = _mm512_mul_ps(u, u);
+    const __m512 u4 = _mm512_mul_ps(u2, u2);
+    const __m512 q01 = _mm512_fmadd_ps(_mm512_set1_ps(kA1), u, _mm512_set1_ps(kA0));
+    const __m512 q23 = _mm512_fmadd_ps(_mm512_set1_ps(kA3), u, _mm512_set1_ps(kA2));
+    const __m512 q45 = _mm512_fmadd_ps(_mm512_set1_ps(kA5), u, _mm512_set1_ps(kA4));
+    const __m512 q456 = _mm512_fmadd_ps(_mm512_set1_ps(kA6), u2, q45);
+    const __m512 q0123 = _mm512_fmadd_ps(q23, u2, q01);
+    const __m512 p = _mm512_mul_ps(_mm512_fmadd_ps(q456, u4, q0123), t);
+    const __m512 zero = _mm512_setzero_ps();
+    __m512 theta = _mm512_mask_sub_ps(p, _mm512_cmp_ps_mask(ay, ax, _CMP_GT_OQ),
+                                      _mm512_set1_ps(static_cast<float>(kPi / 2.0)), p);
+    theta = _mm512_mask_sub_ps(theta, _mm512_cmp_ps_mask(x, zero, _CMP_LT_OQ),
+                               _mm512_set1_ps(static_cast<float>(kPi)), theta);
+    theta = _mm512_mask_sub_ps(theta, _mm512_cmp_ps_mask(y, zero, _CMP_LT_OQ),
+                               _mm512_set1_ps(static_cast<float>(kTwoPi)), theta);
+    const __m512 a_sector = _mm512_mul_ps(theta, _mm512_set1_ps(b.sector_scale));
+
+    // As in codes8: no clamps (a negative, NaN or huge value is not ok), and a
+    // drop wins over ok.
+    __m512 ring, sector, height;
+    const __mmask16 ok = ok16(a_ring, ring, b.ring_margin) & ok16(a_sector, sector, b.sector_margin) &
+                         ok16(a_height, height, b.height_margin) &
+                         _mm512_cmp_ps_mask(a_ring, _mm512_set1_ps(b.ring_min + b.ring_margin), _CMP_GT_OQ);
+    const __mmask16 drop =
+        _mm512_cmp_ps_mask(a_ring, _mm512_set1_ps(b.ring_min - b.ring_margin), _CMP_LT_OQ) |
+        _mm512_cmp_ps_mask(a_ring, _mm512_set1_ps(b.rings_f + b.ring_margin), _CMP_GT_OQ) |
+        _mm512_cmp_ps_mask(a_height, _mm512_set1_ps(-b.height_margin), _CMP_LT_OQ) |
+        _mm512_cmp_ps_mask(a_height, _mm512_set1_ps(b.heights_f + b.height_margin), _CMP_GT_OQ);
+    const __m512 cell_f = _mm512_fmadd_ps(_mm512_fmadd_ps(height, _mm512_set1_ps(b.rings_f), ring),
+                                          _mm512_set1_ps(static_cast<float>(b.sectors)), sector);
+    const __m512i cell = _mm512_cvttps_epi32(cell_f);
+    const __m512i code = _mm512_mask_mov_epi32(_mm512_set1_epi32(kExact), ok, cell);
+    return _mm512_mask_mov_epi32(code, drop, _mm512_set1_epi32(kDrop));
+}
+
+DISCO_AVX512 void fast_codes_simd16(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
+                                    int32_t* codes) {
+    int i = 0;
+    for (; i + 16 <= n; i += 16) {
+        const __m512i c = codes16(_mm512_load_ps(xs + i), _mm512_load_ps(ys + i), _mm512_load_ps(zs + i), b);
+        _mm512_store_si512(codes + i, c);
+    }
+    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
+}
+
+DISCO_AVX512 void fast_codes_xyzw16(const float* rows, int n, const Binning& b, int32_t* codes) {
+    // Two-source permutes pick x and y (then z) of 8 points out of 2 registers of
+    // 4 points each; 256-bit halves are then joined. Point order is kept.
+    const __m512i pick_xy = _mm512_setr_epi32(0, 4, 8, 12, 16, 20, 24, 28, 1, 5, 9, 13, 17, 21, 25, 29);
+    const __m512i pick_z = _mm512_setr_epi32(2, 6, 10, 14, 18, 22, 26, 30, 3, 7, 11, 15, 19, 23, 27, 31);
+    int i = 0;
+    for (; i + 16 <= n; i += 16) {
+        const float* r = rows + 4 * i;
+        const __m512 a0 = _mm512_loadu_ps(r);
+        const __m512 a1 = _mm512_loadu_ps(r + 16);
+        const __m512 a2 = _mm512_loadu_ps(r + 32);
+        const __m512 a3 = _mm512_loadu_ps(r + 48);
+        const __m512 xy0 = _mm512_permutex2var_ps(a0, pick_xy, a1);  // x0..x7 y0..y7
+        const __m512 xy1 = _mm512_permutex2var_ps(a2, pick_xy, a3);  // x8..x15 y8..y15
+        const __m512 zw0 = _mm512_permutex2var_ps(a0, pick_z, a1);
+        const __m512 zw1 = _mm512_permutex2var_ps(a2, pick_z, a3);
+        const __m512 x = _mm512_shuffle_f32x4(xy0, xy1, _MM_SHUFFLE(1, 0, 1, 0));
+        const __m512 y = _mm512_shuffle_f32x4(xy0, xy1, _MM_SHUFFLE(3, 2, 3, 2));
+        const __m512 z = _mm512_shuffle_f32x4(zw0, zw1, _MM_SHUFFLE(1, 0, 1, 0));
+        _mm512_store_si512(codes + i, codes16(x, y, z, b));
+    }
+    for (; i < n; ++i) {
+        const float* r = rows + 4 * i;
+        fast_codes(r, r + 1, r + 2, 1, b, codes + i);
+    }
+}
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic pop
+#endif
+#endif
+
 // Which fast-path kernel runs: the best the CPU has, capped by set_bev_kernel_level.
-std::atomic<int> g_level_cap{2};
+std::atomic<int> g_level_cap{3};
 
 int detected_level() {
 #if DISCO_BEV_AVX2
-    static const int level = (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) ? 2 : 1;
+    static const int level = __builtin_cpu_supports("avx512f")                                 ? 3
+                             : (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) ? 2
+                                                                                                 : 1;
     return level;
 #elif DISCO_BEV_SSE2
     return 1;
@@ -430,6 +536,7 @@ void chunk_codes(int level, const T* row, Eigen::Index rs, Eigen::Index cs, int 
         if (rs == 4 && cs == 1 && level >= 1) {
             const float* rows = row;
 #if DISCO_BEV_AVX2
+            if (level == 3) return fast_codes_xyzw16(rows, m, b, codes);
             if (level == 2) return fast_codes_xyzw8(rows, m, b, codes);
 #endif
 #if DISCO_BEV_SSE2
@@ -443,6 +550,7 @@ void chunk_codes(int level, const T* row, Eigen::Index rs, Eigen::Index cs, int 
         zs[i] = static_cast<float>(row[2 * cs]);
     }
 #if DISCO_BEV_AVX2
+    if (level == 3) return fast_codes_simd16(xs, ys, zs, m, b, codes);
     if (level == 2) return fast_codes_simd8(xs, ys, zs, m, b, codes);
 #endif
 #if DISCO_BEV_SSE2
@@ -538,7 +646,7 @@ void BEVConfig::validate() const {
 }
 
 int set_bev_kernel_level(int cap) {
-    const int previous = g_level_cap.exchange(std::max(0, std::min(cap, 2)));
+    const int previous = g_level_cap.exchange(std::max(0, std::min(cap, 3)));
     return previous;
 }
 

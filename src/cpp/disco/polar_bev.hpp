@@ -64,9 +64,10 @@ void polar_bev(const BEVPointsView<double>& points, const BEVConfig& config, flo
 void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig& config, float* out,
                      int threads = 0);
 
-// The fast-path kernel in use: 2 AVX2+FMA (chosen at run time when the CPU has it),
-// 1 SSE2, 0 plain C++. Every kernel gives identical BEVs; capping the level lets
-// tests check each one and benchmarks compare them. Returns the previous cap.
+// The fast-path kernel in use: 3 AVX-512F, 2 AVX2+FMA (both chosen at run time when
+// the CPU has them), 1 SSE2, 0 plain C++. Every kernel gives identical BEVs; capping
+// the level lets tests check each one and benchmarks compare them. Returns the
+// previous cap.
 int set_bev_kernel_level(int cap);
 int bev_kernel_level();
 
