@@ -211,6 +211,21 @@ def test_eval_needs_a_database_with_poses(tiny_world, tmp_path):
     assert "Traceback" not in result.output
 
 
+def test_eval_unreadable_query_scan_names_the_file(tiny_world, databases, tmp_path):
+    q = tmp_path / "q"
+    (q / "velodyne").mkdir(parents=True)
+    for f in sorted((tiny_world / "01" / "velodyne").glob("*.bin"))[:2]:
+        (q / "velodyne" / f.name).write_bytes(f.read_bytes())
+    broken = q / "velodyne" / "000001.bin"
+    broken.write_bytes(broken.read_bytes()[:-6])  # no longer whole float32 x 4 records
+    poses = (tiny_world / "01" / "poses.txt").read_text().splitlines()[:2]
+    (q / "poses.txt").write_text("\n".join(poses) + "\n")
+    result = run("eval", q, "--db", databases["spectral"])
+    assert result.exit_code == 1
+    assert "000001.bin" in result.output
+    assert "Traceback" not in result.output
+
+
 def test_eval_loops_bad_exclusion_options(tiny_world, tmp_path):
     seq = tmp_path / "notimes"
     (seq / "velodyne").mkdir(parents=True)

@@ -45,25 +45,26 @@ def _auto_file(inputs: list[Path], given: Path | None, name: str) -> Path | None
 
 
 def embed_scans(
-    paths: list[Path], model: Any, scan_format: str | None, batch: int = 32
+    paths: list[Path], model: Any, scan_format: str | None, batch: int = 32, workers: int = 2
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(signatures [N, D], features [N, ...]) of the scans, with a progress bar on stderr."""
+    """(signatures [N, D], features [N, ...]) of the scans, in order; reading and voxelizing
+    overlap the network (disco_cli.pipeline). Every scan must load: an unreadable one stops
+    the evaluation, since the scans pair up with the poses by position."""
     import numpy as np
 
-    from disco_cli.bev import polar_bev_batch
     from disco_cli.console import progress
-    from disco_cli.readers import read_scan
+    from disco_cli.pipeline import embed_stream, load_stream
 
     sigs, feats = [], []
     with progress(transient=True) as bar:
         task = bar.add_task("embedding", total=len(paths), rate="")
-        for start in range(0, len(paths), batch):
-            chunk = paths[start : start + batch]
-            clouds = [read_scan(p, format=scan_format) for p in chunk]
-            s, f = model.embed(polar_bev_batch(clouds, model.bev_config))
-            sigs.append(np.asarray(s, np.float32))
-            feats.append(np.asarray(f, np.float32))
-            bar.advance(task, len(chunk))
+        loaded = load_stream(map(str, paths), model.bev_config, workers, scan_format=scan_format)
+        for out in embed_stream(loaded, model, batch):
+            if out.errors:
+                raise out.errors[0].error
+            sigs.append(out.signatures)
+            feats.append(out.features)
+            bar.advance(task, len(out.items))
     return np.concatenate(sigs), np.concatenate(feats)
 
 
