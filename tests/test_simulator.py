@@ -381,3 +381,26 @@ def test_sample_regenerates_byte_for_byte(samples, tmp_path):
     assert committed == again
     for rel in committed:
         assert (samples / rel).read_bytes() == (tmp_path / "again" / rel).read_bytes(), rel
+
+
+def test_the_car_follows_the_slope():
+    # On a 5 % slope the car pitches and rolls with the ground, so in the sensor frame
+    # the ground is level within the car's own sway (< 1 deg), 1.8 m below.
+    town = Town(5, TownParams(blocks_x=2, blocks_y=2, outskirts_m=30.0, max_slope=0.05))
+    a, b, _ = town.ground
+    assert np.hypot(a, b) > 0.015
+    sensor = get_sensor("hdl32")
+    plan = plan_sessions(town, sensor, 1, 40, 3.0, 5)[0]
+    world = town.session_world(0)
+    d = sensor.directions().astype(np.float64)
+    for i in (5, 20, 35):
+        ranges, ids, _ = cast(world, plan.poses[i], sensor, np.array([i], np.uint64))
+        g = (ids[0] == -1) & (ranges[0] < 30)
+        p = d[g] * ranges[0][g, None]
+        A = np.column_stack([p[:, 0], p[:, 1], np.ones(len(p))])
+        (ga, gb, gc), *_ = np.linalg.lstsq(A, p[:, 2], rcond=None)
+        assert np.degrees(np.arctan(np.hypot(ga, gb))) < 1.0
+        assert gc == pytest.approx(-1.8, abs=0.05)
+        # The world slope seen from a car that did not pitch would be 1.5-3 deg.
+        world_tilt = np.degrees(np.arctan(np.hypot(a, b)))
+        assert world_tilt > 0.8
