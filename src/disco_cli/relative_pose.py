@@ -44,7 +44,7 @@ class PoseConfig:
     source_voxel: float = 1.0  # query downsampling (m)
     target_voxel: float = 0.5  # match downsampling (m)
     max_range: float = 60.0  # points farther from the sensor are left out (m)
-    normal_radius: float = 1.0  # neighbourhood of the match's normals (m)
+    normal_radius: float = 1.0  # cell edge for the match's normals (m)
     stages: tuple[float, ...] = (2.0, 1.0, 0.5)  # correspondence distance per stage (m)
     max_iterations: int = 15  # per stage
     hypothesis_iterations: int = 8  # coarse-stage iterations to judge each yaw hypothesis

@@ -3,8 +3,8 @@
 // Cartesian height image that seeds its translation by phase correlation.
 //
 // The target (the match scan) is prepared once: cropped, voxel-downsampled,
-// normals from the covariance of each point's neighbours, one neighbour grid
-// per correspondence distance. Each alignment of a source (the query scan)
+// normals from the covariance of the full-resolution points in each point's
+// cell, one neighbour grid per correspondence distance. Each alignment of a source (the query scan)
 // then runs Gauss-Newton on SE(3) with a Geman-McClure kernel, coarse to fine
 // over the correspondence distances, and scores the result.
 
@@ -24,8 +24,8 @@ struct IcpConfig {
     double source_voxel = 1.0;   // query downsampling (m)
     double target_voxel = 0.5;   // match downsampling (m)
     double max_range = 60.0;     // drop points farther from the sensor (m); <= 0 keeps all
-    double normal_radius = 1.0;  // neighbourhood for the target normals (m)
-    int normal_min_neighbors = 5;
+    double normal_radius = 1.0;  // cell edge for the target normals (m)
+    int normal_min_neighbors = 5;  // fewer points in a cell: no normal there
     // Maximum correspondence distance of each coarse-to-fine stage (m).
     std::vector<double> stages = {2.0, 1.0, 0.5};
     int max_iterations = 15;     // per stage
