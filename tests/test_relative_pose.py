@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from disco_cli import _core
 from disco_cli.errors import DiscoError
@@ -165,6 +167,24 @@ def test_known_transform_on_hdl32(realdata):
     dt, dr = pose_errors(T, r.T)
     assert dt < TRANSLATION_TOL and dr < ROTATION_TOL, (dt, dr)
     assert r.accepted
+
+
+@settings(max_examples=12, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    yaw=st.floats(-180.0, 180.0),
+    distance=st.floats(0.0, 4.0),
+    heading=st.floats(-math.pi, math.pi),
+    dz=st.floats(-0.2, 0.2),
+    hint_error=st.floats(-3.0, 3.0),
+)
+def test_any_transform_in_range_is_recovered(street, yaw, distance, heading, dz, hint_error):
+    T = make_transform(yaw, (distance * math.cos(heading), distance * math.sin(heading), dz))
+    query = query_from(street, T, np.random.default_rng(abs(hash((yaw, distance))) % 2**32))
+    r = estimate_relative_pose(query, street, yaw + hint_error)
+    dt, dr = pose_errors(T, r.T)
+    assert dt < TRANSLATION_TOL and dr < ROTATION_TOL, (dt, dr)
+    assert r.accepted, r.reason
 
 
 def test_yaw_hint_off_by_180_is_recovered(street):

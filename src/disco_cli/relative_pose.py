@@ -90,7 +90,7 @@ class PoseConfig:
         return cls(**d)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # eq would compare the arrays ambiguously
 class RelativePose:
     """T_match<-query and its verification. `yaw_deg` is the yaw of T, in (-180, 180]."""
 
