@@ -169,7 +169,7 @@ def test_known_transform_on_hdl32(realdata):
     assert r.accepted
 
 
-@settings(max_examples=12, deadline=None,
+@settings(max_examples=12, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     yaw=st.floats(-180.0, 180.0),
