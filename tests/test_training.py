@@ -160,11 +160,13 @@ def test_short_training_lowers_loss_and_beats_the_untrained_network(world, tmp_p
     from disco_cli.training.loop import TrainOptions, train
 
     data = load_training_data([world], BEVConfig())
+    # A plain U-Net (no residual path to the spectral floor), so that it must learn.
     opts = TrainOptions(epochs=2, steps=10, batch=4, negatives=2, width=4, lr=3e-3,
-                        hard_after=1, d_pos=3.0, d_neg=10.0, seed=0, val_queries=40)
+                        residual=False, hard_after=1, d_pos=3.0, d_neg=10.0, seed=0,
+                        val_queries=40)
     torch.manual_seed(opts.seed)
-    untrained = DiscoModel(build_net(default_model_config(20, 4)), BEVConfig(),
-                           default_model_config(20, 4))
+    config = {**default_model_config(20, 4), "residual": False}
+    untrained = DiscoModel(build_net(config), BEVConfig(), config)
     before = retrieval_metrics(untrained, data, 3.0, max_queries=40, seed=0)
     out = tmp_path / "m.pt"
     history = train(data, BEVConfig(), opts, out, command="test", log=lambda s: None)

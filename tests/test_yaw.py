@@ -87,12 +87,14 @@ def test_torch_curves_equal_a_direct_numpy_reference():
     rng = np.random.default_rng(5)
     q = rng.random((3, 6, 16)).astype(np.float32)
     m = rng.random((3, 6, 16)).astype(np.float32)
-    # Reference: whitened cross-power per ring through complex DFTs, averaged over rings.
+    # Reference: whitened cross-power per ring through complex DFTs, rings weighted by
+    # radius (ring index + 1/2), weights summing to 1.
     fq, fm = np.fft.fft(q, axis=-1), np.fft.fft(m, axis=-1)
     cross = fq * np.conj(fm)
     mag = np.abs(cross)
     floor = 1e-3 * mag.max(axis=(1, 2), keepdims=True) + 1e-12
-    ref = np.fft.ifft(cross / (mag + floor), axis=-1).real.mean(axis=1)
+    w = np.array([0.5, 1.5, 2.5, 3.5, 4.5, 5.5]) / 18.0
+    ref = (np.fft.ifft(cross / (mag + floor), axis=-1).real * w[None, :, None]).sum(axis=1)
     got_t = correlation_curves_torch(torch.from_numpy(q), torch.from_numpy(m)).numpy()
     np.testing.assert_allclose(got_t, ref, atol=1e-5)
     for b in range(3):

@@ -27,6 +27,10 @@ def train(
     batch: Annotated[int, typer.Option(min=1, help="Quadruplets per step.")] = 8,
     negatives: Annotated[int, typer.Option(min=1, help="Negatives per quadruplet.")] = 4,
     width: Annotated[int, typer.Option(min=2, help="Channels of the U-Net's first block (paper: 64).")] = 8,
+    residual: Annotated[
+        bool, typer.Option(help="Add the U-Net to the BEV's height sum (start from `spectral`).")
+    ] = True,
+    bev_dropout: Annotated[float, typer.Option(help="Share of BEV cells dropped per sample (augmentation).")] = 0.1,
     lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
     lambda_yaw: Annotated[float, typer.Option(help="Weight of the yaw KL loss.")] = 0.1,
     d_pos: Annotated[float, typer.Option(help="Positives lie within this distance (m).")] = 3.0,
@@ -61,7 +65,8 @@ def train(
     bev_config = BEVConfig()
     opts = TrainOptions(
         epochs=epochs, steps=steps, batch=batch, negatives=negatives, lr=lr,
-        lambda_yaw=lambda_yaw, d_pos=d_pos, d_neg=d_neg, width=width, hard_after=hard_after,
+        lambda_yaw=lambda_yaw, d_pos=d_pos, d_neg=d_neg, width=width, residual=residual, bev_dropout=bev_dropout,
+        hard_after=hard_after,
         self_supervised=self_supervised, time_gap=time_gap, seed=seed, device=device,
     )
 

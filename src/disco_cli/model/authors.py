@@ -36,7 +36,16 @@ def authors_bev_config() -> Any:
 
 
 # The paper: points within 80 m and 20 m of height, ground removed, 40 x 120 x 20 occupancy.
-AUTHORS_BEV: dict[str, Any] = {}
+AUTHORS_BEV: dict[str, Any] = {
+    "rings": 40,
+    "sectors": 120,
+    "heights": 20,
+    "max_range": 80.0,
+    "min_range": 3.0,
+    "z_min": -1.5,  # about the ground for a roof-mounted sensor: the area filter's stand-in
+    "z_max": 18.5,
+    "mode": "occupancy",
+}
 
 
 def convert_state_dict(sd: dict[str, Any]) -> dict[str, Any]:
@@ -70,6 +79,7 @@ def model_from_authors(
         "norm": False,
         "circular": False,
         "sigmoid": True,
+        "residual": False,
         "crop": list(DEFAULT_CROP),
         "layout": "DiSCO-pytorch",
     }

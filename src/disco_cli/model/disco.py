@@ -24,6 +24,7 @@ def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
         "norm": True,
         "circular": True,
         "sigmoid": False,
+        "residual": True,
         "crop": list(DEFAULT_CROP),
     }
 
@@ -35,6 +36,7 @@ def build_net(model_config: dict[str, Any]) -> DiscoNet:
         norm=bool(model_config.get("norm", True)),
         circular=bool(model_config.get("circular", True)),
         sigmoid=bool(model_config.get("sigmoid", False)),
+        residual=bool(model_config.get("residual", False)),
     )
 
 

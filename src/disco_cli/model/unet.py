@@ -9,6 +9,11 @@ Padding is circular along sectors and zero along rings, and upsampling is done o
 circularly padded copy, so the whole network commutes with a roll of the input by any
 multiple of 8 sectors: a rotated scan gives an exactly rolled feature image across the
 0/360 seam, and the signature |FFT2| is then exactly unchanged.
+
+With `residual=True` (this project's default) the output is the BEV summed over heights
+(the training-free `spectral` model) plus the U-Net's output, whose last convolution
+starts at zero: training starts from the floor and only has to learn a correction, which
+matters when the training budget is minutes on a CPU.
 """
 
 from __future__ import annotations
@@ -64,9 +69,11 @@ class UNet(nn.Module):
         norm: bool = True,
         circular: bool = True,
         sigmoid: bool = False,
+        residual: bool = False,
     ):
         super().__init__()
         w = width
+        self.residual = residual
         self.circular = circular
         self.sigmoid = sigmoid
         self.dconv_down1 = double_conv(in_channels, w, norm, circular)
@@ -77,8 +84,12 @@ class UNet(nn.Module):
         self.dconv_up2 = double_conv(4 * w + 2 * w, 2 * w, norm, circular)
         self.dconv_up1 = double_conv(2 * w + w, w, norm, circular)
         self.conv_last = nn.Conv2d(w, 1, 1)
+        if residual:
+            nn.init.zeros_(self.conv_last.weight)
+            nn.init.zeros_(self.conv_last.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        inp = x
         c1 = self.dconv_down1(x)
         c2 = self.dconv_down2(F.max_pool2d(c1, 2))
         c3 = self.dconv_down3(F.max_pool2d(c2, 2))
@@ -91,7 +102,10 @@ class UNet(nn.Module):
         x = self.conv_last(x)
         if self.sigmoid:
             x = torch.sigmoid(x)
-        return x[:, 0]
+        x = x[:, 0]
+        if self.residual:
+            x = x + inp.sum(dim=1)
+        return x
 
 
 class Corr2Soft(nn.Module):
@@ -111,9 +125,9 @@ class DiscoNet(nn.Module):
     """F_cnn plus the yaw softmax: the trainable parameters of a DiSCO model."""
 
     def __init__(self, in_channels: int, width: int = 16, norm: bool = True,
-                 circular: bool = True, sigmoid: bool = False):
+                 circular: bool = True, sigmoid: bool = False, residual: bool = False):
         super().__init__()
-        self.unet = UNet(in_channels, width, norm, circular, sigmoid)
+        self.unet = UNet(in_channels, width, norm, circular, sigmoid, residual)
         self.corr2soft = Corr2Soft()
 
     def forward(self, bevs: torch.Tensor) -> torch.Tensor:

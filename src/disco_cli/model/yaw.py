@@ -1,8 +1,10 @@
 """Yaw by phase correlation along the sector axis of two polar feature images.
 
 For every ring, the normalized cross-power spectrum of the two rows (FFT along sectors)
-is transformed back; the rings' curves are averaged into one correlation curve over the
-circular sector shift. Its peak is the shift that best aligns the two scans.
+is transformed back; the rings' curves are summed into one correlation curve over the
+circular sector shift, each ring weighted by its radius (a translation of the sensor by t
+turns a point at range r by about t / r, so far rings fix the angle better; the weights
+sum to 1). Its peak is the shift that best aligns the two scans.
 
 Sign convention (docs/architecture.md): if the query scan is the match scan rotated by
 +a degrees, the query BEV is the match BEV rolled by +a / (360 / S) sectors, the curve
@@ -23,6 +25,12 @@ import scipy.fft
 # Relative floor of the cross-power normalization: keeps empty rings and empty
 # frequencies from turning into pure noise when divided by their own magnitude.
 _EPS_REL = 1e-3
+
+
+def ring_weights(rings: int) -> np.ndarray:
+    """Weights [R] proportional to the ring's mean radius, summing to 1."""
+    w = np.arange(rings, dtype=np.float64) + 0.5
+    return w / w.sum()
 
 
 def wrap_deg(angle: np.ndarray | float) -> np.ndarray:
@@ -49,8 +57,8 @@ def correlation_curves(query: np.ndarray, matches: np.ndarray, workers: int = 1)
     cross = fq[None] * np.conj(fm)
     mag = np.abs(cross)
     floor = _EPS_REL * mag.max(axis=(1, 2), keepdims=True) + 1e-12
-    curves = scipy.fft.irfft(cross / (mag + floor), n=q.shape[-1], axis=-1, workers=workers)
-    return curves.mean(axis=1)
+    spec = (cross / (mag + floor)) * ring_weights(q.shape[0])[None, :, None]
+    return scipy.fft.irfft(spec.sum(axis=1), n=q.shape[-1], axis=-1, workers=workers)
 
 
 def peak_shift(curves: np.ndarray) -> np.ndarray:
@@ -87,8 +95,9 @@ def correlation_curves_torch(query: Any, match: Any) -> Any:
     cross = fq * torch.conj(fm)
     mag = cross.abs()
     floor = _EPS_REL * mag.amax(dim=(1, 2), keepdim=True).detach() + 1e-12
-    curves = torch.fft.irfft(cross / (mag + floor), n=query.shape[-1], dim=-1)
-    return curves.mean(dim=1)
+    w = torch.as_tensor(ring_weights(query.shape[1]), dtype=torch.float32, device=query.device)
+    spec = (cross / (mag + floor) * w[None, :, None]).sum(dim=1)
+    return torch.fft.irfft(spec, n=query.shape[-1], dim=-1)
 
 
 def expected_shift_torch(prob: Any) -> Any:

@@ -2,7 +2,7 @@
 
 Every step draws `batch` quadruplets (query, positive, k negatives, one other negative),
 rolls each BEV by a random number of sectors (the paper's N-way rotation augmentation,
-exact on a polar grid), and minimizes L_quad + lambda * L_rot. After `hard_after` epochs
+exact on a polar grid), drops a random share of its cells (sparser sensors), and minimizes L_quad + lambda * L_rot. After `hard_after` epochs
 half of the negatives are the query's nearest signatures among its true negatives.
 
 A checkpoint is written after every epoch; `resume=True` continues from it. Every epoch's
@@ -45,6 +45,8 @@ class TrainOptions:
     d_pos: float = 3.0
     d_neg: float = 10.0
     width: int = 8
+    residual: bool = True
+    bev_dropout: float = 0.1
     hard_after: int = 2
     self_supervised: bool = False
     time_gap: int = 50
@@ -89,6 +91,7 @@ def train(
     out_path = Path(out_path)
     device = opts.device
     model_config = default_model_config(data.bevs.shape[1], opts.width)
+    model_config["residual"] = bool(opts.residual)
     crop = tuple(model_config["crop"])
     torch.manual_seed(opts.seed)
     net = build_net(model_config).to(device)
@@ -131,6 +134,9 @@ def train(
             flat = rows.ravel()
             rolls = rng.integers(0, sectors, size=len(flat))
             x = torch.from_numpy(_roll_batch(data.float_bevs(flat), rolls)).to(device)
+            if opts.bev_dropout > 0:
+                # Domain randomization: drop occupied cells, as a sparser sensor would.
+                x = x * (torch.rand(x.shape, device=device) >= opts.bev_dropout)
             feats = net(x)
             sig = signatures_torch(feats, crop).view(opts.batch, per, -1)
             l_quad = quadruplet_loss(sig[:, 0], sig[:, 1], sig[:, 2 : 2 + k], sig[:, -1],

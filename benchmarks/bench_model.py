@@ -1,0 +1,106 @@
+"""Benchmark: the DiSCO network, signatures and yaw on the CPU.
+
+Times, in one process, with medians over repeats:
+  * signatures per scan, batched (BEV -> U-Net -> |FFT2| crop), for the shipped model, for
+    randomly initialized U-Nets of several widths (the paper's is 64), and for `spectral`
+    (no network) as the floor;
+  * one scan end to end: read the file, voxelize, embed (the latency of a single query);
+  * yaw for 10 candidates by phase correlation, against the exhaustive search it replaces
+    (every one of the 120 circular shifts scored by a dot product, in NumPy).
+The scan is KITTI frame 0 from ../shared/realdata when present, else a sample scan.
+Run: `.venv/bin/python benchmarks/bench_model.py [--widths 8 16 64] [--threads N]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from disco_cli.bev import BEVConfig, polar_bev, polar_bev_batch
+from disco_cli.model import DEFAULT_WEIGHTS, load_model
+from disco_cli.model.disco import DiscoModel, build_net, default_model_config
+from disco_cli.model.yaw import estimate_yaw
+from disco_cli.readers import list_scans, read_scan
+
+REPO = Path(__file__).resolve().parent.parent
+KITTI = REPO.parent / "shared" / "realdata" / "kitti00" / "velodyne" / "000000.bin"
+SAMPLES = REPO / "data" / "samples" / "00"
+
+
+def median_ms(fn, repeat: int, warmup: int = 2) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return 1000.0 * statistics.median(times)
+
+
+def exhaustive_yaw(query: np.ndarray, matches: np.ndarray) -> np.ndarray:
+    """The baseline: score all S circular shifts of each candidate by a dot product."""
+    s = query.shape[-1]
+    best = np.empty(len(matches))
+    for k, m in enumerate(matches):
+        scores = [float(np.sum(query * np.roll(m, d, axis=-1))) for d in range(s)]
+        best[k] = np.argmax(scores)
+    return -best * 360.0 / s
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--widths", type=int, nargs="*", default=[8, 16, 64])
+    ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    scan_path = KITTI if KITTI.is_file() else list_scans(SAMPLES)[0]
+    points = read_scan(scan_path)
+    config = BEVConfig()
+    bev = polar_bev(points, config)
+    rng = np.random.default_rng(0)
+    bevs = np.stack([np.roll(bev, int(k), axis=-1) for k in rng.integers(0, 120, args.batch)])
+    print(f"# bench_model: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"torch {torch.__version__} on {torch.get_num_threads()} threads")
+    print(f"# scan {scan_path.name}: {len(points)} points; batch {args.batch}; medians of {args.repeat}")
+
+    models = {"spectral": load_model("spectral")}
+    if DEFAULT_WEIGHTS.is_file():
+        models["default"] = load_model("default")
+    for w in args.widths:
+        torch.manual_seed(0)
+        cfg = default_model_config(config.heights, w)
+        models[f"unet-w{w} (random)"] = DiscoModel(build_net(cfg), config, cfg, name=f"w{w}")
+
+    print("\n| model | signature per scan, batched (ms) | single scan: read + BEV + embed (ms) |")
+    print("| --- | ---: | ---: |")
+    for name, model in models.items():
+        batched = median_ms(lambda m=model: m.embed(bevs), args.repeat) / args.batch
+
+        def single(m=model) -> None:
+            m.embed(polar_bev_batch([read_scan(scan_path)], config))
+
+        print(f"| {name} | {batched:.2f} | {median_ms(single, args.repeat):.2f} |")
+
+    model = models.get("default", models["spectral"])
+    _, feats = model.embed(bevs[:11])
+    q, cands = feats[0], feats[1:]
+    fast = median_ms(lambda: estimate_yaw(q, cands), max(args.repeat, 20))
+    slow = median_ms(lambda: exhaustive_yaw(q, cands), 3, warmup=1)
+    print(f"\nyaw, 10 candidates ({next(k for k, v in models.items() if v is model)} features): "
+          f"phase correlation {fast:.3f} ms, exhaustive shift search {slow:.1f} ms "
+          f"({slow / fast:.0f}x)")
+
+
+if __name__ == "__main__":
+    main()
