@@ -7,6 +7,14 @@ import pytest
 
 from disco_cli.search import SignatureIndex
 
+# Both first passes: the float32 BLAS product, and the compiled int8 scan.
+PASSES = {"blas": {"int8_min_rows": 10**12}, "int8": {"int8_min_rows": 0}}
+
+
+@pytest.fixture(params=list(PASSES))
+def first_pass(request: pytest.FixtureRequest) -> dict:
+    return PASSES[request.param]
+
 
 def _truth(sigs: np.ndarray, q: np.ndarray, k: int, allowed: np.ndarray | None = None):
     d = np.sqrt(((sigs.astype(np.float64) - q.astype(np.float64)) ** 2).sum(1))
@@ -18,11 +26,13 @@ def _truth(sigs: np.ndarray, q: np.ndarray, k: int, allowed: np.ndarray | None =
 
 
 @pytest.mark.parametrize("n,dim,k", [(1, 8, 1), (50, 16, 5), (2000, 64, 10), (500, 256, 500)])
-def test_search_equals_brute_force(n: int, dim: int, k: int) -> None:
+def test_search_equals_brute_force(n: int, dim: int, k: int, first_pass: dict) -> None:
     rng = np.random.default_rng(n + dim)
     sigs = rng.normal(size=(n, dim)).astype(np.float32)
     queries = rng.normal(size=(7, dim)).astype(np.float32)
-    rows, dists = SignatureIndex(sigs).search(queries, k)
+    index = SignatureIndex(sigs, **first_pass)
+    assert (index._codes is not None) == (first_pass["int8_min_rows"] == 0)
+    rows, dists = index.search(queries, k)
     for i, q in enumerate(queries):
         want_rows, want_d = _truth(sigs, q, k)
         np.testing.assert_array_equal(rows[i, : len(want_rows)], want_rows)
@@ -30,35 +40,36 @@ def test_search_equals_brute_force(n: int, dim: int, k: int) -> None:
         assert (rows[i, len(want_rows):] == -1).all()
 
 
-def test_near_ties_with_large_common_offset() -> None:
+def test_near_ties_with_large_common_offset(first_pass: dict) -> None:
     # Signatures like spectra: a large shared component and tiny differences, where the
     # float32 expansion ||q||^2 - 2 q.d + ||d||^2 alone misorders rows.
     rng = np.random.default_rng(3)
     base = rng.uniform(50, 100, size=512).astype(np.float32)
     sigs = (base + rng.normal(scale=1e-2, size=(3000, 512))).astype(np.float32)
     queries = (base + rng.normal(scale=1e-2, size=(5, 512))).astype(np.float32)
-    rows, dists = SignatureIndex(sigs).search(queries, 10)
+    rows, dists = SignatureIndex(sigs, **first_pass).search(queries, 10)
     for i, q in enumerate(queries):
         want_rows, want_d = _truth(sigs, q, 10)
         np.testing.assert_array_equal(rows[i], want_rows)
         np.testing.assert_allclose(dists[i], want_d, rtol=1e-12)
 
 
-def test_exact_duplicates_tie_break_by_row() -> None:
+def test_exact_duplicates_tie_break_by_row(first_pass: dict) -> None:
     sigs = np.zeros((6, 4), np.float32)
     sigs[[1, 4]] = 1.0
-    rows, dists = SignatureIndex(sigs).search(np.ones(4, np.float32), 3)
+    rows, dists = SignatureIndex(sigs, **first_pass).search(np.ones(4, np.float32), 3)
     np.testing.assert_array_equal(rows, [1, 4, 0])
     np.testing.assert_allclose(dists, [0.0, 0.0, 2.0])
 
 
-def test_limit_and_exclude_mask() -> None:
+def test_limit_and_exclude_mask(first_pass: dict) -> None:
     rng = np.random.default_rng(1)
     sigs = rng.normal(size=(300, 32)).astype(np.float32)
     queries = rng.normal(size=(4, 32)).astype(np.float32)
     limit = np.array([0, 3, 100, 300])
     exclude = rng.random((4, 300)) < 0.5
-    rows, dists = SignatureIndex(sigs).search(queries, 5, limit=limit, exclude=exclude)
+    rows, dists = SignatureIndex(sigs, **first_pass).search(queries, 5, limit=limit,
+                                                             exclude=exclude)
     for i, q in enumerate(queries):
         allowed = (np.arange(300) < limit[i]) & ~exclude[i]
         want_rows, want_d = _truth(sigs, q, 5, allowed)
@@ -74,3 +85,38 @@ def test_rejects_bad_shapes() -> None:
         index.search(np.zeros((2, 5), np.float32), 1)
     with pytest.raises(ValueError):
         SignatureIndex(np.full((2, 2), np.nan, np.float32))
+
+
+def test_int8_pass_constant_dimensions_and_far_queries() -> None:
+    # A constant column (scale 0), values far from the map, and k above the row count.
+    rng = np.random.default_rng(7)
+    sigs = rng.normal(size=(700, 40)).astype(np.float32)
+    sigs[:, 3] = 2.5
+    queries = np.concatenate([rng.normal(size=(3, 40)), 50 + rng.normal(size=(2, 40))]).astype(np.float32)
+    index = SignatureIndex(sigs, int8_min_rows=0)
+    for k in (1, 10, 800):
+        rows, dists = index.search(queries, k)
+        for i, q in enumerate(queries):
+            want_rows, want_d = _truth(sigs, q, k)
+            np.testing.assert_array_equal(rows[i, : len(want_rows)], want_rows)
+            np.testing.assert_allclose(dists[i, : len(want_d)], want_d, rtol=1e-12)
+
+
+def test_int8_bounds_hold_for_every_row() -> None:
+    # The kernel's candidates must include every row whose true distance is within the
+    # k-th smallest: check the bound directly on near-duplicate rows (tight spacing).
+    from disco_cli import _core
+
+    rng = np.random.default_rng(11)
+    base = rng.random(256).astype(np.float32)
+    sigs = (base + rng.normal(scale=1e-3, size=(5000, 256))).astype(np.float32)
+    index = SignatureIndex(sigs, int8_min_rows=0)
+    q = (base + rng.normal(scale=1e-3, size=256)).astype(np.float32)
+    cand = index._codes.candidates(q, 10, len(sigs), None, 2)
+    d = np.sqrt(((sigs.astype(np.float64) - q) ** 2).sum(1))
+    kth = np.sort(d)[9]
+    assert set(np.flatnonzero(d <= kth)) <= set(cand.tolist())
+    assert len(cand) < len(sigs) // 2  # and it does prune
+    g = rng.integers(-16000, 16000, 256).astype(np.int16)
+    np.testing.assert_array_equal(_core.int8_dots(index._codes.codes, g, 2),
+                                  index._codes.codes.astype(np.int64) @ g.astype(np.int64))

@@ -1,15 +1,22 @@
 """Exact top-k search over signatures, and matching a query against a map database.
 
-Distances are Euclidean. The bulk of the work is one BLAS matrix product
-(`||q||^2 - 2 q.d + ||d||^2`) in float32; that expansion can misorder distances
-that differ by less than its rounding error, so every candidate within a proven
-error bound of the k-th distance is re-measured directly in float64 before the
-final order is taken (ties broken by row). The result is the same as a plain
-float64 brute force.
+Distances are Euclidean; the result is the same as a plain float64 brute force
+(ties broken by row). Two first passes find the rows that can be in the top k, and
+those are re-measured directly in float64:
+
+- small maps: one BLAS matrix product (`||q||^2 - 2 q.d + ||d||^2`) in float32, and
+  every row within a proven rounding bound of the k-th is re-measured;
+- large maps (from `int8_min_rows` rows): an int8 copy of the signatures (a quarter
+  of their bytes) scanned by the compiled core, which bounds every row's distance by
+  its quantization error (`src/cpp/disco/int8_search.hpp`) and returns the rows whose
+  lower bound is at most the k-th smallest upper bound. Reading a quarter of the
+  bytes is what makes a 100k-scan search fast: the float32 scan is bound by memory
+  bandwidth.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -38,7 +45,7 @@ class SignatureIndex:
     the matrix it holds one float32 norm per row.
     """
 
-    def __init__(self, signatures: np.ndarray):
+    def __init__(self, signatures: np.ndarray, int8_min_rows: int = 16384, threads: int = 0):
         sig = np.asarray(signatures)
         if sig.ndim != 2:
             raise ValueError(f"signatures must be [N, D], got {sig.shape}")
@@ -48,6 +55,10 @@ class SignatureIndex:
             raise ValueError("signatures must be finite")
         self.sq_norms = np.einsum("ij,ij->i", self.matrix, self.matrix, dtype=np.float32)
         self._max_norm = float(np.sqrt(self.sq_norms.max())) if len(self.matrix) else 0.0
+        self.threads = threads if threads > 0 else min(4, os.cpu_count() or 1)
+        self._codes: _Int8Codes | None = None
+        if len(self.matrix) >= max(int8_min_rows, 1) and _Int8Codes.available():
+            self._codes = _Int8Codes(self.matrix)
 
     def __len__(self) -> int:
         return len(self.matrix)
@@ -90,15 +101,20 @@ class SignatureIndex:
         step = max(1, _BLOCK_ELEMS // max(n, 1))
         for s in range(0, b, step):
             qs = q[s:s + step]
-            # [n, bs]: one BLAS call for the whole block of queries (a matrix-vector
-            # product for one query).
-            dots = self.matrix @ qs[0] if len(qs) == 1 else self.matrix @ qs.T
-            dots = dots.reshape(n, len(qs))
+            dots = None
+            if self._codes is None:
+                # [n, bs]: one BLAS call for the whole block of queries (a matrix-vector
+                # product for one query).
+                dots = self.matrix @ qs[0] if len(qs) == 1 else self.matrix @ qs.T
+                dots = dots.reshape(n, len(qs))
             for j in range(len(qs)):
                 i = s + j
                 lim = n if limit is None else int(min(max(limit[i], 0), n))
                 ex = None if exclude is None else exclude[i, :lim]
-                r, d = self._topk(q[i], dots[:lim, j], lim, k, ex)
+                if dots is None:
+                    r, d = self._topk_int8(q[i], lim, k, ex)
+                else:
+                    r, d = self._topk(q[i], dots[:lim, j], lim, k, ex)
                 rows[i, :len(r)] = r
                 dists[i, :len(d)] = d
         return (rows[0], dists[0]) if single else (rows, dists)
@@ -106,6 +122,17 @@ class SignatureIndex:
     def _exact(self, q: np.ndarray, cand: np.ndarray) -> np.ndarray:
         diff = self.matrix[cand].astype(np.float64) - q.astype(np.float64)
         return np.einsum("ij,ij->i", diff, diff)
+
+    def _topk_int8(
+        self, q: np.ndarray, lim: int, k: int, exclude: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        assert self._codes is not None
+        cand = self._codes.candidates(q, k, lim, exclude, self.threads)
+        if len(cand) == 0:
+            return np.empty(0, np.int64), np.empty(0)
+        exact = self._exact(q, cand)
+        order = np.lexsort((cand, exact))[:k]
+        return cand[order], np.sqrt(exact[order])
 
     def _topk(
         self, q: np.ndarray, dots: np.ndarray, lim: int, k: int, exclude: np.ndarray | None
@@ -134,6 +161,64 @@ class SignatureIndex:
         exact = self._exact(q, cand)
         order = np.lexsort((cand, exact))[:kk]
         return cand[order], np.sqrt(exact[order])
+
+
+class _Int8Codes:
+    """The signatures as int8 codes, `x ~ mean + scale * c` per dimension, with each
+    row's reconstruction error; the compiled core bounds distances from them."""
+
+    @staticmethod
+    def available() -> bool:
+        try:
+            from disco_cli import _core
+        except ImportError:
+            return False
+        return hasattr(_core, "int8_candidates")
+
+    def __init__(self, matrix: np.ndarray, chunk: int = 8192):
+        from disco_cli import _core
+
+        self._core = _core
+        n, d = matrix.shape
+        self.mean = matrix.mean(axis=0, dtype=np.float64)
+        mean32 = self.mean.astype(np.float32)
+        spread = np.zeros(d, dtype=np.float32)
+        for a in range(0, n, chunk):
+            np.maximum(spread, np.abs(matrix[a:a + chunk] - mean32).max(axis=0), out=spread)
+        # A constant dimension gets scale 1 and codes 0: its error is exactly 0.
+        self.scale = np.where(spread > 0, spread.astype(np.float64) / 127.0, 1.0)
+        self.codes = np.empty((n, d), dtype=np.int8)
+        self.code_sq = np.empty(n)
+        self.code_norm = np.empty(n)
+        self.err = np.empty(n)
+        for a in range(0, n, chunk):
+            x = matrix[a:a + chunk].astype(np.float64)
+            c = np.clip(np.rint((x - self.mean) / self.scale), -127, 127)
+            self.codes[a:a + chunk] = c
+            sc = c * self.scale
+            self.code_sq[a:a + chunk] = np.einsum("ij,ij->i", sc, sc)
+            self.code_norm[a:a + chunk] = np.sqrt(np.einsum("ij,ij->i", c, c))
+            r = x - self.mean - sc
+            # Rounded up: the bound must never be below the true error.
+            self.err[a:a + chunk] = np.sqrt(np.einsum("ij,ij->i", r, r)) * (1 + 1e-9) + 1e-12 * (
+                np.sqrt(np.einsum("ij,ij->i", x, x)) + 1.0)
+        self.g_max = int(_core.int8_query_limit(d))
+
+    def candidates(
+        self, q: np.ndarray, k: int, lim: int, exclude: np.ndarray | None, threads: int
+    ) -> np.ndarray:
+        u = q.astype(np.float64) - self.mean
+        w = u * self.scale
+        top = float(np.abs(w).max())
+        step = top / self.g_max if top > 0 else 1.0
+        g = np.clip(np.rint(w / step), -self.g_max, self.g_max).astype(np.int16)
+        delta = w - step * g.astype(np.float64)
+        delta_norm = float(np.linalg.norm(delta)) * (1 + 1e-9) + 1e-12 * float(np.linalg.norm(w))
+        ex = None if exclude is None else np.ascontiguousarray(exclude, dtype=np.uint8)
+        return self._core.int8_candidates(
+            self.codes, self.code_sq, self.code_norm, self.err, g, float(u @ u), step,
+            delta_norm, int(k), int(lim), ex, int(threads),
+        )
 
 
 @dataclass

@@ -1,0 +1,139 @@
+#include "disco/int8_search.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <queue>
+#include <thread>
+
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#define DISCO_X86 1
+#endif
+
+namespace disco {
+namespace {
+
+std::int32_t dot_scalar(const std::int8_t* c, const std::int16_t* g, std::int64_t d) {
+    std::int32_t acc = 0;
+    for (std::int64_t j = 0; j < d; ++j) acc += static_cast<std::int32_t>(c[j]) * g[j];
+    return acc;
+}
+
+#ifdef DISCO_X86
+// 16 codes at a time: widen int8 to int16, multiply-add pairs into int32 lanes.
+__attribute__((target("avx2"))) std::int32_t dot_avx2(const std::int8_t* c, const std::int16_t* g,
+                                                      std::int64_t d) {
+    __m256i acc = _mm256_setzero_si256();
+    std::int64_t j = 0;
+    for (; j + 16 <= d; j += 16) {
+        const __m128i c8 = _mm_loadu_si128(reinterpret_cast<const __m128i*>(c + j));
+        const __m256i c16 = _mm256_cvtepi8_epi16(c8);
+        const __m256i g16 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(g + j));
+        acc = _mm256_add_epi32(acc, _mm256_madd_epi16(c16, g16));
+    }
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
+    s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4E));
+    s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xB1));
+    std::int32_t total = _mm_cvtsi128_si32(s);
+    for (; j < d; ++j) total += static_cast<std::int32_t>(c[j]) * g[j];
+    return total;
+}
+
+bool have_avx2() {
+    static const bool yes = __builtin_cpu_supports("avx2");
+    return yes;
+}
+#endif
+
+using DotFn = std::int32_t (*)(const std::int8_t*, const std::int16_t*, std::int64_t);
+
+DotFn pick_dot() {
+#ifdef DISCO_X86
+    if (have_avx2()) return dot_avx2;
+#endif
+    return dot_scalar;
+}
+
+// Runs body(begin, end) over [0, n) split into `threads` contiguous parts.
+void parallel_rows(std::int64_t n, int threads, const std::function<void(std::int64_t, std::int64_t)>& body) {
+    threads = std::max(1, std::min<int>(threads, static_cast<int>(std::max<std::int64_t>(1, n / 4096))));
+    if (threads == 1) {
+        body(0, n);
+        return;
+    }
+    std::vector<std::thread> pool;
+    const std::int64_t part = (n + threads - 1) / threads;
+    for (int t = 0; t < threads; ++t) {
+        const std::int64_t a = t * part, b = std::min(n, a + part);
+        if (a < b) pool.emplace_back(body, a, b);
+    }
+    for (auto& th : pool) th.join();
+}
+
+}  // namespace
+
+int int8_query_limit(std::int64_t d) {
+    // |c_j| <= 127; the sum of d products must stay within int32.
+    const double cap = static_cast<double>(std::numeric_limits<std::int32_t>::max()) / (127.0 * std::max<std::int64_t>(d, 1));
+    return static_cast<int>(std::max(1.0, std::min(32767.0, std::floor(cap))));
+}
+
+std::vector<std::int32_t> int8_dots(const Int8Rows& rows, const std::int16_t* g, int threads) {
+    std::vector<std::int32_t> out(static_cast<std::size_t>(rows.n));
+    const DotFn dot = pick_dot();
+    parallel_rows(rows.n, threads, [&](std::int64_t a, std::int64_t b) {
+        for (std::int64_t r = a; r < b; ++r) out[r] = dot(rows.codes + r * rows.d, g, rows.d);
+    });
+    return out;
+}
+
+std::vector<std::int64_t> int8_candidates(const Int8Rows& rows, const Int8Query& query, int k,
+                                          std::int64_t limit, const std::uint8_t* exclude,
+                                          int threads) {
+    const std::int64_t n = std::min(rows.n, std::max<std::int64_t>(limit, 0));
+    std::vector<std::int64_t> out;
+    if (n == 0 || k <= 0) return out;
+    const DotFn dot = pick_dot();
+    const double inf = std::numeric_limits<double>::infinity();
+    // Rounding in the double arithmetic below is far under this relative margin.
+    constexpr double kRel = 1e-9;
+    std::vector<double> lower(static_cast<std::size_t>(n)), upper(static_cast<std::size_t>(n));
+    parallel_rows(n, threads, [&](std::int64_t a, std::int64_t b) {
+        for (std::int64_t r = a; r < b; ++r) {
+            if (exclude && exclude[r]) {
+                lower[r] = inf;
+                upper[r] = inf;
+                continue;
+            }
+            const double G = dot(rows.codes + r * rows.d, query.g, rows.d);
+            const double A = query.u_sq - 2.0 * query.step * G + rows.code_sq[r];
+            const double beta = 2.0 * query.delta_norm * rows.code_norm[r] +
+                                kRel * (query.u_sq + rows.code_sq[r] + 2.0 * std::abs(query.step * G));
+            lower[r] = std::sqrt(std::max(A - beta, 0.0)) - rows.err[r];
+            upper[r] = std::sqrt(std::max(A + beta, 0.0)) + rows.err[r];
+        }
+    });
+    // The k-th smallest upper bound (over allowed rows).
+    std::priority_queue<double> worst;  // max-heap of the k smallest so far
+    for (std::int64_t r = 0; r < n; ++r) {
+        const double u = upper[r];
+        if (u == inf) continue;
+        if (static_cast<int>(worst.size()) < k) {
+            worst.push(u);
+        } else if (u < worst.top()) {
+            worst.pop();
+            worst.push(u);
+        }
+    }
+    if (worst.empty()) return out;
+    // Fewer than k allowed rows: every allowed row is a candidate.
+    const double cap = static_cast<int>(worst.size()) < k ? inf : worst.top();
+    for (std::int64_t r = 0; r < n; ++r) {
+        if (upper[r] != inf && lower[r] <= cap) out.push_back(r);
+    }
+    return out;
+}
+
+}  // namespace disco
