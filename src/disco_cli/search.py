@@ -192,16 +192,20 @@ class _Int8Codes:
         self.code_norm = np.empty(n)
         self.err = np.empty(n)
         for a in range(0, n, chunk):
-            x = matrix[a:a + chunk].astype(np.float64)
-            c = np.clip(np.rint((x - self.mean) / self.scale), -127, 127)
-            self.codes[a:a + chunk] = c
-            sc = c * self.scale
-            self.code_sq[a:a + chunk] = np.einsum("ij,ij->i", sc, sc)
-            self.code_norm[a:a + chunk] = np.sqrt(np.einsum("ij,ij->i", c, c))
-            r = x - self.mean - sc
+            sl = slice(a, min(n, a + chunk))
+            xc = matrix[sl].astype(np.float64)
+            xnorm = np.sqrt(np.einsum("ij,ij->i", xc, xc))
+            xc -= self.mean
+            c = xc / self.scale
+            np.rint(c, out=c)
+            np.clip(c, -127, 127, out=c)
+            self.codes[sl] = c
+            self.code_norm[sl] = np.sqrt(np.einsum("ij,ij->i", c, c))
+            c *= self.scale
+            self.code_sq[sl] = np.einsum("ij,ij->i", c, c)
+            xc -= c  # x - x_hat
             # Rounded up: the bound must never be below the true error.
-            self.err[a:a + chunk] = np.sqrt(np.einsum("ij,ij->i", r, r)) * (1 + 1e-9) + 1e-12 * (
-                np.sqrt(np.einsum("ij,ij->i", x, x)) + 1.0)
+            self.err[sl] = np.sqrt(np.einsum("ij,ij->i", xc, xc)) * (1 + 1e-9) + 1e-12 * (xnorm + 1)
         self.g_max = int(_core.int8_query_limit(d))
 
     def candidates(
