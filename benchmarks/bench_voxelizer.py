@@ -67,15 +67,20 @@ def load_scans(rng: np.random.Generator) -> tuple[list[np.ndarray], str]:
     return scans, "synthetic 64-beam scans (../shared/realdata absent)"
 
 
-def median_ms(fn, repeats: int, warmup: int = 3) -> float:
+def median_ms(fn, repeats: int, warmup: int = 3, cpu: bool = False):
+    """Median wall time of `fn` in ms; with cpu=True also the median process CPU time
+    (all threads), which shows the work done apart from waiting for a busy machine."""
     for _ in range(warmup):
         fn()
-    times = []
+    times, cpu_times = [], []
     for _ in range(repeats):
+        c0 = time.process_time_ns()
         t0 = time.perf_counter_ns()
         fn()
         times.append(time.perf_counter_ns() - t0)
-    return float(np.median(times)) / 1e6
+        cpu_times.append(time.process_time_ns() - c0)
+    wall = float(np.median(times)) / 1e6
+    return (wall, float(np.median(cpu_times)) / 1e6) if cpu else wall
 
 
 def main() -> None:
@@ -95,7 +100,8 @@ def main() -> None:
     differ = int(np.count_nonzero(numpy_bev(full, config) != polar_bev(full, config)))
     assert differ <= 5, f"NumPy baseline and C++ differ in {differ} cells"
 
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; data: {source}")
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {load}; data: {source}")
     print(f"grid {config.shape}, mode {config.mode}; medians of {args.repeats} calls (C++), "
           f"{max(10, args.repeats // 10)} (NumPy)")
     levels = {3: "AVX-512", 2: "AVX2+FMA", 1: "SSE2", 0: "scalar"}
@@ -119,10 +125,11 @@ def main() -> None:
     batch = [scans[i % len(scans)] for i in range(args.batch)]
     reps = max(5, args.repeats // 20)
     print(f"\nbatch of {args.batch} full scans, medians of {reps} calls:")
-    one = median_ms(lambda: polar_bev_batch(batch, config, threads=1), reps)
-    two = median_ms(lambda: polar_bev_batch(batch, config, threads=2), reps)
-    print(f"  1 thread   {one:8.2f} ms  ({args.batch / one * 1e3:7.0f} scans/s)")
-    print(f"  2 threads  {two:8.2f} ms  ({args.batch / two * 1e3:7.0f} scans/s)   {one / two:4.2f}x throughput")
+    one, one_cpu = median_ms(lambda: polar_bev_batch(batch, config, threads=1), reps, cpu=True)
+    two, two_cpu = median_ms(lambda: polar_bev_batch(batch, config, threads=2), reps, cpu=True)
+    print(f"  1 thread   {one:8.2f} ms wall ({args.batch / one * 1e3:6.0f} scans/s), {one_cpu:7.2f} ms CPU")
+    print(f"  2 threads  {two:8.2f} ms wall ({args.batch / two * 1e3:6.0f} scans/s), {two_cpu:7.2f} ms CPU"
+          f"   {one / two:4.2f}x throughput")
 
 
 if __name__ == "__main__":

@@ -80,8 +80,13 @@ PYBIND11_MODULE(_core, m) {
             [view_of](const py::list& scans, const disco::BEVConfig& config, int threads) {
                 config.validate();
                 std::vector<disco::AnyBEVPointsView> views;
+                std::vector<py::object> alive;  // another thread may empty the list meanwhile
                 views.reserve(scans.size());
-                for (const auto& s : scans) views.push_back(view_of(s));  // the list keeps them alive
+                alive.reserve(scans.size());
+                for (const auto& s : scans) {
+                    views.push_back(view_of(s));
+                    alive.push_back(py::reinterpret_borrow<py::object>(s));
+                }
                 const auto count = static_cast<py::ssize_t>(views.size());
                 py::array_t<float> out({count, static_cast<py::ssize_t>(config.layers()),
                                         static_cast<py::ssize_t>(config.rings),

@@ -15,6 +15,7 @@
 #include <limits>
 #include <stdexcept>
 #include <string>
+#include <system_error>
 #include <thread>
 #include <type_traits>
 
@@ -679,7 +680,11 @@ void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig
     }
     std::vector<std::thread> pool;
     pool.reserve(static_cast<std::size_t>(threads - 1));
-    for (int t = 1; t < threads; ++t) pool.emplace_back(work);
+    try {
+        for (int t = 1; t < threads; ++t) pool.emplace_back(work);
+    } catch (const std::system_error&) {
+        // No more threads to be had: the ones started (and this one) share the work.
+    }
     work();
     for (auto& th : pool) th.join();
 }
