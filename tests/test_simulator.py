@@ -304,8 +304,20 @@ def test_changeable_things_differ_between_sessions():
     town = Town(3, SMALL)
     t0, t1 = town.session_world(0).table, town.session_world(1).table
     n_static = len(town.static.rows)
-    np.testing.assert_array_equal(t0[:n_static], t1[:n_static])
-    assert len(t0) != len(t1) or not np.array_equal(t0, t1)
+    # The static town stands still, but for how dense the foliage is.
+    np.testing.assert_array_equal(t0[:n_static, :8], t1[:n_static, :8])
+    base = np.array(town.static.rows)[:, 8]
+    leafy = (t0[:n_static, 0] == ELLIPSOID) & (base < 1.0)
+    assert leafy.sum() > 20
+    np.testing.assert_array_equal(t0[:n_static][~leafy, 8], base[~leafy])
+    # One factor per session (unless clipped), in the configured range.
+    for t in (t0, t1):
+        ratio = t[:n_static][leafy, 8] / base[leafy]
+        inside = (t[:n_static][leafy, 8] > 0.05) & (t[:n_static][leafy, 8] < 0.95)
+        assert np.ptp(ratio[inside]) < 1e-9
+        assert SMALL.foliage[0] <= ratio[inside][0] <= SMALL.foliage[1]
+    # Parked cars, bins and some trees differ.
+    assert len(t0) != len(t1) or not np.array_equal(t0[n_static:], t1[n_static:])
 
 
 def test_cli_simulate_and_gt_loops(tmp_path):
@@ -404,3 +416,33 @@ def test_the_car_follows_the_slope():
         # The world slope seen from a car that did not pitch would be 1.5-3 deg.
         world_tilt = np.degrees(np.arctan(np.hypot(a, b)))
         assert world_tilt > 0.8
+
+
+def test_cars_drive_on_their_right_and_keep_clear_of_the_sensor():
+    town = Town(3, SMALL)
+    s = town.streets[0]
+    lo = float(town.node_clear[town.links[0][0]])
+    # One car heading along the street at 10 m/s, 1.8 m right of the centre line.
+    car = np.array([[0, 1.0, 5.0, 10.0, 1.8, 4.5, 1.8, 1.5, 0.5, 0, lo, 30.0]])
+    rows0, refl, _ = town._mover_rows(car, 0.0, None, 8.0)
+    rows1, _, _ = town._mover_rows(car, 1.0, None, 8.0)
+    assert len(rows0) == 2 and len(refl) == 2  # body and cabin
+    c0, c1 = rows0[0, 1:3], rows1[0, 1:3]
+    np.testing.assert_allclose(c1 - c0, 10.0 * s.dir, atol=1e-9)
+    assert (c0 - s.a) @ s.dir == pytest.approx(lo + 5.0)
+    assert (c0 - s.a) @ s.left == pytest.approx(-1.8)  # right of its heading
+    # The other way round it drives on the other side, and wraps within its span.
+    back = car.copy()
+    back[0, 1] = -1.0
+    rows_b, _, _ = town._mover_rows(back, 1.0, None, 8.0)
+    pos = rows_b[0, 1:3] - s.a
+    assert pos @ s.left == pytest.approx(1.8)
+    assert pos @ s.dir == pytest.approx(lo + (5.0 - 10.0) % 30.0)
+    # Nothing within the clear radius of the sensor.
+    none, _, _ = town._mover_rows(car, 0.0, c0 + [3.0, 0.0], 8.0)
+    assert len(none) == 0
+    # A session world has traffic and walkers, placed per time.
+    world = town.session_world(0)
+    assert world.movers is not None and (world.movers[:, 9] == 0).any()
+    assert (world.movers[:, 9] == 1).any()
+    assert len(world.at(2.0).table) > len(world.table)

@@ -12,6 +12,8 @@ noise, dropout and intensity are applied here with NumPy, seeded per scan.
 from __future__ import annotations
 
 import json
+import os
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -100,13 +102,19 @@ def finish_scan(rng: np.random.Generator, sensor: Sensor, dirs: np.ndarray, pose
 
 
 def scan(world: SessionWorld, pose: np.ndarray, sensor: Sensor | str = "hdl32", seed: int = 0,
-         town: Town | None = None) -> np.ndarray:
-    """One simulated scan from sensor pose `pose` (4 x 4, sensor -> world): `[N, 4]` float32."""
+         town: Town | None = None, t: float | None = None) -> np.ndarray:
+    """One simulated scan from sensor pose `pose` (4 x 4, sensor -> world): `[N, 4]` float32.
+
+    With `t`, cars and people are where they are at that time; without, none move.
+    """
     sensor = get_sensor(sensor) if isinstance(sensor, str) else sensor
+    pose = np.asarray(pose, float)
+    if t is not None:
+        world = world.at(t, pose[:2, 3])
     ranges, ids, cosi = cast(world, pose, sensor, np.array([seed], np.uint64))
     rng = np.random.default_rng([seed, 11])
-    return finish_scan(rng, sensor, sensor.directions(), np.asarray(pose, float), ranges[0],
-                       ids[0], cosi[0], world, town)
+    return finish_scan(rng, sensor, sensor.directions(), pose, ranges[0], ids[0], cosi[0], world,
+                       town)
 
 
 def plan_sessions(town: Town, sensor: Sensor, sessions: int, frames: int, step_m: float,
@@ -184,34 +192,36 @@ def simulate(
     out.mkdir(parents=True, exist_ok=True)
     dirs = spec.directions()
     total, done = sessions * frames, 0
-    batch = 8
+    workers = threads if threads > 0 else (os.cpu_count() or 1)
     town.ground_reflectivity(np.zeros((1, 2)))  # paint the ground before the workers start
-    # Cast the next batch (C++, GIL released) while NumPy finishes this one.
-    with ThreadPoolExecutor(max_workers=1) as pool:
+    # Each scan sees the movers at its own time, so each gets its own world (cheap to
+    # build); scans are cast in worker threads (C++, GIL released) ahead of NumPy
+    # finishing them here, in order.
+    with ThreadPoolExecutor(max_workers=workers) as pool:
         for k, plan in enumerate(plans):
             world = town.session_world(k)
             folder = out / plan.name
             (folder / "velodyne").mkdir(parents=True, exist_ok=True)
-            batches = [np.arange(a, min(a + batch, frames)) for a in range(0, frames, batch)]
 
-            def submit(idx: np.ndarray, world: SessionWorld = world, k: int = k,
-                       plan: SimulatedSession = plan) -> Future:
-                seeds = np.array([_scan_seed(seed, k, int(i)) for i in idx], np.uint64)
-                return pool.submit(cast, world, plan.poses[idx], spec, seeds, threads)
+            def submit(i: int, world: SessionWorld = world, k: int = k,
+                       plan: SimulatedSession = plan) -> tuple[SessionWorld, Future]:
+                w = world.at(float(plan.times[i]), plan.poses[i, :2, 3])
+                seeds = np.array([_scan_seed(seed, k, i)], np.uint64)
+                return w, pool.submit(cast, w, plan.poses[i], spec, seeds, 1)
 
-            pending = submit(batches[0])
-            for b, idx in enumerate(batches):
-                ranges, ids, cosi = pending.result()
-                if b + 1 < len(batches):
-                    pending = submit(batches[b + 1])
-                for j, i in enumerate(idx):
-                    rng = np.random.default_rng([seed, 9, k, int(i)])
-                    pts = finish_scan(rng, spec, dirs, plan.poses[i], ranges[j], ids[j], cosi[j],
-                                      world, town)
-                    pts.tofile(folder / "velodyne" / f"{i:06d}.bin")
-                    done += 1
-                    if on_scan is not None:
-                        on_scan(done, total)
+            queue = deque(submit(i) for i in range(min(2 * workers, frames)))
+            for i in range(frames):
+                w, future = queue.popleft()
+                if i + len(queue) + 1 < frames:
+                    queue.append(submit(i + len(queue) + 1))
+                ranges, ids, cosi = future.result()
+                rng = np.random.default_rng([seed, 9, k, i])
+                pts = finish_scan(rng, spec, dirs, plan.poses[i], ranges[0], ids[0], cosi[0], w,
+                                  town)
+                pts.tofile(folder / "velodyne" / f"{i:06d}.bin")
+                done += 1
+                if on_scan is not None:
+                    on_scan(done, total)
             write_kitti_poses(folder / "poses.txt", plan.poses)
             write_times(folder / "times.txt", plan.times)
 

@@ -40,6 +40,9 @@ class TownParams:
     max_slope: float = 0.02  # ground gradient (2 % = gentle)
     outskirts_m: float = 70.0  # depth of the scattered trees and sheds around the town
     cell_size_m: float = 4.0  # ray-casting grid
+    traffic_per_km: float = 8.0  # moving cars per km of street, each way
+    pedestrians_per_km: float = 10.0  # people walking per km of sidewalk, each side
+    foliage: tuple[float, float] = (0.6, 1.15)  # per-session factor on crowns' hit chance
 
     def to_dict(self) -> dict:
         return {f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v)
@@ -90,12 +93,30 @@ class Street:
 
 @dataclass
 class SessionWorld:
-    """The scene of one session, ready for ray casting."""
+    """The scene of one session, ready for ray casting.
+
+    `movers` (cars driving, people walking) are not in `table`; `at(t, xy)` gives
+    the world at time `t` with them in place (and none within a few metres of the
+    sensor at `xy`, where they would run into the car).
+    """
 
     caster: object  # disco_cli._core.RaycastWorld
     reflectivity: np.ndarray  # [primitives] float32
     dropout: np.ndarray  # [primitives] float32
     table: np.ndarray  # [primitives, 9]: kind, cx, cy, cz, hx, hy, hz, yaw, hit_prob
+    movers: np.ndarray | None = None  # [M, 12], see Town._movers
+    town: Town | None = None
+
+    def at(self, t: float, xy: np.ndarray | None = None, keep_clear_m: float = 8.0) -> SessionWorld:
+        if self.movers is None or len(self.movers) == 0 or self.town is None:
+            return self
+        from disco_cli import _core
+
+        rows, refl, drop = self.town._mover_rows(self.movers, t, xy, keep_clear_m)
+        table = np.concatenate([self.table, rows])
+        caster = _core.RaycastWorld(table, *self.town.ground, self.town.params.cell_size_m)
+        return SessionWorld(caster, np.concatenate([self.reflectivity, refl]),
+                            np.concatenate([self.dropout, drop]), table)
 
 
 class Town:
@@ -430,10 +451,77 @@ class Town:
                 _car(rng, b, c + jitter, yaw + rng.normal(0, 0.03))
         prims.extend(b.prims)
         table = np.array(prims.rows, dtype=np.float64).reshape(-1, 9)
+        # Leaves come and go: this session's foliage is denser or sparser.
+        leafy = (table[:, 0] == ELLIPSOID) & (table[:, 8] < 1.0)
+        table[leafy, 8] = np.clip(table[leafy, 8] * rng.uniform(*self.params.foliage), 0.05, 0.95)
         a, bb, cc = self.ground
         caster = _core.RaycastWorld(table, a, bb, cc, self.params.cell_size_m)
+        movers = self._movers(np.random.default_rng([self.seed, 10, int(session)]))
         return SessionWorld(caster, np.array(prims.refl, np.float32),
-                            np.array(prims.drop, np.float32), table)
+                            np.array(prims.drop, np.float32), table, movers, self)
+
+    def _movers(self, rng: np.random.Generator) -> np.ndarray:
+        """This session's traffic and walkers, one row each: street, heading (+-1), start
+        (m), speed (m/s), offset right of the heading (m), length, width, height,
+        reflectivity, kind (0 car, 1 person), span start, span length."""
+        p = self.params
+        rows = []
+        for k, s in enumerate(self.streets):
+            lo = self.node_clear[self.links[k][0]]
+            span = s.length - lo - self.node_clear[self.links[k][1]]
+            if span < 10:
+                continue
+            for heading in (1.0, -1.0):
+                for _ in range(rng.poisson(span * p.traffic_per_km / 1000)):
+                    rows.append([k, heading, rng.uniform(0, span), rng.uniform(6, 14),
+                                 rng.uniform(1.5, 2.1), rng.uniform(3.8, 5.2),
+                                 rng.uniform(1.7, 2.0), rng.uniform(1.4, 2.0),
+                                 rng.choice([0.08, 0.2, 0.5, 0.8]), 0, lo, span])
+                for _ in range(rng.poisson(span * p.pedestrians_per_km / 1000)):
+                    off = s.half_width + rng.uniform(0.4, max(0.5, s.sidewalk - 0.4))
+                    h = rng.uniform(1.5, 1.95)
+                    rows.append([k, rng.choice([1.0, -1.0]), rng.uniform(0, span),
+                                 rng.uniform(0.8, 1.7), heading * off, 0.5, 0.5, h, 0.35, 1, lo,
+                                 span])
+        return np.array(rows, np.float64).reshape(-1, 12)
+
+    def _mover_rows(self, movers: np.ndarray, t: float, xy: np.ndarray | None,
+                    keep_clear_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Primitive rows of the movers at time `t` (cars: body and cabin; people: a
+        cylinder); none within `keep_clear_m` of `xy`."""
+        k = movers[:, 0].astype(int)
+        heading, s0, speed, right = movers[:, 1], movers[:, 2], movers[:, 3], movers[:, 4]
+        a = np.array([self.streets[i].a for i in k]).reshape(-1, 2)
+        d = np.array([self.streets[i].dir for i in k]).reshape(-1, 2)
+        left = np.array([self.streets[i].left for i in k]).reshape(-1, 2)
+        along = movers[:, 10] + np.mod(s0 + heading * speed * t, movers[:, 11])
+        pos = a + d * along[:, None] - left * (heading * right)[:, None]
+        keep = np.ones(len(movers), bool)
+        if xy is not None:
+            keep = np.hypot(*(pos - np.asarray(xy)[:2]).T) > keep_clear_m
+        yaw = np.array([self.streets[i].yaw for i in k])
+        g = self.ground_z(pos[:, 0], pos[:, 1])
+        length, width, height = movers[:, 5], movers[:, 6], movers[:, 7]
+        rows, refl, drop = [], [], []
+        for i in np.flatnonzero(keep):
+            x, y = pos[i]
+            if movers[i, 9] == 0:  # a car: body, then a narrower cabin of glass
+                body = 0.55 * height[i]
+                rows.append([BOX, x, y, g[i] + (0.25 + body) / 2, length[i] / 2, width[i] / 2,
+                             (body - 0.25) / 2, yaw[i], 1.0])
+                refl.append(movers[i, 8])
+                drop.append(0.03)
+                rows.append([BOX, x, y, g[i] + (body + height[i]) / 2, 0.3 * length[i],
+                             0.45 * width[i], (height[i] - body) / 2, yaw[i], 1.0])
+                refl.append(0.1)
+                drop.append(0.4)
+            else:  # a person
+                rows.append([CYLINDER, x, y, g[i] + height[i] / 2, 0.25, 0.25, height[i] / 2,
+                             0.0, 1.0])
+                refl.append(movers[i, 8])
+                drop.append(0.05)
+        return (np.array(rows, np.float64).reshape(-1, 9), np.array(refl, np.float32),
+                np.array(drop, np.float32))
 
     def ground_reflectivity(self, xy: np.ndarray) -> np.ndarray:
         """Intensity of the ground at world points `[M, 2]`: asphalt, markings, grass."""
