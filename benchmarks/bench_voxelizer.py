@@ -28,16 +28,22 @@ def numpy_bev(points: np.ndarray, config: BEVConfig) -> np.ndarray:
     """Occupancy BEV in vectorized float32 NumPy: the baseline a Python user would write."""
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     r = np.sqrt(x * x + y * y)
-    keep = (r >= config.min_range) & (r < config.max_range) & (z >= config.z_min) & (z < config.z_max)
+    keep = (
+        (r >= config.min_range) & (r < config.max_range) & (z >= config.z_min) & (z < config.z_max)
+    )
     x, y, z, r = x[keep], y[keep], z[keep], r[keep]
     theta = np.arctan2(y, x)
     theta[theta < 0] += np.float32(2 * np.pi)
-    ring = np.minimum((r * np.float32(config.rings / config.max_range)).astype(np.int32), config.rings - 1)
+    ring = np.minimum(
+        (r * np.float32(config.rings / config.max_range)).astype(np.int32), config.rings - 1
+    )
     sector = np.minimum(
         (theta * np.float32(config.sectors / (2 * np.pi))).astype(np.int32), config.sectors - 1
     )
     scale = np.float32(config.heights / (config.z_max - config.z_min))
-    height = np.minimum(((z - np.float32(config.z_min)) * scale).astype(np.int32), config.heights - 1)
+    height = np.minimum(
+        ((z - np.float32(config.z_min)) * scale).astype(np.int32), config.heights - 1
+    )
     out = np.zeros(config.shape, np.float32)
     out.reshape(-1)[(height * config.rings + ring) * config.sectors + sector] = 1.0
     return out
@@ -62,7 +68,9 @@ def synthetic_scan(rng: np.random.Generator) -> np.ndarray:
 def load_scans(rng: np.random.Generator) -> tuple[list[np.ndarray], str]:
     files = sorted(KITTI.glob("*.bin")) if KITTI.is_dir() else []
     if files:
-        return [np.fromfile(f, np.float32).reshape(-1, 4) for f in files], f"KITTI 00 ({len(files)} frames)"
+        return [
+            np.fromfile(f, np.float32).reshape(-1, 4) for f in files
+        ], f"KITTI 00 ({len(files)} frames)"
     scans = [synthetic_scan(rng) for _ in range(4)]
     return scans, "synthetic 64-beam scans (../shared/realdata absent)"
 
@@ -101,25 +109,28 @@ def main() -> None:
     assert differ <= 5, f"NumPy baseline and C++ differ in {differ} cells"
 
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
-    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {load}; data: {source}")
-    print(f"grid {config.shape}, mode {config.mode}; medians of {args.repeats} calls (C++), "
-          f"{max(10, args.repeats // 10)} (NumPy)")
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, load average {load}"
+    print(f"machine: {machine}; data: {source}")
+    print(
+        f"grid {config.shape}, mode {config.mode}; medians of {args.repeats} calls (C++), "
+        f"{max(10, args.repeats // 10)} (NumPy)"
+    )
     levels = {3: "AVX-512", 2: "AVX2+FMA", 1: "SSE2", 0: "scalar"}
     best = _core._bev_kernel_level()
     for name, pts in (("30k", small), (f"{len(full) // 1000}k HDL-64", full)):
-        numpy_ms = median_ms(lambda: numpy_bev(pts, config), max(10, args.repeats // 10))
+        numpy_ms = median_ms(lambda p=pts: numpy_bev(p, config), max(10, args.repeats // 10))
         print(f"\n{name} points ({len(pts)}), float32 N x 4:")
         print(f"  NumPy vectorized        {numpy_ms:8.3f} ms")
         for level in (3, 2, 1, 0):
             _core._set_bev_kernel_level(level)
             if _core._bev_kernel_level() != level:
                 continue
-            ms = median_ms(lambda: polar_bev(pts, config), args.repeats)
+            ms = median_ms(lambda p=pts: polar_bev(p, config), args.repeats)
             print(f"  C++ {levels[level]:<20s}{ms:8.3f} ms   {numpy_ms / ms:6.1f}x NumPy")
         _core._set_bev_kernel_level(3)
         for mode in ("density", "max_height"):
             cfg = BEVConfig(mode=mode)
-            ms = median_ms(lambda: polar_bev(pts, cfg), args.repeats)
+            ms = median_ms(lambda p=pts, c=cfg: polar_bev(p, c), args.repeats)
             print(f"  C++ {levels[best]}, {mode:<10s}{ms:8.3f} ms")
 
     batch = [scans[i % len(scans)] for i in range(args.batch)]
@@ -127,9 +138,12 @@ def main() -> None:
     print(f"\nbatch of {args.batch} full scans, medians of {reps} calls:")
     one, one_cpu = median_ms(lambda: polar_bev_batch(batch, config, threads=1), reps, cpu=True)
     two, two_cpu = median_ms(lambda: polar_bev_batch(batch, config, threads=2), reps, cpu=True)
-    print(f"  1 thread   {one:8.2f} ms wall ({args.batch / one * 1e3:6.0f} scans/s), {one_cpu:7.2f} ms CPU")
-    print(f"  2 threads  {two:8.2f} ms wall ({args.batch / two * 1e3:6.0f} scans/s), {two_cpu:7.2f} ms CPU"
-          f"   {one / two:4.2f}x throughput")
+    rate = args.batch * 1e3
+    print(f"  1 thread   {one:8.2f} ms wall ({rate / one:6.0f} scans/s), {one_cpu:7.2f} ms CPU")
+    print(
+        f"  2 threads  {two:8.2f} ms wall ({rate / two:6.0f} scans/s), {two_cpu:7.2f} ms CPU"
+        f"   {one / two:4.2f}x throughput"
+    )
 
 
 if __name__ == "__main__":

@@ -34,17 +34,23 @@ def reference_bev(points: np.ndarray, config: BEVConfig) -> np.ndarray:
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     with np.errstate(over="ignore", invalid="ignore"):
         r = np.sqrt(x * x + y * y)
-    keep = (r >= config.min_range) & (r < config.max_range) & (z >= config.z_min) & (z < config.z_max)
+    keep = (
+        (r >= config.min_range) & (r < config.max_range) & (z >= config.z_min) & (z < config.z_max)
+    )
     x, y, z, r = x[keep], y[keep], z[keep], r[keep]
     # The platform's libm atan2 (what C++ std::atan2 calls), not np.arctan2: NumPy's
     # SIMD arctan2 differs from libm by 1 ulp on ~7% of inputs, which moves a point
     # lying exactly on a sector edge (see the edge test) into the other sector.
-    theta = np.array([math.atan2(b, a) for a, b in zip(x.tolist(), y.tolist())], np.float64)
+    theta = np.array(
+        [math.atan2(b, a) for a, b in zip(x.tolist(), y.tolist(), strict=True)], np.float64
+    )
     theta = np.where(theta < 0, theta + 2 * np.pi, theta)
     layers = config.layers
     ring = np.floor(r / (config.max_range / config.rings)).astype(np.int64)
     sector = np.floor(theta / (2 * np.pi / config.sectors)).astype(np.int64)
-    height = np.floor((z - config.z_min) / ((config.z_max - config.z_min) / layers)).astype(np.int64)
+    height = np.floor((z - config.z_min) / ((config.z_max - config.z_min) / layers)).astype(
+        np.int64
+    )
     # A value that rounds onto the far edge stays in the last cell.
     ring = np.minimum(ring, config.rings - 1)
     sector = np.minimum(sector, config.sectors - 1)
@@ -110,7 +116,9 @@ def test_other_grids_equal_reference(mode, kernel):
     points = random_scan(rng, 20_000)
     for config in (
         BEVConfig(rings=7, sectors=360, heights=3, max_range=50.0, min_range=0.0, mode=mode),
-        BEVConfig(rings=100, sectors=60, heights=40, z_min=-0.3, z_max=9.7, max_range=33.3, mode=mode),
+        BEVConfig(
+            rings=100, sectors=60, heights=40, z_min=-0.3, z_max=9.7, max_range=33.3, mode=mode
+        ),
         BEVConfig(rings=1, sectors=1, heights=1, mode=mode),
     ):
         assert_same(polar_bev(points, config), reference_bev(points, config))
@@ -125,7 +133,10 @@ def test_points_on_and_near_every_edge_equal_reference(kernel):
     angle_edges = np.arange(config.sectors + 1) * (2 * np.pi / config.sectors)
     ring_edges = np.arange(config.rings + 1) * (config.max_range / config.rings)
     ring_edges = np.concatenate([ring_edges, [config.min_range]])
-    z_edges = config.z_min + np.arange(config.heights + 1) * (config.z_max - config.z_min) / config.heights
+    z_edges = (
+        config.z_min
+        + np.arange(config.heights + 1) * (config.z_max - config.z_min) / config.heights
+    )
     parts = []
     for dtype in (np.float64, np.float32):
         theta = (angle_edges[:, None] + offsets).ravel()
@@ -176,9 +187,13 @@ def test_one_point_by_hand():
 
 def test_sector_zero_starts_at_plus_x_and_grows_toward_plus_y():
     cfg = BEVConfig(heights=1)
-    at = lambda deg: np.argwhere(polar_bev(  # noqa: E731
-        np.array([[10 * math.cos(math.radians(deg)), 10 * math.sin(math.radians(deg)), 0.0]]), cfg
-    ))[0, 2]
+
+    def at(deg: float) -> int:
+        a = math.radians(deg)
+        return int(
+            np.argwhere(polar_bev(np.array([[10 * math.cos(a), 10 * math.sin(a), 0.0]]), cfg))[0, 2]
+        )
+
     assert [at(1.5), at(4.5), at(91.5), at(181.5), at(358.5)] == [0, 1, 30, 60, 119]
 
 
@@ -229,7 +244,9 @@ def test_nan_and_inf_are_dropped_and_empty_is_zero():
     expected = polar_bev(good)
     for mode in MODES:
         cfg = BEVConfig(mode=mode)
-        assert_same(polar_bev(np.vstack([bad, good, bad]).astype(np.float32), cfg), polar_bev(good, cfg))
+        assert_same(
+            polar_bev(np.vstack([bad, good, bad]).astype(np.float32), cfg), polar_bev(good, cfg)
+        )
         assert not polar_bev(bad, cfg).any()
         assert not polar_bev(np.zeros((0, 4), np.float32), cfg).any()
     assert expected.sum() == 1
@@ -270,7 +287,9 @@ def test_non_contiguous_and_wide_inputs_match_contiguous():
     assert_same(polar_bev(doubled[::2]), expected64)  # row step
     assert_same(polar_bev(base[::-1]), expected64)  # negative stride (converted once)
     assert_same(polar_bev(base.astype(">f8")), expected64)  # big-endian (converted once)
-    assert_same(polar_bev(base.astype(np.float16)), polar_bev(base.astype(np.float16).astype(np.float32)))
+    assert_same(
+        polar_bev(base.astype(np.float16)), polar_bev(base.astype(np.float16).astype(np.float32))
+    )
     assert_same(polar_bev(base[:, :3].tolist()), expected64)  # a nested list
 
 
@@ -339,7 +358,10 @@ def test_core_rejects_what_the_wrapper_would_convert():
 def test_batch_equals_single_calls(mode):
     rng = np.random.default_rng(21)
     cfg = BEVConfig(mode=mode)
-    scans = [random_scan(rng, n, dt) for n, dt in [(5000, np.float32), (0, np.float32), (300, np.float64)]]
+    scans = [
+        random_scan(rng, n, dt)
+        for n, dt in [(5000, np.float32), (0, np.float32), (300, np.float64)]
+    ]
     scans += [random_scan(rng, 4000, np.float64, 6)[::2], random_scan(rng, 2000)[:, :3]]
     expected = np.stack([polar_bev(s, cfg) for s in scans])
     for threads in (0, 1, 2, 5):

@@ -10,6 +10,7 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra import numpy as hnp  # noqa: E402
+from test_bev import reference_bev  # noqa: E402
 
 from disco_cli.bev import (  # noqa: E402
     MODES,
@@ -19,7 +20,6 @@ from disco_cli.bev import (  # noqa: E402
     polar_bev,
     polar_bev_batch,
 )
-from test_bev import reference_bev  # noqa: E402
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -103,7 +103,9 @@ def test_any_batch_equals_single_calls(batch, config, threads):
         assert np.array_equal(out[i], polar_bev(points, config))
 
 
-bad_dtypes = st.sampled_from([np.int8, np.int32, np.int64, np.uint16, bool, np.complex64, object, "U3", "S2"])
+bad_dtypes = st.sampled_from(
+    [np.int8, np.int32, np.int64, np.uint16, bool, np.complex64, object, "U3", "S2"]
+)
 
 
 @FUZZ

@@ -84,10 +84,14 @@ class BEVConfig:
             object.__setattr__(self, name, int(value))
         for name in ("max_range", "min_range", "z_min", "z_max"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            if isinstance(value, bool) or not isinstance(
+                value, (int, float, np.integer, np.floating)
+            ):
                 raise BEVConfigError(f"BEVConfig.{name} must be a number, got {value!r}")
             if not np.isfinite(value) or abs(value) > 1e9:
-                raise BEVConfigError(f"BEVConfig.{name} must be finite and at most 1e9 in size, got {value}")
+                raise BEVConfigError(
+                    f"BEVConfig.{name} must be finite and at most 1e9 in size, got {value}"
+                )
             object.__setattr__(self, name, float(value))
         if not 0.0 <= self.min_range < self.max_range:
             raise BEVConfigError(
@@ -95,9 +99,13 @@ class BEVConfig:
                 f"max_range={self.max_range}"
             )
         if not self.z_min < self.z_max:
-            raise BEVConfigError(f"BEVConfig needs z_min < z_max, got z_min={self.z_min}, z_max={self.z_max}")
+            raise BEVConfigError(
+                f"BEVConfig needs z_min < z_max, got z_min={self.z_min}, z_max={self.z_max}"
+            )
         if self.mode not in MODES:
-            raise BEVConfigError(f"BEVConfig.mode must be one of {', '.join(MODES)}; got {self.mode!r}")
+            raise BEVConfigError(
+                f"BEVConfig.mode must be one of {', '.join(MODES)}; got {self.mode!r}"
+            )
         if self.rings * self.sectors * self.heights > 2**30:
             raise BEVConfigError("BEVConfig has too many cells (rings * sectors * heights > 2^30)")
 
@@ -122,8 +130,9 @@ class BEVConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(str(k) for k in data if k not in known)
         if unknown:
+            known_keys = ", ".join(sorted(known))
             raise BEVConfigError(
-                f"unknown BEVConfig key(s): {', '.join(unknown)} (known: {', '.join(sorted(known))})"
+                f"unknown BEVConfig key(s): {', '.join(unknown)} (known: {known_keys})"
             )
         return cls(**data)
 
@@ -163,7 +172,9 @@ def _prepare(points: Any, what: str = "points") -> np.ndarray:
         except (ValueError, TypeError) as exc:
             raise BEVInputTypeError(f"{what}: not convertible to an array ({exc})") from None
     if points.dtype.kind != "f":
-        raise BEVInputTypeError(f"{what} must be a float32 or float64 array, got dtype {points.dtype}")
+        raise BEVInputTypeError(
+            f"{what} must be a float32 or float64 array, got dtype {points.dtype}"
+        )
     if points.ndim != 2 or points.shape[1] < 3:
         raise BEVInputError(f"{what} must be an N x 3 (or wider) array, got shape {points.shape}")
     if _readable_in_place(points):
@@ -206,6 +217,8 @@ def polar_bev_batch(
     if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 0:
         raise BEVConfigError(f"threads must be an integer >= 0, got {threads!r}")
     if isinstance(scans, np.ndarray) and scans.ndim == 2:
-        raise BEVInputError("polar_bev_batch takes a list of scans; got one N x C array (use polar_bev)")
+        raise BEVInputError(
+            "polar_bev_batch takes a list of scans; got one N x C array (use polar_bev)"
+        )
     prepared = [_prepare(s, f"scans[{i}]") for i, s in enumerate(scans)]
     return _core.polar_bev_batch(prepared, _core_config(config), int(threads))

@@ -89,10 +89,11 @@ Binning make_binning(const BEVConfig& c) {
     // roundings, each kFloatEps relative, on values up to the grid size).
     const double eps = kFloatEps;
     b.ring_margin = static_cast<float>(32.0 * eps * (c.rings + 2.0));
-    b.sector_margin = static_cast<float>(4.0 * kAngleErr * c.sectors / kTwoPi + 32.0 * eps * (c.sectors + 2.0));
+    b.sector_margin =
+        static_cast<float>(4.0 * kAngleErr * c.sectors / kTwoPi + 32.0 * eps * (c.sectors + 2.0));
     const double z_abs = std::max(std::abs(c.z_min), std::abs(c.z_max)) + b.height_w;
-    b.height_margin =
-        static_cast<float>(32.0 * eps * ((2.0 * z_abs + (c.z_max - c.z_min)) / b.height_w + b.heights + 2.0));
+    b.height_margin = static_cast<float>(
+        32.0 * eps * ((2.0 * z_abs + (c.z_max - c.z_min)) / b.height_w + b.heights + 2.0));
     return b;
 }
 
@@ -146,7 +147,8 @@ void fast_codes(const float* xs, const float* ys, const float* zs, int n, const 
         const float ay = std::fabs(y);
         const float t = std::min(ax, ay) / std::max(ax, ay);
         const float u = t * t;
-        const float p = (((((((kA6 * u + kA5) * u + kA4) * u + kA3) * u + kA2) * u + kA1) * u) + kA0) * t;
+        const float p =
+            (((((((kA6 * u + kA5) * u + kA4) * u + kA3) * u + kA2) * u + kA1) * u) + kA0) * t;
         float theta = ay > ax ? half_pi - p : p;
         theta = x < 0.0f ? pi - theta : theta;
         theta = y < 0.0f ? two_pi - theta : theta;
@@ -158,8 +160,9 @@ void fast_codes(const float* xs, const float* ys, const float* zs, int n, const 
         const int height = fast_index(a_height, b.heights_f, b.height_margin, ok_height);
         ok_ring &= a_ring > b.ring_min + b.ring_margin;
 
-        const bool drop = (a_ring < b.ring_min - b.ring_margin) | (a_ring > b.rings_f + b.ring_margin) |
-                          (a_height < -b.height_margin) | (a_height > b.heights_f + b.height_margin);
+        const bool drop = (a_ring < b.ring_min - b.ring_margin) |
+                          (a_ring > b.rings_f + b.ring_margin) | (a_height < -b.height_margin) |
+                          (a_height > b.heights_f + b.height_margin);
         const int32_t cell = (height * b.rings + ring) * b.sectors + sector;
         codes[i] = (ok_ring & ok_sector & ok_height) ? cell : (drop ? kDrop : kExact);
     }
@@ -173,7 +176,8 @@ struct SimdBinning {
     __m128 ring_scale, sector_scale, height_scale, z_min;
     __m128 ring_lo, ring_hi, ring_max_out, height_lo_out, height_max_out;
     __m128 rings, sectors, heights;
-    __m128 ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin, height_margin_hi;
+    __m128 ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin,
+        height_margin_hi;
 
     explicit SimdBinning(const Binning& b)
         : ring_scale(_mm_set1_ps(b.ring_scale)),
@@ -205,13 +209,15 @@ inline __m128 index4(__m128 a, __m128 n, __m128 margin, __m128 margin_hi, __m128
     const __m128 clamped = _mm_min_ps(_mm_max_ps(a, _mm_setzero_ps()), n);  // NaN -> 0
     const __m128 i = _mm_cvtepi32_ps(_mm_cvttps_epi32(clamped));
     const __m128 frac = _mm_sub_ps(a, i);
-    ok = _mm_and_ps(_mm_cmplt_ps(a, n), _mm_and_ps(_mm_cmpgt_ps(frac, margin), _mm_cmplt_ps(frac, margin_hi)));
+    ok = _mm_and_ps(_mm_cmplt_ps(a, n),
+                    _mm_and_ps(_mm_cmpgt_ps(frac, margin), _mm_cmplt_ps(frac, margin_hi)));
     return i;
 }
 
 inline __m128i codes4(__m128 x, __m128 y, __m128 z, const SimdBinning& s) {
     const __m128 zero = _mm_setzero_ps();
-    const __m128 a_ring = _mm_mul_ps(_mm_sqrt_ps(_mm_add_ps(_mm_mul_ps(x, x), _mm_mul_ps(y, y))), s.ring_scale);
+    const __m128 a_ring =
+        _mm_mul_ps(_mm_sqrt_ps(_mm_add_ps(_mm_mul_ps(x, x), _mm_mul_ps(y, y))), s.ring_scale);
     const __m128 a_height = _mm_mul_ps(_mm_sub_ps(z, s.z_min), s.height_scale);
 
     const __m128 abs_mask = _mm_castsi128_ps(_mm_set1_epi32(0x7fffffff));
@@ -226,20 +232,28 @@ inline __m128i codes4(__m128 x, __m128 y, __m128 z, const SimdBinning& s) {
     p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA1));
     p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA0));
     p = _mm_mul_ps(p, t);
-    __m128 theta = select4(_mm_cmpgt_ps(ay, ax), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kPi / 2.0)), p), p);
-    theta = select4(_mm_cmplt_ps(x, zero), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kPi)), theta), theta);
-    theta = select4(_mm_cmplt_ps(y, zero), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kTwoPi)), theta), theta);
+    __m128 theta =
+        select4(_mm_cmpgt_ps(ay, ax), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kPi / 2.0)), p), p);
+    theta = select4(_mm_cmplt_ps(x, zero), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kPi)), theta),
+                    theta);
+    theta = select4(_mm_cmplt_ps(y, zero),
+                    _mm_sub_ps(_mm_set1_ps(static_cast<float>(kTwoPi)), theta), theta);
     const __m128 a_sector = _mm_mul_ps(theta, s.sector_scale);
 
     __m128 ok_ring, ok_sector, ok_height;
     const __m128 ring = index4(a_ring, s.rings, s.ring_margin, s.ring_margin_hi, ok_ring);
-    const __m128 sector = index4(a_sector, s.sectors, s.sector_margin, s.sector_margin_hi, ok_sector);
-    const __m128 height = index4(a_height, s.heights, s.height_margin, s.height_margin_hi, ok_height);
-    const __m128 ok = _mm_and_ps(_mm_and_ps(ok_ring, _mm_cmpgt_ps(a_ring, s.ring_hi)), _mm_and_ps(ok_sector, ok_height));
-    const __m128 drop = _mm_or_ps(
-        _mm_or_ps(_mm_cmplt_ps(a_ring, s.ring_lo), _mm_cmpgt_ps(a_ring, s.ring_max_out)),
-        _mm_or_ps(_mm_cmplt_ps(a_height, s.height_lo_out), _mm_cmpgt_ps(a_height, s.height_max_out)));
-    const __m128 cell_f = _mm_add_ps(_mm_mul_ps(_mm_add_ps(_mm_mul_ps(height, s.rings), ring), s.sectors), sector);
+    const __m128 sector =
+        index4(a_sector, s.sectors, s.sector_margin, s.sector_margin_hi, ok_sector);
+    const __m128 height =
+        index4(a_height, s.heights, s.height_margin, s.height_margin_hi, ok_height);
+    const __m128 ok = _mm_and_ps(_mm_and_ps(ok_ring, _mm_cmpgt_ps(a_ring, s.ring_hi)),
+                                 _mm_and_ps(ok_sector, ok_height));
+    const __m128 drop =
+        _mm_or_ps(_mm_or_ps(_mm_cmplt_ps(a_ring, s.ring_lo), _mm_cmpgt_ps(a_ring, s.ring_max_out)),
+                  _mm_or_ps(_mm_cmplt_ps(a_height, s.height_lo_out),
+                            _mm_cmpgt_ps(a_height, s.height_max_out)));
+    const __m128 cell_f =
+        _mm_add_ps(_mm_mul_ps(_mm_add_ps(_mm_mul_ps(height, s.rings), ring), s.sectors), sector);
     const __m128i cell = _mm_cvttps_epi32(cell_f);
     // Not certain: kDrop (-1) where surely outside, else kExact (-2).
     const __m128i other = _mm_sub_epi32(_mm_set1_epi32(kExact), _mm_castps_si128(drop));
@@ -259,7 +273,8 @@ void fast_codes_simd(const float* xs, const float* ys, const float* zs, int n, c
 }
 
 // Packed x, y, z, w float rows (the KITTI layout), read in place.
-void fast_codes_xyzw(const float* rows, int n, const Binning& b, const SimdBinning& s, int32_t* codes) {
+void fast_codes_xyzw(const float* rows, int n, const Binning& b, const SimdBinning& s,
+                     int32_t* codes) {
     int i = 0;
     for (; i + 4 <= n; i += 4) {
         __m128 p0 = _mm_loadu_ps(rows + 4 * i);
@@ -282,7 +297,9 @@ void fast_codes_xyzw(const float* rows, int n, const Binning& b, const SimdBinni
 // float values more accurate, and the margins cover either way.
 #define DISCO_AVX2_FMA __attribute__((target("avx2,fma")))
 
-DISCO_AVX2_FMA inline __m256 select8(__m256 mask, __m256 a, __m256 b) { return _mm256_blendv_ps(b, a, mask); }
+DISCO_AVX2_FMA inline __m256 select8(__m256 mask, __m256 a, __m256 b) {
+    return _mm256_blendv_ps(b, a, mask);
+}
 
 // The constants of codes8, broadcast once per chunk (held in registers, not
 // reloaded from a Binning that the compiler must assume the code stores alias).
@@ -290,7 +307,8 @@ struct Binning8 {
     __m256 ring_scale, sector_scale, height_scale, z_min;
     __m256 ring_lo, ring_hi, ring_max_out, height_lo_out, height_max_out;
     __m256 rings, sectors, heights;
-    __m256 ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin, height_margin_hi;
+    __m256 ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin,
+        height_margin_hi;
 
     DISCO_AVX2_FMA explicit Binning8(const Binning& b)
         : ring_scale(_mm256_set1_ps(b.ring_scale)),
@@ -319,7 +337,8 @@ struct Binning8 {
 DISCO_AVX2_FMA inline __m256 index8(__m256 a, __m256 margin, __m256 margin_hi, __m256& ok) {
     const __m256 i = _mm256_round_ps(a, _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC);
     const __m256 frac = _mm256_sub_ps(a, i);
-    ok = _mm256_and_ps(_mm256_cmp_ps(frac, margin, _CMP_GT_OQ), _mm256_cmp_ps(frac, margin_hi, _CMP_LT_OQ));
+    ok = _mm256_and_ps(_mm256_cmp_ps(frac, margin, _CMP_GT_OQ),
+                       _mm256_cmp_ps(frac, margin_hi, _CMP_LT_OQ));
     return i;
 }
 
@@ -358,24 +377,29 @@ DISCO_AVX2_FMA inline __m256i codes8(__m256 x, __m256 y, __m256 z, const Binning
     const __m256 sector = index8(a_sector, s.sector_margin, s.sector_margin_hi, ok_sector);
     const __m256 height = index8(a_height, s.height_margin, s.height_margin_hi, ok_height);
     const __m256 ring_in = _mm256_cmp_ps(a_ring, s.ring_hi, _CMP_GT_OQ);
-    const __m256 ok = _mm256_and_ps(_mm256_and_ps(ok_ring, ring_in), _mm256_and_ps(ok_sector, ok_height));
-    const __m256 drop = _mm256_or_ps(
-        _mm256_or_ps(_mm256_cmp_ps(a_ring, s.ring_lo, _CMP_LT_OQ), _mm256_cmp_ps(a_ring, s.ring_max_out, _CMP_GT_OQ)),
-        _mm256_or_ps(_mm256_cmp_ps(a_height, s.height_lo_out, _CMP_LT_OQ),
-                     _mm256_cmp_ps(a_height, s.height_max_out, _CMP_GT_OQ)));
-    const __m256 cell_f = _mm256_fmadd_ps(_mm256_fmadd_ps(height, s.rings, ring), s.sectors, sector);
+    const __m256 ok =
+        _mm256_and_ps(_mm256_and_ps(ok_ring, ring_in), _mm256_and_ps(ok_sector, ok_height));
+    const __m256 drop =
+        _mm256_or_ps(_mm256_or_ps(_mm256_cmp_ps(a_ring, s.ring_lo, _CMP_LT_OQ),
+                                  _mm256_cmp_ps(a_ring, s.ring_max_out, _CMP_GT_OQ)),
+                     _mm256_or_ps(_mm256_cmp_ps(a_height, s.height_lo_out, _CMP_LT_OQ),
+                                  _mm256_cmp_ps(a_height, s.height_max_out, _CMP_GT_OQ)));
+    const __m256 cell_f =
+        _mm256_fmadd_ps(_mm256_fmadd_ps(height, s.rings, ring), s.sectors, sector);
     const __m256i cell = _mm256_cvttps_epi32(cell_f);
     // ok ? cell : kExact, then kDrop (all ones) wherever surely outside.
-    const __m256i code = _mm256_blendv_epi8(_mm256_set1_epi32(kExact), cell, _mm256_castps_si256(ok));
+    const __m256i code =
+        _mm256_blendv_epi8(_mm256_set1_epi32(kExact), cell, _mm256_castps_si256(ok));
     return _mm256_or_si256(code, _mm256_castps_si256(drop));
 }
 
-DISCO_AVX2_FMA void fast_codes_simd8(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
-                                     int32_t* codes) {
+DISCO_AVX2_FMA void fast_codes_simd8(const float* xs, const float* ys, const float* zs, int n,
+                                     const Binning& b, int32_t* codes) {
     const Binning8 s(b);
     int i = 0;
     for (; i + 8 <= n; i += 8) {
-        const __m256i c = codes8(_mm256_load_ps(xs + i), _mm256_load_ps(ys + i), _mm256_load_ps(zs + i), s);
+        const __m256i c =
+            codes8(_mm256_load_ps(xs + i), _mm256_load_ps(ys + i), _mm256_load_ps(zs + i), s);
         _mm256_store_si256(reinterpret_cast<__m256i*>(codes + i), c);
     }
     if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
@@ -388,10 +412,10 @@ DISCO_AVX2_FMA void fast_codes_xyzw8(const float* rows, int n, const Binning& b,
     int i = 0;
     for (; i + 8 <= n; i += 8) {
         const float* r = rows + 4 * i;
-        const __m256 a0 = _mm256_loadu_ps(r);       // p0 | p1
-        const __m256 a1 = _mm256_loadu_ps(r + 8);   // p2 | p3
-        const __m256 a2 = _mm256_loadu_ps(r + 16);  // p4 | p5
-        const __m256 a3 = _mm256_loadu_ps(r + 24);  // p6 | p7
+        const __m256 a0 = _mm256_loadu_ps(r);            // p0 | p1
+        const __m256 a1 = _mm256_loadu_ps(r + 8);        // p2 | p3
+        const __m256 a2 = _mm256_loadu_ps(r + 16);       // p4 | p5
+        const __m256 a3 = _mm256_loadu_ps(r + 24);       // p6 | p7
         const __m256 lo01 = _mm256_unpacklo_ps(a0, a1);  // x0 x2 y0 y2 | x1 x3 y1 y3
         const __m256 lo23 = _mm256_unpacklo_ps(a2, a3);  // x4 x6 y4 y6 | x5 x7 y5 y7
         const __m256 hi01 = _mm256_unpackhi_ps(a0, a1);  // z0 z2 w0 w2 | ...
@@ -431,7 +455,8 @@ DISCO_AVX512 inline __mmask16 ok16(__m512 a, __m512& i, float margin) {
 DISCO_AVX512 inline __m512i codes16(__m512 x, __m512 y, __m512 z, const Binning& b) {
     const __m512 r2 = _mm512_fmadd_ps(x, x, _mm512_mul_ps(y, y));
     const __m512 a_ring = _mm512_mul_ps(_mm512_sqrt_ps(r2), _mm512_set1_ps(b.ring_scale));
-    const __m512 a_height = _mm512_mul_ps(_mm512_sub_ps(z, _mm512_set1_ps(b.z_min_f)), _mm512_set1_ps(b.height_scale));
+    const __m512 a_height =
+        _mm512_mul_ps(_mm512_sub_ps(z, _mm512_set1_ps(b.z_min_f)), _mm512_set1_ps(b.height_scale));
 
     const __m512 ax = _mm512_abs_ps(x);
     const __m512 ay = _mm512_abs_ps(y);
@@ -457,9 +482,10 @@ DISCO_AVX512 inline __m512i codes16(__m512 x, __m512 y, __m512 z, const Binning&
     // As in codes8: no clamps (a negative, NaN or huge value is not ok), and a
     // drop wins over ok.
     __m512 ring, sector, height;
-    const __mmask16 ok = ok16(a_ring, ring, b.ring_margin) & ok16(a_sector, sector, b.sector_margin) &
-                         ok16(a_height, height, b.height_margin) &
-                         _mm512_cmp_ps_mask(a_ring, _mm512_set1_ps(b.ring_min + b.ring_margin), _CMP_GT_OQ);
+    const __mmask16 ok =
+        ok16(a_ring, ring, b.ring_margin) & ok16(a_sector, sector, b.sector_margin) &
+        ok16(a_height, height, b.height_margin) &
+        _mm512_cmp_ps_mask(a_ring, _mm512_set1_ps(b.ring_min + b.ring_margin), _CMP_GT_OQ);
     const __mmask16 drop =
         _mm512_cmp_ps_mask(a_ring, _mm512_set1_ps(b.ring_min - b.ring_margin), _CMP_LT_OQ) |
         _mm512_cmp_ps_mask(a_ring, _mm512_set1_ps(b.rings_f + b.ring_margin), _CMP_GT_OQ) |
@@ -472,11 +498,12 @@ DISCO_AVX512 inline __m512i codes16(__m512 x, __m512 y, __m512 z, const Binning&
     return _mm512_mask_mov_epi32(code, drop, _mm512_set1_epi32(kDrop));
 }
 
-DISCO_AVX512 void fast_codes_simd16(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
-                                    int32_t* codes) {
+DISCO_AVX512 void fast_codes_simd16(const float* xs, const float* ys, const float* zs, int n,
+                                    const Binning& b, int32_t* codes) {
     int i = 0;
     for (; i + 16 <= n; i += 16) {
-        const __m512i c = codes16(_mm512_load_ps(xs + i), _mm512_load_ps(ys + i), _mm512_load_ps(zs + i), b);
+        const __m512i c =
+            codes16(_mm512_load_ps(xs + i), _mm512_load_ps(ys + i), _mm512_load_ps(zs + i), b);
         _mm512_store_si512(codes + i, c);
     }
     if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
@@ -485,8 +512,10 @@ DISCO_AVX512 void fast_codes_simd16(const float* xs, const float* ys, const floa
 DISCO_AVX512 void fast_codes_xyzw16(const float* rows, int n, const Binning& b, int32_t* codes) {
     // Two-source permutes pick x and y (then z) of 8 points out of 2 registers of
     // 4 points each; 256-bit halves are then joined. Point order is kept.
-    const __m512i pick_xy = _mm512_setr_epi32(0, 4, 8, 12, 16, 20, 24, 28, 1, 5, 9, 13, 17, 21, 25, 29);
-    const __m512i pick_z = _mm512_setr_epi32(2, 6, 10, 14, 18, 22, 26, 30, 3, 7, 11, 15, 19, 23, 27, 31);
+    const __m512i pick_xy =
+        _mm512_setr_epi32(0, 4, 8, 12, 16, 20, 24, 28, 1, 5, 9, 13, 17, 21, 25, 29);
+    const __m512i pick_z =
+        _mm512_setr_epi32(2, 6, 10, 14, 18, 22, 26, 30, 3, 7, 11, 15, 19, 23, 27, 31);
     int i = 0;
     for (; i + 16 <= n; i += 16) {
         const float* r = rows + 4 * i;
@@ -518,9 +547,10 @@ std::atomic<int> g_level_cap{3};
 
 int detected_level() {
 #if DISCO_BEV_AVX2
-    static const int level = __builtin_cpu_supports("avx512f")                                 ? 3
-                             : (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) ? 2
-                                                                                                 : 1;
+    static const int level = __builtin_cpu_supports("avx512f") ? 3
+                             : (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
+                                 ? 2
+                                 : 1;
     return level;
 #elif DISCO_BEV_SSE2
     return 1;
@@ -636,9 +666,11 @@ void BEVConfig::validate() const {
     constexpr int kMaxCells = 1 << 30;  // flat indices are int32
     constexpr double kMaxAbs = 1e9;     // keeps the float fast path meaningful
     if (rings < 1 || sectors < 1 || heights < 1) fail("rings, sectors and heights must be >= 1");
-    if (static_cast<double>(rings) * sectors * heights > kMaxCells) fail("too many cells (over 2^30)");
+    if (static_cast<double>(rings) * sectors * heights > kMaxCells)
+        fail("too many cells (over 2^30)");
     for (double v : {max_range, min_range, z_min, z_max}) {
-        if (!std::isfinite(v) || std::abs(v) > kMaxAbs) fail("ranges and heights must be finite, |value| <= 1e9");
+        if (!std::isfinite(v) || std::abs(v) > kMaxAbs)
+            fail("ranges and heights must be finite, |value| <= 1e9");
     }
     if (!(min_range >= 0.0 && min_range < max_range)) fail("need 0 <= min_range < max_range");
     if (!(z_min < z_max)) fail("need z_min < z_max");
@@ -661,8 +693,8 @@ void polar_bev(const BEVPointsView<double>& points, const BEVConfig& config, flo
     polar_bev_impl(points, config, out);
 }
 
-void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig& config, float* out,
-                     int threads) {
+void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig& config,
+                     float* out, int threads) {
     config.validate();
     const std::size_t cells = config.cells();
     const std::size_t count = scans.size();
@@ -671,7 +703,8 @@ void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig
     std::atomic<std::size_t> next{0};
     auto work = [&]() {
         for (std::size_t i = next++; i < count; i = next++) {
-            std::visit([&](const auto& view) { polar_bev_impl(view, config, out + i * cells); }, scans[i]);
+            std::visit([&](const auto& view) { polar_bev_impl(view, config, out + i * cells); },
+                       scans[i]);
         }
     };
     if (threads <= 1) {

@@ -13,7 +13,6 @@
 #pragma once
 
 #include <Eigen/Core>
-
 #include <cstddef>
 #include <variant>
 #include <vector>
@@ -51,8 +50,9 @@ struct BEVConfig {
 // ignored) with arbitrary positive strides, so a KITTI N x 4 float32 array is read
 // in place.
 template <typename T>
-using BEVPointsView = Eigen::Map<const Eigen::Matrix<T, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>,
-                              Eigen::Unaligned, Eigen::Stride<Eigen::Dynamic, Eigen::Dynamic>>;
+using BEVPointsView =
+    Eigen::Map<const Eigen::Matrix<T, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>,
+               Eigen::Unaligned, Eigen::Stride<Eigen::Dynamic, Eigen::Dynamic>>;
 using AnyBEVPointsView = std::variant<BEVPointsView<float>, BEVPointsView<double>>;
 
 // Writes the BEV of one scan into out[layers][rings][sectors] (every cell written).
@@ -61,8 +61,8 @@ void polar_bev(const BEVPointsView<double>& points, const BEVConfig& config, flo
 
 // The BEVs of many scans, out[scan][layers][rings][sectors], on `threads` threads
 // (0: all cores). Each scan gives exactly what polar_bev gives.
-void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig& config, float* out,
-                     int threads = 0);
+void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig& config,
+                     float* out, int threads = 0);
 
 // The fast-path kernel in use: 3 AVX-512F, 2 AVX2+FMA (both chosen at run time when
 // the CPU has them), 1 SSE2, 0 plain C++. Every kernel gives identical BEVs; capping
