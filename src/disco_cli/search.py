@@ -45,7 +45,7 @@ class SignatureIndex:
     the matrix it holds one float32 norm per row.
     """
 
-    def __init__(self, signatures: np.ndarray, int8_min_rows: int = 16384, threads: int = 0):
+    def __init__(self, signatures: np.ndarray, int8_min_rows: int = 4096, threads: int = 0):
         sig = np.asarray(signatures)
         if sig.ndim != 2:
             raise ValueError(f"signatures must be [N, D], got {sig.shape}")
@@ -175,7 +175,7 @@ class _Int8Codes:
             return False
         return hasattr(_core, "int8_candidates")
 
-    def __init__(self, matrix: np.ndarray, chunk: int = 8192):
+    def __init__(self, matrix: np.ndarray, chunk: int = 2048):
         from disco_cli import _core
 
         self._core = _core
