@@ -124,6 +124,15 @@ def test_other_grids_equal_reference(mode, kernel):
         assert_same(polar_bev(points, config), reference_bev(points, config))
 
 
+def test_grid_too_big_for_the_simd_kernels_equals_reference():
+    """Above 2^24 cells the SIMD kernels' float cell index is not exact, so the plain
+    path takes over."""
+    config = BEVConfig(rings=4096, sectors=4097, heights=1, mode="density")
+    assert config.rings * config.sectors >= 2**24
+    points = random_scan(np.random.default_rng(8), 5000)
+    assert_same(polar_bev(points, config), reference_bev(points, config))
+
+
 def test_points_on_and_near_every_edge_equal_reference(kernel):
     """Points at each cell edge and offset from it by 1e-12 .. 1e-3: the band where a
     float fast path would go wrong, so the exact fallback must take over."""

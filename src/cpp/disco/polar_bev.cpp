@@ -118,9 +118,11 @@ int32_t exact_cell(double x, double y, double z, const Binning& b) {
 
 // One index axis of the fast path: `a` is the value in index units, n the cell count.
 // ok: a is inside (0, n) and at least `margin` from every integer, so floor(a)
-// is the exact index; returns floor(a) clamped into [0, n].
+// is the exact index; returns floor(a) clamped into [0, n - 1].
 inline int fast_index(float a, float n, float margin, bool& ok) {
-    const float clamped = std::min(a > 0.0f ? a : 0.0f, n);  // NaN -> 0
+    // NaN -> 0; the top clamp keeps the (discarded) cell index of a lane that is not
+    // ok inside int range.
+    const float clamped = std::min(a > 0.0f ? a : 0.0f, n - 1.0f);
     const int i = static_cast<int>(clamped);
     const float frac = a - static_cast<float>(i);
     ok = (a < n) & (frac > margin) & (frac < 1.0f - margin);
