@@ -200,6 +200,14 @@ def test_missing_input_and_model_without_weights(tmp_path: Path) -> None:
     assert not (tmp_path / "m.db").exists()
 
 
+def test_output_in_a_missing_folder(tmp_path: Path) -> None:
+    scene(0).tofile(tmp_path / "a.bin")
+    out = tmp_path / "no" / "such" / "map.db"
+    code, _, err = run("build-db", str(tmp_path / "a.bin"), "-o", str(out), "--model", "spectral")
+    assert code == 1 and "cannot create" in err and str(out) in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
+
+
 def test_refuses_to_overwrite_a_non_database(tmp_path: Path) -> None:
     scene(0).tofile(tmp_path / "a.bin")
     target = tmp_path / "notes.txt"
@@ -209,7 +217,8 @@ def test_refuses_to_overwrite_a_non_database(tmp_path: Path) -> None:
     assert target.read_text() == "my precious notes\n"
 
 
-def test_resume_after_kill(tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
+def test_resume_after_kill(tmp_path: Path, sig: signal.Signals) -> None:
     # Many paths (links to a few scans) so that the build is still running when killed.
     src = tmp_path / "src"
     src.mkdir()
@@ -226,8 +235,11 @@ def test_resume_after_kill(tmp_path: Path) -> None:
     deadline = time.monotonic() + 120
     while not out.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.005)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
+    proc.send_signal(sig)
+    code = proc.wait(timeout=60)
+    err = proc.stderr.read().decode()
+    if sig == signal.SIGINT:  # Ctrl-C: exit 130, no traceback
+        assert code == 130 and "Traceback" not in err, err
     with Database.open(out) as db:
         assert db.check() == []
         done = db.paths()

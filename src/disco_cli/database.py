@@ -243,6 +243,12 @@ class Database:
                     raise DatabaseError(path, "already exists") from None
                 os.replace(tmp, path)
             tmp.unlink(missing_ok=True)
+        except sqlite3.Error as exc:
+            tmp.unlink(missing_ok=True)
+            raise DatabaseError(path, f"cannot create ({exc})") from None
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise DatabaseError(path, f"cannot create ({exc.strerror or exc})") from None
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
