@@ -149,7 +149,8 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
                                  (t3 - t0) + (t5 - t4))):
             stages[k].append(v)
     db.close()
-    return {k: median_ms(v[2:]) for k, v in stages.items()} | {"db": str(db_path), "scan": str(scans[0])}
+    out = {k: median_ms(v[2:]) for k, v in stages.items()}
+    return out | {"db": str(db_path), "scan": str(scans[0])}
 
 
 def bench_first_result(db: str, scan: str) -> dict:
@@ -290,14 +291,17 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         s = bench_stream(args.model, args.n_map, args.queries, Path(tmp))
-        print(f"streaming query vs {args.n_map} scans ({args.model}): total {s['total']:.2f} ms/query"
+        print(f"streaming query vs {args.n_map} scans ({args.model}): total {s['total']:.2f} "
+              "ms/query"
               f" = read {s['read']:.2f} + voxelize {s['bev']:.2f} + embed {s['embed']:.2f} + "
               f"search {s['search']:.2f} + rows & yaw of top 10 {s['yaw_rows']:.2f} (medians)")
         f = bench_first_result(s["db"], s["scan"])
         print(f"first result of a fresh `disco query` process: {f['total_ms']:.0f} ms; a fresh "
-              f"interpreter spends: python {f['python_ms']:.0f}, cli import {f['cli_import_ms']:.0f}, "
+              f"interpreter spends: python {f['python_ms']:.0f}, cli import "
+              f"{f['cli_import_ms']:.0f}, "
               f"numpy/model/db imports {f['imports_ms']:.0f}, open db + load model "
-              f"{f['model_ms']:.0f}, read {args.n_map} signatures + index {f['signatures_ms']:.0f}, "
+              f"{f['model_ms']:.0f}, read {args.n_map} signatures + index "
+              f"{f['signatures_ms']:.0f}, "
               f"first query {f['first_query_ms']:.0f} ms")
         if args.memory:
             m = bench_memory(args.model, args.memory, Path(tmp))

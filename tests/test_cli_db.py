@@ -139,7 +139,9 @@ def test_build_db_stores_scans_poses_and_times(map_db: Path, seq: Path) -> None:
         assert db.check() == []
 
 
-def test_rerun_is_a_no_op_and_other_scans_need_append(map_db: Path, seq: Path, tmp_path: Path) -> None:
+def test_rerun_is_a_no_op_and_other_scans_need_append(
+    map_db: Path, seq: Path, tmp_path: Path
+) -> None:
     before = map_db.read_bytes()
     code, _, err = run("build-db", str(seq), "-o", str(map_db), "--model", "spectral")
     assert code == 0 and "in it already" in err
@@ -212,7 +214,8 @@ def test_refuses_to_overwrite_a_non_database(tmp_path: Path) -> None:
     scene(0).tofile(tmp_path / "a.bin")
     target = tmp_path / "notes.txt"
     target.write_text("my precious notes\n")
-    code, _, err = run("build-db", str(tmp_path / "a.bin"), "-o", str(target), "--model", "spectral")
+    code, _, err = run("build-db", str(tmp_path / "a.bin"), "-o", str(target),
+                       "--model", "spectral")
     assert code == 1 and "notes.txt" in err and "not a disco database" in err
     assert target.read_text() == "my precious notes\n"
 
@@ -345,7 +348,8 @@ def test_bad_databases(map_db: Path, queries: Path, tmp_path: Path) -> None:
     newer = tmp_path / "newer.db"
     newer.write_bytes(map_db.read_bytes())
     with sqlite3.connect(newer) as conn:
-        conn.execute("UPDATE meta SET value=? WHERE key='format_version'", (str(FORMAT_VERSION + 1),))
+        conn.execute("UPDATE meta SET value=? WHERE key='format_version'",
+                     (str(FORMAT_VERSION + 1),))
     cases[newer] = "newer"
     empty = tmp_path / "empty.db"
     empty.write_bytes(map_db.read_bytes())

@@ -92,7 +92,8 @@ def test_int8_pass_constant_dimensions_and_far_queries() -> None:
     rng = np.random.default_rng(7)
     sigs = rng.normal(size=(700, 40)).astype(np.float32)
     sigs[:, 3] = 2.5
-    queries = np.concatenate([rng.normal(size=(3, 40)), 50 + rng.normal(size=(2, 40))]).astype(np.float32)
+    queries = np.concatenate([rng.normal(size=(3, 40)), 50 + rng.normal(size=(2, 40))])
+    queries = queries.astype(np.float32)
     index = SignatureIndex(sigs, int8_min_rows=0)
     for k in (1, 10, 800):
         rows, dists = index.search(queries, k)

@@ -481,4 +481,5 @@ def _check_scans_table(path: Path, conn: sqlite3.Connection) -> None:
         raise DatabaseError(path, f"corrupt database ({exc})") from None
     missing = _SCAN_COLUMNS - cols
     if missing:
-        raise DatabaseError(path, f"not a disco database (scans lacks {', '.join(sorted(missing))})")
+        lacks = ", ".join(sorted(missing))
+        raise DatabaseError(path, f"not a disco database (scans lacks {lacks})")

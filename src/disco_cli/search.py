@@ -30,7 +30,9 @@ _EPS32 = float(np.finfo(np.float32).eps)
 _BLOCK_ELEMS = 16 * 1024 * 1024
 
 
-def brute_force_topk(signatures: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def brute_force_topk(
+    signatures: np.ndarray, query: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Reference: float64 distances to every row, stable sort. For tests and benchmarks."""
     d = np.sqrt(((np.asarray(signatures, np.float64) - np.asarray(query, np.float64)) ** 2).sum(1))
     order = np.argsort(d, kind="stable")[:k]

@@ -57,8 +57,11 @@ DotFn pick_dot() {
 }
 
 // Runs body(begin, end) over [0, n) split into `threads` contiguous parts.
-void parallel_rows(std::int64_t n, int threads, const std::function<void(std::int64_t, std::int64_t)>& body) {
-    threads = std::max(1, std::min<int>(threads, static_cast<int>(std::max<std::int64_t>(1, n / 4096))));
+void parallel_rows(std::int64_t n, int threads,
+                   const std::function<void(std::int64_t, std::int64_t)>& body) {
+    // At least 4096 rows per thread: below that, starting a thread costs more than it saves.
+    const auto most = static_cast<int>(std::max<std::int64_t>(1, n / 4096));
+    threads = std::max(1, std::min(threads, most));
     if (threads == 1) {
         body(0, n);
         return;
@@ -76,7 +79,8 @@ void parallel_rows(std::int64_t n, int threads, const std::function<void(std::in
 
 int int8_query_limit(std::int64_t d) {
     // |c_j| <= 127; the sum of d products must stay within int32.
-    const double cap = static_cast<double>(std::numeric_limits<std::int32_t>::max()) / (127.0 * std::max<std::int64_t>(d, 1));
+    const double cap = static_cast<double>(std::numeric_limits<std::int32_t>::max()) /
+                       (127.0 * static_cast<double>(std::max<std::int64_t>(d, 1)));
     return static_cast<int>(std::max(1.0, std::min(32767.0, std::floor(cap))));
 }
 
@@ -109,8 +113,8 @@ std::vector<std::int64_t> int8_candidates(const Int8Rows& rows, const Int8Query&
             }
             const double G = dot(rows.codes + r * rows.d, query.g, rows.d);
             const double A = query.u_sq - 2.0 * query.step * G + rows.code_sq[r];
-            const double beta = 2.0 * query.delta_norm * rows.code_norm[r] +
-                                kRel * (query.u_sq + rows.code_sq[r] + 2.0 * std::abs(query.step * G));
+            const double scale = query.u_sq + rows.code_sq[r] + 2.0 * std::abs(query.step * G);
+            const double beta = 2.0 * query.delta_norm * rows.code_norm[r] + kRel * scale;
             lower[r] = std::sqrt(std::max(A - beta, 0.0)) - rows.err[r];
             upper[r] = std::sqrt(std::max(A + beta, 0.0)) + rows.err[r];
         }

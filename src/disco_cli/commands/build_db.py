@@ -60,13 +60,15 @@ def collect_scans(
             group = list(stdin_paths())
         else:
             group = [str(p) for p in list_scans(item, scan_format)]
-        group = [p for p in group if not (p in seen or seen.add(p))]  # type: ignore[func-returns-value]
+        group = [p for p in dict.fromkeys(group) if p not in seen]
+        seen.update(group)
         n = len(group)
         p_rows, t_rows = np.full((n, 4), np.nan), np.full(n, np.nan)
         folder = Path(item)
         if item != "-" and folder.is_dir() and group:
             if poses_file is None and (folder / "poses.txt").is_file():
-                auto_calib = calib or ((folder / "calib.txt") if (folder / "calib.txt").is_file() else None)
+                beside = folder / "calib.txt"
+                auto_calib = calib or (beside if beside.is_file() else None)
                 T = read_kitti_poses(folder / "poses.txt", auto_calib)
                 p_rows = pose_rows(T)[frame_rows(group, len(T), str(folder / "poses.txt"))]
             if times_file is None and (folder / "times.txt").is_file():
@@ -101,12 +103,12 @@ def build_db(
                            rich_help_panel=PANEL_IN)
     ] = Path("map.db"),
     model: Annotated[
-        str, typer.Option("--model", "-m", help="default, spectral, scancontext or a checkpoint path.",
-                          rich_help_panel=PANEL_IN)
+        str, typer.Option("--model", "-m", rich_help_panel=PANEL_IN,
+                          help="default, spectral, scancontext or a checkpoint path.")
     ] = "default",
     poses: Annotated[
-        Optional[Path], typer.Option("--poses", help="KITTI poses (3 x 4 per line) of all scans, in "
-                                     "order; default: poses.txt beside each folder's scans.",
+        Optional[Path], typer.Option("--poses", help="KITTI poses (3 x 4 per line) of all scans, "
+                                     "in order; default: poses.txt beside each folder's scans.",
                                      rich_help_panel=PANEL_IN)
     ] = None,
     calib: Annotated[
@@ -135,7 +137,8 @@ def build_db(
                           rich_help_panel=PANEL_RUN)
     ] = 2,
     device: Annotated[
-        str, typer.Option("--device", help="cpu or cuda (for the network).", rich_help_panel=PANEL_RUN)
+        str, typer.Option("--device", help="cpu or cuda (for the network).",
+                          rich_help_panel=PANEL_RUN)
     ] = "cpu",
     skip_bad: Annotated[
         bool, typer.Option("--skip-bad", help="Warn about unreadable scans and go on, instead of "
@@ -216,7 +219,8 @@ def build_db(
         if db is not None:
             db.close()
     elapsed = time.perf_counter() - start
-    msg = f"{output}: wrote {written} scans in {elapsed:.1f} s ({written / max(elapsed, 1e-9):.1f} scans/s)"
+    rate = written / max(elapsed, 1e-9)
+    msg = f"{output}: wrote {written} scans in {elapsed:.1f} s ({rate:.1f} scans/s)"
     if already:
         msg += f", {already} were in it already"
     stderr.print(msg)

@@ -106,7 +106,8 @@ def query(
                           rich_help_panel=PANEL_RUN)
     ] = 2,
     device: Annotated[
-        str, typer.Option("--device", help="cpu or cuda (for the network).", rich_help_panel=PANEL_RUN)
+        str, typer.Option("--device", help="cpu or cuda (for the network).",
+                          rich_help_panel=PANEL_RUN)
     ] = "cpu",
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
