@@ -446,3 +446,38 @@ def test_cars_drive_on_their_right_and_keep_clear_of_the_sensor():
     assert world.movers is not None and (world.movers[:, 9] == 0).any()
     assert (world.movers[:, 9] == 1).any()
     assert len(world.at(2.0).table) > len(world.table)
+
+
+def test_motion_distortion_measures_each_ray_from_where_the_sensor_fired():
+    from disco_cli.simulator import sweep_poses
+
+    sensor = get_sensor("hdl32")
+    world = wall_world(distance=12.0, height=8.0, length=200.0)
+    f_ray = sensor.fractions().astype(np.float64)
+    d = sensor.directions().astype(np.float64)
+    # Driving at the wall, 1 m per sweep: the sweep starts half a metre back.
+    start, end = pose(-0.5, 0, 1.8), pose(0.5, 0, 1.8)
+    r, ids, _ = cast(world, start, sensor, np.array([1], np.uint64), poses_end=end)
+    wall = ids[0] == 0
+    x = d[wall, 0] * r[0][wall]
+    # In the sensor frame of its own firing time: 12 - (sensor x then).
+    np.testing.assert_allclose(x, 12.0 - (-0.5 + f_ray[wall]), atol=1e-4)
+    # The forward ray fires half-way (at the scan's pose), the rear one first.
+    az = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+    assert f_ray[np.argmin(np.abs(az))] == pytest.approx(0.5)
+    assert f_ray[np.argmin(np.abs(az - 90))] == pytest.approx(0.25, abs=0.002)
+    # Turning 4 degrees during the sweep: each point, put back with the rotation of its
+    # own firing time, lies on the wall.
+    r, ids, _ = cast(world, pose(0, 0, 1.8, yaw=-2), sensor, np.array([1], np.uint64),
+                     poses_end=pose(0, 0, 1.8, yaw=2))
+    wall = ids[0] == 0
+    p = d[wall] * r[0][wall, None]
+    yaw = np.radians(-2 + 4 * f_ray[wall])
+    np.testing.assert_allclose(np.cos(yaw) * p[:, 0] - np.sin(yaw) * p[:, 1], 12.0, atol=2e-3)
+    # Sweep bounds of steady driving: half a step either side, extrapolated at the ends.
+    steady = np.stack([pose(2.0 * i, 0, 1.8, yaw=3 * i) for i in range(4)])
+    starts, ends = sweep_poses(steady)
+    for i in range(4):
+        np.testing.assert_allclose(starts[i], pose(2.0 * i - 1, 0, 1.8, yaw=3 * i - 1.5),
+                                   atol=1e-9)
+        np.testing.assert_allclose(ends[i], pose(2.0 * i + 1, 0, 1.8, yaw=3 * i + 1.5), atol=1e-9)

@@ -145,7 +145,11 @@ PYBIND11_MODULE(_core, m) {
                    double max_range,
                    const py::array_t<std::uint64_t, py::array::c_style | py::array::forcecast>&
                        seeds,
-                   int threads) {
+                   int threads,
+                   std::optional<py::array_t<double, py::array::c_style | py::array::forcecast>>
+                       poses_end,
+                   std::optional<py::array_t<float, py::array::c_style | py::array::forcecast>>
+                       fractions) {
                     if (poses.ndim() != 3 || poses.shape(1) != 4 || poses.shape(2) != 4)
                         throw py::value_error("poses must be B x 4 x 4");
                     if (dirs.ndim() != 2 || dirs.shape(1) != 3)
@@ -153,6 +157,15 @@ PYBIND11_MODULE(_core, m) {
                     if (seeds.ndim() != 1 || seeds.shape(0) != poses.shape(0))
                         throw py::value_error("need one seed per pose");
                     const py::ssize_t b = poses.shape(0), n = dirs.shape(0);
+                    if (poses_end.has_value() != fractions.has_value())
+                        throw py::value_error("give poses_end and fractions together");
+                    if (poses_end && (poses_end->ndim() != 3 || poses_end->shape(0) != b ||
+                                      poses_end->shape(1) != 4 || poses_end->shape(2) != 4))
+                        throw py::value_error("poses_end must be B x 4 x 4 like poses");
+                    if (fractions && (fractions->ndim() != 1 || fractions->shape(0) != n))
+                        throw py::value_error("need one fraction per direction");
+                    const double* pe = poses_end ? poses_end->data() : nullptr;
+                    const float* fr = fractions ? fractions->data() : nullptr;
                     py::array_t<float> range({b, n});
                     py::array_t<std::int32_t> id({b, n});
                     py::array_t<float> cosi({b, n});
@@ -164,12 +177,14 @@ PYBIND11_MODULE(_core, m) {
                     float* cp = cosi.mutable_data();
                     {
                         py::gil_scoped_release release;
-                        disco::cast_scans(world, pp, b, dp, n, max_range, sp, threads, rp, ip, cp);
+                        disco::cast_scans(world, pp, b, dp, n, max_range, sp, threads, rp, ip, cp,
+                                          pe, fr);
                     }
                     return py::make_tuple(range, id, cosi);
                 },
                 py::arg("poses"), py::arg("dirs"), py::arg("max_range"), py::arg("seeds"),
-                py::arg("threads") = 1);
+                py::arg("threads") = 1, py::arg("poses_end") = py::none(),
+                py::arg("fractions") = py::none());
         m.attr("RAYCAST_GROUND") = disco::kGround;
         m.attr("RAYCAST_MISS") = disco::kMiss;
     }

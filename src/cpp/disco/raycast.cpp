@@ -220,6 +220,12 @@ bool RaycastWorld::intersect(std::size_t k, const Eigen::Vector3d& o, const Eige
 void RaycastWorld::cast(const Eigen::Vector3d& origin, const float* dirs, std::int64_t n,
                         double max_range, std::uint64_t seed, float* range, std::int32_t* id,
                         float* cos_incidence) const {
+    cast_from(origin.data(), 0, dirs, n, max_range, seed, range, id, cos_incidence);
+}
+
+void RaycastWorld::cast_from(const double* origins, int origin_stride, const float* dirs,
+                             std::int64_t n, double max_range, std::uint64_t seed, float* range,
+                             std::int32_t* id, float* cos_incidence) const {
     // Per-call mailbox: a primitive spanning several cells is tested once per ray.
     std::vector<std::uint32_t> stamp(prims_.size(), 0);
     std::uint32_t ray_stamp = 0;
@@ -227,6 +233,8 @@ void RaycastWorld::cast(const Eigen::Vector3d& origin, const float* dirs, std::i
     const double gx1 = x0_ + nx_ * cell_, gy1 = y0_ + ny_ * cell_;
 
     for (std::int64_t r = 0; r < n; ++r) {
+        const double* o = origins + origin_stride * r;
+        const Eigen::Vector3d origin(o[0], o[1], o[2]);
         Eigen::Vector3d d(dirs[3 * r], dirs[3 * r + 1], dirs[3 * r + 2]);
         d.normalize();
         double t_best = max_range;
@@ -332,31 +340,39 @@ void RaycastWorld::cast(const Eigen::Vector3d& origin, const float* dirs, std::i
 
 void cast_scans(const RaycastWorld& world, const double* poses, std::int64_t b, const float* dirs,
                 std::int64_t n, double max_range, const std::uint64_t* seeds, int threads,
-                float* range, std::int32_t* id, float* cos_incidence) {
-    auto work = [&](std::int64_t s, std::vector<float>& wdirs) {
+                float* range, std::int32_t* id, float* cos_incidence, const double* poses_end,
+                const float* fractions) {
+    auto work = [&](std::int64_t s, std::vector<float>& wdirs, std::vector<double>& origins) {
         const double* T = poses + 16 * s;
-        const Eigen::Vector3d origin(T[3], T[7], T[11]);
+        const double* T1 = poses_end ? poses_end + 16 * s : T;
         for (std::int64_t r = 0; r < n; ++r) {
             const double x = dirs[3 * r], y = dirs[3 * r + 1], z = dirs[3 * r + 2];
-            for (int a = 0; a < 3; ++a)
-                wdirs[3 * r + a] =
-                    static_cast<float>(T[4 * a] * x + T[4 * a + 1] * y + T[4 * a + 2] * z);
+            // A moving sensor: this ray leaves from where the sensor is when it fires.
+            const double f = poses_end ? static_cast<double>(fractions[r]) : 0.0;
+            for (int a = 0; a < 3; ++a) {
+                const double d0 = T[4 * a] * x + T[4 * a + 1] * y + T[4 * a + 2] * z;
+                const double d1 = T1[4 * a] * x + T1[4 * a + 1] * y + T1[4 * a + 2] * z;
+                wdirs[3 * r + a] = static_cast<float>(d0 + f * (d1 - d0));
+                origins[3 * r + a] = T[4 * a + 3] + f * (T1[4 * a + 3] - T[4 * a + 3]);
+            }
         }
-        world.cast(origin, wdirs.data(), n, max_range, seeds[s], range + s * n, id + s * n,
-                   cos_incidence + s * n);
+        world.cast_from(origins.data(), poses_end ? 3 : 0, wdirs.data(), n, max_range, seeds[s],
+                        range + s * n, id + s * n, cos_incidence + s * n);
     };
     if (threads <= 0) threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
     threads = static_cast<int>(std::min<std::int64_t>(threads, b));
     if (threads <= 1) {
         std::vector<float> wdirs(3 * n);
-        for (std::int64_t s = 0; s < b; ++s) work(s, wdirs);
+        std::vector<double> origins(3 * n);
+        for (std::int64_t s = 0; s < b; ++s) work(s, wdirs, origins);
         return;
     }
     std::vector<std::thread> pool;
     for (int w = 0; w < threads; ++w)
         pool.emplace_back([&, w] {
             std::vector<float> wdirs(3 * n);
-            for (std::int64_t s = w; s < b; s += threads) work(s, wdirs);
+            std::vector<double> origins(3 * n);
+            for (std::int64_t s = w; s < b; s += threads) work(s, wdirs, origins);
         });
     for (auto& th : pool) th.join();
 }

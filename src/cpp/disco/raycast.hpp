@@ -50,6 +50,12 @@ class RaycastWorld {
     void cast(const Eigen::Vector3d& origin, const float* dirs, std::int64_t n, double max_range,
               std::uint64_t seed, float* range, std::int32_t* id, float* cos_incidence) const;
 
+    // The same with one origin per ray (`origins`, n x 3, row-major; stride 0: one
+    // origin for all).
+    void cast_from(const double* origins, int origin_stride, const float* dirs, std::int64_t n,
+                   double max_range, std::uint64_t seed, float* range, std::int32_t* id,
+                   float* cos_incidence) const;
+
     std::size_t size() const { return prims_.size(); }
     int grid_nx() const { return nx_; }
     int grid_ny() const { return ny_; }
@@ -73,8 +79,13 @@ class RaycastWorld {
 // Casts the same ray pattern (sensor frame, n x 3) from `b` sensor poses (b x 4 x 4,
 // row-major, sensor -> world); outputs are b x n. Scans are shared out over
 // `threads` threads (0: all cores); scan i uses seeds[i].
+// With `poses_end` (b x 4 x 4) and `fractions` (n), the sensor moves during the
+// sweep: ray r leaves from the pose a fraction fractions[r] of the way from
+// poses[i] to poses_end[i] (translation and ray direction interpolated linearly,
+// fine for the few centimetres and tenths of a degree of one sweep).
 void cast_scans(const RaycastWorld& world, const double* poses, std::int64_t b, const float* dirs,
                 std::int64_t n, double max_range, const std::uint64_t* seeds, int threads,
-                float* range, std::int32_t* id, float* cos_incidence);
+                float* range, std::int32_t* id, float* cos_incidence,
+                const double* poses_end = nullptr, const float* fractions = nullptr);
 
 }  // namespace disco

@@ -41,6 +41,9 @@ def simulate(
     seed: Annotated[int, typer.Option("--seed", min=0, help="World and noise seed.")] = 0,
     azimuth_step: Annotated[Optional[float], typer.Option(
         "--azimuth-step", help="Azimuth step in degrees (default: the sensor's own).")] = None,
+    motion_distortion: Annotated[bool, typer.Option(
+        "--motion-distortion", help="Raw scans: each ray from where the sensor was when it "
+        "fired (default: deskewed, every ray from the scan's pose).")] = False,
     threads: Annotated[int, typer.Option("--threads", min=0,
                                          help="Ray-casting threads (0: all cores).")] = 0,
     force: Annotated[bool, typer.Option("--force", help="Write into a folder that has sessions.")
@@ -62,7 +65,8 @@ def simulate(
 
         meta = run(out, sessions=sessions, frames=frames, length_m=length_m, step_m=step_m,
                    sensor=sensor.value, seed=seed, threads=threads,
-                   azimuth_step_deg=azimuth_step, on_scan=report)
+                   azimuth_step_deg=azimuth_step, motion_distortion=motion_distortion,
+                   on_scan=report)
     n = meta["sessions"][0]["frames"]
     stderr.print(f"wrote {sessions} session(s) of {n} {sensor.value} scans to {out} "
                  f"(town of {meta['town']['streets']} streets, seed {seed})")

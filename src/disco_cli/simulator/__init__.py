@@ -34,8 +34,8 @@ from disco_cli.simulator.routes import (
 from disco_cli.simulator.sensors import SENSORS, Sensor, get_sensor
 from disco_cli.simulator.world import SessionWorld, Town, TownParams
 
-__all__ = ["simulate", "scan", "cast", "Town", "TownParams", "Sensor", "SENSORS", "get_sensor",
-           "SimulatedSession"]
+__all__ = ["simulate", "scan", "cast", "sweep_poses", "plan_sessions", "finish_scan", "Town",
+           "TownParams", "Sensor", "SENSORS", "get_sensor", "SimulatedSession"]
 
 FORMAT = "disco-simulate/1"
 
@@ -55,11 +55,46 @@ def _scan_seed(seed: int, session: int, frame: int) -> int:
 
 
 def cast(world: SessionWorld, poses: np.ndarray, sensor: Sensor, seeds: np.ndarray,
-         threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Raw ray casting of `B` scans: ranges `[B, R]` (0: no return), hit ids, |cos incidence|."""
+         threads: int = 1,
+         poses_end: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw ray casting of `B` scans: ranges `[B, R]` (0: no return), hit ids, |cos incidence|.
+
+    With `poses_end`, the sensor moves from `poses` to `poses_end` during each sweep
+    (see `Sensor.fractions`); ranges are then as a raw sensor measures them, each in
+    the sensor frame of its own firing time.
+    """
     poses = np.ascontiguousarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     seeds = np.ascontiguousarray(seeds, dtype=np.uint64).reshape(-1)
-    return world.caster.cast_scans(poses, sensor.directions(), sensor.max_range, seeds, threads)
+    if poses_end is None:
+        return world.caster.cast_scans(poses, sensor.directions(), sensor.max_range, seeds,
+                                       threads)
+    poses_end = np.ascontiguousarray(poses_end, dtype=np.float64).reshape(-1, 4, 4)
+    return world.caster.cast_scans(poses, sensor.directions(), sensor.max_range, seeds, threads,
+                                   poses_end, sensor.fractions())
+
+
+def sweep_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sensor poses at the start and the end of each sweep, `([N, 4, 4], [N, 4, 4])`.
+
+    A scan's pose is the pose half-way through its sweep; the sweep runs from half
+    way from the previous scan's pose to half way to the next one (extrapolated at
+    the ends of a session).
+    """
+    from scipy.spatial.transform import Rotation
+
+    def blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
+        out = np.tile(np.eye(4), (len(a), 1, 1))
+        rel = Rotation.from_matrix(np.swapaxes(a[:, :3, :3], 1, 2) @ b[:, :3, :3])
+        out[:, :3, :3] = a[:, :3, :3] @ Rotation.from_rotvec(w * rel.as_rotvec()).as_matrix()
+        out[:, :3, 3] = a[:, :3, 3] + w * (b[:, :3, 3] - a[:, :3, 3])
+        return out
+
+    poses = np.asarray(poses, float)
+    if len(poses) < 2:
+        return poses.copy(), poses.copy()
+    prev = np.concatenate([blend(poses[:1], poses[1:2], -1.0), poses[:-1]])
+    nxt = np.concatenate([poses[1:], blend(poses[-1:], poses[-2:-1], -1.0)])
+    return blend(poses, prev, 0.5), blend(poses, nxt, 0.5)
 
 
 def finish_scan(rng: np.random.Generator, sensor: Sensor, dirs: np.ndarray, pose: np.ndarray,
@@ -160,13 +195,17 @@ def simulate(
     seed: int = 0,
     threads: int = 0,
     azimuth_step_deg: float | None = None,
+    motion_distortion: bool = False,
     params: TownParams | None = None,
     on_scan: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Write `sessions` KITTI-style sessions of one town under `out`; returns world.json's dict.
 
     Session length: `frames` scans, or `length_m` metres (default 400 m), `step_m` apart.
-    `on_scan(done, total)` reports progress.
+    `motion_distortion`: scans as a raw sensor gives them, each ray measured from where
+    the sensor was when it fired (the pose is that of the forward ray); otherwise every
+    ray leaves from the scan's pose, as after deskewing. `on_scan(done, total)` reports
+    progress.
     """
     from disco_cli.poses import write_kitti_poses, write_times
 
@@ -202,12 +241,15 @@ def simulate(
             world = town.session_world(k)
             folder = out / plan.name
             (folder / "velodyne").mkdir(parents=True, exist_ok=True)
+            starts, ends = sweep_poses(plan.poses) if motion_distortion else (plan.poses, None)
 
             def submit(i: int, world: SessionWorld = world, k: int = k,
-                       plan: SimulatedSession = plan) -> tuple[SessionWorld, Future]:
+                       plan: SimulatedSession = plan, starts: np.ndarray = starts,
+                       ends: np.ndarray | None = ends) -> tuple[SessionWorld, Future]:
                 w = world.at(float(plan.times[i]), plan.poses[i, :2, 3])
                 seeds = np.array([_scan_seed(seed, k, i)], np.uint64)
-                return w, pool.submit(cast, w, plan.poses[i], spec, seeds, 1)
+                end = None if ends is None else ends[i]
+                return w, pool.submit(cast, w, starts[i], spec, seeds, 1, end)
 
             queue = deque(submit(i) for i in range(min(2 * workers, frames)))
             for i in range(frames):
@@ -227,7 +269,8 @@ def simulate(
 
     meta = {
         "format": FORMAT,
-        "command": _command(sessions, frames, step_m, sensor, seed, azimuth_step_deg),
+        "command": _command(sessions, frames, step_m, sensor, seed, azimuth_step_deg,
+                            motion_distortion),
         "seed": int(seed),
         "sessions": [
             {"name": p.name, "frames": frames, "closed_loop": p.closed,
@@ -235,6 +278,7 @@ def simulate(
             for p in plans
         ],
         "step_m": step_m,
+        "motion_distortion": bool(motion_distortion),
         "rate_hz": spec.rate_hz,
         "sensor": spec.to_dict(),
         "town": town.describe(),
@@ -244,7 +288,9 @@ def simulate(
 
 
 def _command(sessions: int, frames: int, step_m: float, sensor: str, seed: int,
-             azimuth_step_deg: float | None) -> str:
+             azimuth_step_deg: float | None, motion_distortion: bool) -> str:
     cmd = (f"disco simulate OUT --sessions {sessions} --frames {frames} --step-m {step_m:g} "
            f"--sensor {sensor} --seed {seed}")
-    return cmd + (f" --azimuth-step {azimuth_step_deg:g}" if azimuth_step_deg is not None else "")
+    if azimuth_step_deg is not None:
+        cmd += f" --azimuth-step {azimuth_step_deg:g}"
+    return cmd + (" --motion-distortion" if motion_distortion else "")

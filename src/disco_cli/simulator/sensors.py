@@ -55,6 +55,17 @@ class Sensor:
         )
         return d.reshape(-1, 3).astype(np.float32)
 
+    def fractions(self) -> np.ndarray:
+        """When in the sweep each ray fires, as a fraction of the sweep, `[rays]` float32.
+
+        The head spins clockwise seen from above (like Velodyne and Ouster sensors),
+        starting and ending behind the car: the rear ray fires at 0, the left at 1/4,
+        the forward at 1/2 (the moment of the scan's pose), the right at 3/4.
+        """
+        az = np.arange(self.columns) * (360.0 / self.columns)
+        f = np.mod(180.0 - az, 360.0) / 360.0
+        return np.tile(f, self.beams).astype(np.float32)
+
     def to_dict(self) -> dict:
         out = asdict(self)
         out["elevations_deg"] = [round(float(e), 4) for e in self.elevations_deg]
