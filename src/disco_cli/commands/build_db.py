@@ -6,11 +6,10 @@ resumes, skipping the scans already stored (by path as given).
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
@@ -228,4 +227,3 @@ def build_db(
         warn(f"{len(bad)} unreadable scans skipped")
     if written == 0 and db is None:
         raise fail(f"{output}: no readable scans; nothing written")
-    sys.stderr.flush()

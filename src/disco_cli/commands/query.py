@@ -111,11 +111,9 @@ def query(
     ] = "cpu",
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
-    import numpy as np
-
     from disco_cli.console import RowWriter
     from disco_cli.errors import DiscoError, PoseFileError
-    from disco_cli.pipeline import embed_stream, frame_rows, load_stream, pose_rows, stdin_paths
+    from disco_cli.pipeline import embed_stream, load_stream, pose_rows, stdin_paths
     from disco_cli.search import SignatureIndex, match_queries
 
     if exclude_radius is not None and query_poses is None:
