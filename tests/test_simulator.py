@@ -424,8 +424,8 @@ def test_cars_drive_on_their_right_and_keep_clear_of_the_sensor():
     lo = float(town.node_clear[town.links[0][0]])
     # One car heading along the street at 10 m/s, 1.8 m right of the centre line.
     car = np.array([[0, 1.0, 5.0, 10.0, 1.8, 4.5, 1.8, 1.5, 0.5, 0, lo, 30.0]])
-    rows0, refl, _ = town._mover_rows(car, 0.0, None, 8.0)
-    rows1, _, _ = town._mover_rows(car, 1.0, None, 8.0)
+    rows0, refl, _ = town.mover_rows(car, 0.0, None, 8.0)
+    rows1, _, _ = town.mover_rows(car, 1.0, None, 8.0)
     assert len(rows0) == 2 and len(refl) == 2  # body and cabin
     c0, c1 = rows0[0, 1:3], rows1[0, 1:3]
     np.testing.assert_allclose(c1 - c0, 10.0 * s.dir, atol=1e-9)
@@ -434,12 +434,12 @@ def test_cars_drive_on_their_right_and_keep_clear_of_the_sensor():
     # The other way round it drives on the other side, and wraps within its span.
     back = car.copy()
     back[0, 1] = -1.0
-    rows_b, _, _ = town._mover_rows(back, 1.0, None, 8.0)
+    rows_b, _, _ = town.mover_rows(back, 1.0, None, 8.0)
     pos = rows_b[0, 1:3] - s.a
     assert pos @ s.left == pytest.approx(1.8)
     assert pos @ s.dir == pytest.approx(lo + (5.0 - 10.0) % 30.0)
     # Nothing within the clear radius of the sensor.
-    none, _, _ = town._mover_rows(car, 0.0, c0 + [3.0, 0.0], 8.0)
+    none, _, _ = town.mover_rows(car, 0.0, c0 + [3.0, 0.0], 8.0)
     assert len(none) == 0
     # A session world has traffic and walkers, placed per time.
     world = town.session_world(0)
@@ -481,3 +481,53 @@ def test_motion_distortion_measures_each_ray_from_where_the_sensor_fired():
         np.testing.assert_allclose(starts[i], pose(2.0 * i - 1, 0, 1.8, yaw=3 * i - 1.5),
                                    atol=1e-9)
         np.testing.assert_allclose(ends[i], pose(2.0 * i + 1, 0, 1.8, yaw=3 * i + 1.5), atol=1e-9)
+
+
+def test_town_parameters_from_toml_or_world_json(tmp_path):
+    from disco_cli.errors import DiscoError
+
+    (tmp_path / "town.toml").write_text("[town]\nblocks_x = 2\nblocks_y = 3\n"
+                                        "road_width_m = [9, 10]\ntraffic_per_km = 0\n")
+    params = TownParams.load(tmp_path / "town.toml")
+    assert (params.blocks_x, params.blocks_y, params.road_width_m) == (2, 3, (9.0, 10.0))
+    assert params.traffic_per_km == 0.0 and params.max_slope == TownParams().max_slope
+    town = Town(1, params)
+    assert len(town.nodes) == 3 * 4
+    widths = [2 * s.half_width for s in town.streets]
+    assert 9.0 <= min(widths) and max(widths) <= 10.0
+    assert not (town.session_world(0).movers[:, 9] == 0).any()  # no traffic
+    # A world.json carries the parameters it was made with; the CLI takes either file.
+    runner = CliRunner()
+    res = runner.invoke(app, ["simulate", str(tmp_path / "a"), "--frames", "2", "--sessions", "1",
+                              "--sensor", "vlp16", "--town", str(tmp_path / "town.toml")])
+    assert res.exit_code == 0, res.output
+    assert TownParams.load(tmp_path / "a" / "world.json") == params
+    meta = json.loads((tmp_path / "a" / "world.json").read_text())
+    assert "--town OUT/world.json" in meta["command"]
+    res = runner.invoke(app, ["simulate", str(tmp_path / "b"), "--frames", "2", "--sessions", "1",
+                              "--sensor", "vlp16", "--town", str(tmp_path / "a" / "world.json")])
+    assert res.exit_code == 0, res.output
+    for f in ("00/poses.txt", "00/velodyne/000001.bin", "world.json"):
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes()
+    # Unknown keys, wrong types and impossible values: one clear error naming the file.
+    for text, what in (("foo = 1\n", "unknown town parameters: foo"),
+                       ("blocks_x = 'a'\n", "blocks_x"), ("blocks_x = 1.5\n", "blocks_x"),
+                       ("block_min_m = 90\nblock_max_m = 60\n", "block_min_m"),
+                       ("road_width_m = [10]\n", "road_width_m"), ("blocks_x = [\n", "TOML")):
+        (tmp_path / "bad.toml").write_text(text)
+        with pytest.raises(DiscoError, match=what) as info:
+            TownParams.load(tmp_path / "bad.toml")
+        assert "bad.toml" in str(info.value)
+    res = runner.invoke(app, ["simulate", str(tmp_path / "c"), "--frames", "2",
+                              "--town", str(tmp_path / "bad.toml")])
+    assert res.exit_code == 1 and "bad.toml" in res.output and "Traceback" not in res.output
+
+
+def test_documented_town_defaults_are_the_defaults():
+    import tomllib
+    from pathlib import Path
+
+    text = (Path(__file__).parent.parent / "docs" / "simulator.md").read_text()
+    block = text[text.index("```toml") + len("```toml"):]
+    block = block[:block.index("```")]
+    assert TownParams.from_dict(tomllib.loads(block)["town"]) == TownParams()

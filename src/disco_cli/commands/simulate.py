@@ -41,6 +41,10 @@ def simulate(
     seed: Annotated[int, typer.Option("--seed", min=0, help="World and noise seed.")] = 0,
     azimuth_step: Annotated[Optional[float], typer.Option(
         "--azimuth-step", help="Azimuth step in degrees (default: the sensor's own).")] = None,
+    town: Annotated[Optional[Path], typer.Option(
+        "--town", exists=True, dir_okay=False,
+        help="Town parameters: a TOML file (see docs/simulator.md) or an earlier world.json.")
+    ] = None,
     motion_distortion: Annotated[bool, typer.Option(
         "--motion-distortion", help="Raw scans: each ray from where the sensor was when it "
         "fired (default: deskewed, every ray from the scan's pose).")] = False,
@@ -50,12 +54,14 @@ def simulate(
                      ] = False,
 ) -> None:
     """Simulate a LiDAR driving through a procedural town, in several sessions."""
+    from disco_cli.simulator import TownParams
     from disco_cli.simulator import simulate as run
 
     if frames is not None and length_m is not None:
         raise fail("give --frames or --length-m, not both")
     if out.exists() and (out / "world.json").exists() and not force:
         raise fail(f"{out}: already holds a simulated world; use --force to overwrite it")
+    params = TownParams.load(town) if town is not None else None
     total = sessions * (frames if frames is not None else int((length_m or 400.0) / step_m))
     with progress() as bar:
         task = bar.add_task("simulating", total=total, rate="")
@@ -66,7 +72,7 @@ def simulate(
         meta = run(out, sessions=sessions, frames=frames, length_m=length_m, step_m=step_m,
                    sensor=sensor.value, seed=seed, threads=threads,
                    azimuth_step_deg=azimuth_step, motion_distortion=motion_distortion,
-                   on_scan=report)
+                   params=params, on_scan=report)
     n = meta["sessions"][0]["frames"]
     stderr.print(f"wrote {sessions} session(s) of {n} {sensor.value} scans to {out} "
                  f"(town of {meta['town']['streets']} streets, seed {seed})")

@@ -219,6 +219,8 @@ def simulate(
         frames = int((length_m if length_m is not None else 400.0) / step_m)
     if frames < 1:
         raise DiscoError("a session needs at least one frame")
+    if params is not None:
+        params.check()
     spec = get_sensor(sensor)
     if azimuth_step_deg is not None:
         if not 0.01 <= azimuth_step_deg <= 5.0:
@@ -270,7 +272,7 @@ def simulate(
     meta = {
         "format": FORMAT,
         "command": _command(sessions, frames, step_m, sensor, seed, azimuth_step_deg,
-                            motion_distortion),
+                            motion_distortion, params is not None and params != TownParams()),
         "seed": int(seed),
         "sessions": [
             {"name": p.name, "frames": frames, "closed_loop": p.closed,
@@ -288,9 +290,11 @@ def simulate(
 
 
 def _command(sessions: int, frames: int, step_m: float, sensor: str, seed: int,
-             azimuth_step_deg: float | None, motion_distortion: bool) -> str:
+             azimuth_step_deg: float | None, motion_distortion: bool, custom_town: bool) -> str:
     cmd = (f"disco simulate OUT --sessions {sessions} --frames {frames} --step-m {step_m:g} "
            f"--sensor {sensor} --seed {seed}")
     if azimuth_step_deg is not None:
         cmd += f" --azimuth-step {azimuth_step_deg:g}"
+    if custom_town:  # the town's parameters are in this very file
+        cmd += " --town OUT/world.json"
     return cmd + (" --motion-distortion" if motion_distortion else "")

@@ -18,6 +18,7 @@ ground plane.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import numpy as np
 
@@ -49,12 +50,78 @@ class TownParams:
                 for f in fields(self)}
 
     @classmethod
-    def from_dict(cls, data: dict) -> TownParams:
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
+    def from_dict(cls, data: dict, source: str = "town parameters") -> TownParams:
+        """Parameters from a dict (unknown keys and bad values raise DiscoError)."""
+        known = {f.name: f for f in fields(cls)}
+        unknown = set(data) - set(known)
         if unknown:
-            raise DiscoError(f"unknown town parameters: {', '.join(sorted(unknown))}")
-        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items()})
+            raise DiscoError(f"{source}: unknown town parameters: {', '.join(sorted(unknown))}")
+        default = cls()
+        values = {}
+        for key, value in data.items():
+            want = getattr(default, key)
+            if isinstance(want, tuple):
+                ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+                value = tuple(float(v) for v in value) if ok else value
+            else:
+                ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+                if ok and isinstance(want, int) and float(value) != int(value):
+                    ok = False
+                value = type(want)(value) if ok else value
+            if not ok:
+                raise DiscoError(f"{source}: {key} = {value!r} is not like {want!r}")
+            values[key] = value
+        params = cls(**values)
+        params.check(source)
+        return params
+
+    def check(self, source: str = "town parameters") -> None:
+        """Raise DiscoError on values that cannot make a town."""
+        problems = []
+        if self.blocks_x < 1 or self.blocks_y < 1 or self.blocks_x * self.blocks_y > 400:
+            problems.append("blocks_x and blocks_y must be >= 1 (at most 400 blocks)")
+        if not 20 <= self.block_min_m <= self.block_max_m <= 1000:
+            problems.append("need 20 <= block_min_m <= block_max_m <= 1000")
+        for key in ("road_width_m", "sidewalk_m", "foliage"):
+            lo, hi = getattr(self, key)
+            if not 0 < lo <= hi:
+                problems.append(f"{key} must be a range 0 < low <= high")
+        if self.road_width_m[1] + 2 * self.sidewalk_m[1] >= self.block_min_m:
+            problems.append("roads and sidewalks must be narrower than the smallest block")
+        if not 0 <= self.link_drop < 1 or not 0 <= self.max_slope <= 0.2:
+            problems.append("need 0 <= link_drop < 1 and 0 <= max_slope <= 0.2")
+        if not 0 <= self.node_jitter_m < self.block_min_m / 4:
+            problems.append("node_jitter_m must be within 0 .. block_min_m / 4")
+        if self.cell_size_m <= 0.5 or self.outskirts_m < 0:
+            problems.append("cell_size_m must be > 0.5 and outskirts_m >= 0")
+        if self.traffic_per_km < 0 or self.pedestrians_per_km < 0:
+            problems.append("traffic_per_km and pedestrians_per_km must be >= 0")
+        if problems:
+            raise DiscoError(f"{source}: " + "; ".join(problems))
+
+    @classmethod
+    def load(cls, path: str | Path) -> TownParams:
+        """From a TOML file (keys at the top or under [town]) or a world.json."""
+        import json
+        import tomllib
+
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            raise DiscoError(f"{path}: cannot read ({exc.strerror})") from None
+        try:
+            if path.suffix == ".json":
+                data = json.loads(text)["town"]["params"]
+            else:
+                data = tomllib.loads(text)
+                data = data.get("town", data)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DiscoError(f"{path}: not a town TOML or world.json ({exc})") from None
+        if not isinstance(data, dict):
+            raise DiscoError(f"{path}: not a town TOML or world.json")
+        return cls.from_dict(data, str(path))
 
 
 @dataclass
@@ -112,7 +179,7 @@ class SessionWorld:
             return self
         from disco_cli import _core
 
-        rows, refl, drop = self.town._mover_rows(self.movers, t, xy, keep_clear_m)
+        rows, refl, drop = self.town.mover_rows(self.movers, t, xy, keep_clear_m)
         table = np.concatenate([self.table, rows])
         caster = _core.RaycastWorld(table, *self.town.ground, self.town.params.cell_size_m)
         return SessionWorld(caster, np.concatenate([self.reflectivity, refl]),
@@ -485,7 +552,7 @@ class Town:
                                  span])
         return np.array(rows, np.float64).reshape(-1, 12)
 
-    def _mover_rows(self, movers: np.ndarray, t: float, xy: np.ndarray | None,
+    def mover_rows(self, movers: np.ndarray, t: float, xy: np.ndarray | None,
                     keep_clear_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Primitive rows of the movers at time `t` (cars: body and cabin; people: a
         cylinder); none within `keep_clear_m` of `xy`."""
