@@ -104,7 +104,7 @@ def query(
     workers: Annotated[
         int, typer.Option("--workers", min=1, max=64, help="Threads reading and voxelizing scans.",
                           rich_help_panel=PANEL_RUN)
-    ] = 2,
+    ] = 1,
     device: Annotated[
         str, typer.Option("--device", help="cpu or cuda (for the network).",
                           rich_help_panel=PANEL_RUN)
