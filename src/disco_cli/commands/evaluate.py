@@ -237,8 +237,10 @@ def evaluate(
     # Ground-truth yaw of T_match^-1 T_query for planar poses: the heading difference.
     yaw_true = wrap_deg(np.degrees(qyaw - db_poses[top1, 3]))
     ev = retrieval_evaluation(retrieved, distances, truth, yaw_est, yaw_true)
-    recalls = ev.metrics["recall@N"]
-    ev.metrics["recall@N"] = recalls[:topk]
+    # The search went deep enough for recall@1%; report recall@N up to the N asked for.
+    ev.metrics["recall@N"] = ev.metrics["recall@N"][:topk]
+    ev.metrics["topk"] = topk
+    ev.recall_curve = ev.recall_curve[:topk]
     run = {
         "protocol": "multi-session",
         "model": model.name,
