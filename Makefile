@@ -9,6 +9,7 @@ PIP_INSTALL := $(PIP) install --quiet --disable-pip-version-check -c constraints
 DISCO := $(VENV)/bin/disco
 SAMPLES := data/samples
 OUT := out/demo
+MODEL ?= spectral
 
 .PHONY: demo test install install-test dev bench clean
 
@@ -27,10 +28,19 @@ dev: $(PY)
 	flock /tmp/disco-build.lock $(PIP_INSTALL) --no-build-isolation \
 	  -Cbuild-dir=build/dev -e '.[test]'
 
+# The main job on the bundled sample: map session 00, localize session 01's
+# scans in it (reverse-direction revisits), and find loop closures along 00.
 demo: install
-	@mkdir -p $(OUT)
+	@rm -rf $(OUT) && mkdir -p $(OUT)
 	$(DISCO) --version
-	$(DISCO) bev $(SAMPLES)/session_a/velodyne/000000.bin -o $(OUT)/bev.png
+	$(DISCO) build-db $(SAMPLES)/00 -o $(OUT)/map.db --model $(MODEL)
+	$(DISCO) info $(OUT)/map.db
+	$(DISCO) query $(SAMPLES)/01/velodyne/000005.bin $(SAMPLES)/01/velodyne/000018.bin \
+	  --db $(OUT)/map.db --topk 3 --pose
+	$(DISCO) loops $(SAMPLES)/00 --model $(MODEL) --exclude-frames 5 --threshold 0.6 \
+	  --verify -o $(OUT)/loops.g2o
+	$(DISCO) bev $(SAMPLES)/00/velodyne/000000.bin -o $(OUT)/bev.png
+	@echo "demo outputs in $(OUT)/"
 
 test: install-test
 	$(PY) -m pytest -q
