@@ -3,7 +3,7 @@
 // A scan's points fall into cells indexed by (height, ring, sector):
 //   r      = sqrt(x^2 + y^2), kept when min_range <= r < max_range
 //   ring   = floor(r / (max_range / rings))
-//   theta  = atan2(y, x), plus 2*pi when negative, so theta is in [0, 2*pi)
+//   theta  = atan2(y, x), plus 2*pi when negative, so theta is in [0, 2*pi]
 //   sector = floor(theta / (2*pi / sectors))   (sector 0 starts at +x, counter-clockwise)
 //   height = floor((z - z_min) / ((z_max - z_min) / heights)), kept when z_min <= z < z_max
 // all in double precision; each index is clamped into range after the floor, so
