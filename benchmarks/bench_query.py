@@ -198,8 +198,10 @@ def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
         code = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, "
                 "stdout=subprocess.DEVNULL); "
                 "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+        t = time.perf_counter()
         res = subprocess.run([sys.executable, "-c", code, str(exe), "query", str(scan), "--db",
                               str(db)], capture_output=True, text=True, check=True)
+        out[f"wall{rows}"] = time.perf_counter() - t
         out[rows] = int(res.stdout.split()[-1]) / 1024
         out[f"size{rows}"] = db.stat().st_size / 2**20
         sig_dim = 1024
@@ -310,7 +312,8 @@ def main() -> None:
                   f"({m[f'size{args.memory}']:.0f} MiB on disk); the difference "
                   f"{m[args.memory] - m[100]:.0f} MiB = "
                   f"{(m[args.memory] - m[100]) / m['sig_mib']:.2f}x the {m['sig_mib']:.0f} MiB "
-                  "of signatures")
+                  f"of signatures; that process ran {m[f'wall{args.memory}']:.1f} s (vs "
+                  f"{m['wall100']:.1f} s against 100 scans)")
 
 
 if __name__ == "__main__":
