@@ -581,3 +581,17 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     assert all(t["accepted"] == "true" for t in table)
     code, _, err = run(*args, "-o", str(tmp_path / "loops.txt"))
     assert code == 1 and "loops.txt" in err
+
+
+def test_bad_device_is_one_line(seq: Path, tmp_path: Path) -> None:
+    import torch
+
+    out = tmp_path / "m.db"
+    code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "spectral",
+                       "--device", "tpu")
+    assert code == 1 and "'tpu'" in err and "Traceback" not in err
+    if not torch.cuda.is_available():
+        code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "spectral",
+                           "--device", "cuda")
+        assert code == 1 and "no CUDA device" in err
+    assert not out.exists()

@@ -216,3 +216,14 @@ def pose_rows(T: np.ndarray) -> np.ndarray:
 
     x, y, yaw = xy_yaw(np.asarray(T))
     return np.stack([x, y, np.asarray(T)[:, 2, 3], yaw], axis=1)
+
+
+def check_device(device: str) -> None:
+    """`DiscoError` unless `device` is cpu, or cuda with a CUDA device that torch sees."""
+    if device not in ("cpu", "cuda"):
+        raise DiscoError(f"--device must be cpu or cuda, not {device!r}")
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise DiscoError("--device cuda: torch sees no CUDA device here; use --device cpu")

@@ -149,10 +149,9 @@ def build_db(
     from disco_cli.database import Database, ModelInfo, ScanBatch
     from disco_cli.errors import DatabaseError
     from disco_cli.model import MODELS, load_model
-    from disco_cli.pipeline import embed_stream, load_stream
+    from disco_cli.pipeline import check_device, embed_stream, load_stream
 
-    if device not in ("cpu", "cuda"):
-        raise fail(f"--device must be cpu or cuda, not {device!r}")
+    check_device(device)
     fmt = scan_format.value if scan_format is not None else None
     scans = collect_scans(inputs, poses, times, calib, fmt)
     if not scans.paths:

@@ -148,15 +148,14 @@ def loops(
     from disco_cli.console import RowWriter
     from disco_cli.database import Database, ModelInfo
     from disco_cli.model import load_model
-    from disco_cli.pipeline import embed_stream, frame_rows, load_stream
+    from disco_cli.pipeline import check_device, embed_stream, frame_rows, load_stream
     from disco_cli.poses import read_times
     from disco_cli.readers import list_scans
     from disco_cli.search import SignatureIndex, match_queries
 
     if exclude_frames is not None and exclude_seconds is not None:
         raise fail("give --exclude-frames or --exclude-seconds, not both")
-    if device not in ("cpu", "cuda"):
-        raise fail(f"--device must be cpu or cuda, not {device!r}")
+    check_device(device)
     if output is not None:
         from disco_cli.loop_export import FORMATS
 

@@ -113,13 +113,12 @@ def query(
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
     from disco_cli.errors import DiscoError, PoseFileError
-    from disco_cli.pipeline import embed_stream, load_stream, pose_rows, stdin_paths
+    from disco_cli.pipeline import check_device, embed_stream, load_stream, pose_rows, stdin_paths
     from disco_cli.search import SignatureIndex, match_queries
 
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --query-poses")
-    if device not in ("cpu", "cuda"):
-        raise fail(f"--device must be cpu or cuda, not {device!r}")
+    check_device(device)
     db, net = open_for_model(db_path, model, device)
     ids, sigs = db.signatures()
     index = SignatureIndex(sigs)
