@@ -8,7 +8,12 @@ Times, in one process, with medians over repeats:
   * yaw for 10 candidates by phase correlation, against the exhaustive search it replaces
     (every one of the 120 circular shifts scored by a dot product, in NumPy).
 The scan is KITTI frame 0 from ../shared/realdata when present, else a sample scan.
-Run: `.venv/bin/python benchmarks/bench_model.py [--widths 8 16 64] [--threads N]`.
+
+`--accuracy` instead measures yaw on the real scans of ../shared/realdata for `spectral`
+and the shipped model: each KITTI scan against copies of itself rotated by random yaws over
+the whole circle, and KITTI frame i against frame i + 1 (the query rotated by a random yaw,
+truth from the poses), plus the hdl32 pair against rotated copies of itself.
+Run: `.venv/bin/python benchmarks/bench_model.py [--widths 8 16 64] [--threads N] [--accuracy]`.
 """
 
 from __future__ import annotations
@@ -55,15 +60,70 @@ def exhaustive_yaw(query: np.ndarray, matches: np.ndarray) -> np.ndarray:
     return -best * 360.0 / s
 
 
+def rotate(points: np.ndarray, deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    c, s = np.cos(a), np.sin(a)
+    out = points.copy()
+    out[:, 0] = c * points[:, 0] - s * points[:, 1]
+    out[:, 1] = s * points[:, 0] + c * points[:, 1]
+    return out
+
+
+def yaw_accuracy(spins: int = 8) -> None:
+    from disco_cli.poses import read_kitti_poses, relative_yaw_deg, wrap_deg
+
+    real = REPO.parent / "shared" / "realdata"
+    seq = real / "kitti00"
+    if not seq.is_dir():
+        print("no ../shared/realdata: nothing to measure")
+        return
+    poses = read_kitti_poses(seq / "poses.txt", seq / "calib.txt")
+    frames = sorted(list_scans(seq / "velodyne"))
+    names = ["spectral"] + (["default"] if DEFAULT_WEIGHTS.is_file() else [])
+    print("\n| model | KITTI scan vs rotated self: mean / max error (deg) | KITTI i vs i+1: mean / max "
+          "| hdl32 scan vs rotated self: mean / max |")
+    print("| --- | ---: | ---: | ---: |")
+    for name in names:
+        model = load_model(name)
+        rng = np.random.default_rng(0)
+        self_err, next_err, hdl_err = [], [], []
+        for path in frames:
+            pts = read_scan(path)
+            angles = rng.uniform(-180.0, 180.0, spins)
+            bevs = polar_bev_batch([pts] + [rotate(pts, a) for a in angles], model.bev_config)
+            _, f = model.embed(bevs)
+            est = np.array([model.yaw(q, f[:1])[0] for q in f[1:]])
+            self_err += list(np.abs(wrap_deg(est + angles)))
+        for i in range(10):
+            spin = float(rng.uniform(-180.0, 180.0))
+            m_pts = read_scan(seq / "velodyne" / f"{i:06d}.bin")
+            q_pts = rotate(read_scan(seq / "velodyne" / f"{i + 1:06d}.bin"), spin)
+            _, f = model.embed(polar_bev_batch([q_pts, m_pts], model.bev_config))
+            truth = wrap_deg(relative_yaw_deg(poses[i], poses[i + 1]) - spin)
+            next_err.append(abs(wrap_deg(model.yaw(f[0], f[1:])[0] - truth)))
+        for path in sorted((real / "hdl32_pair").glob("*.bin")):
+            pts = read_scan(path)
+            angles = rng.uniform(-180.0, 180.0, spins)
+            _, f = model.embed(polar_bev_batch([pts] + [rotate(pts, a) for a in angles], model.bev_config))
+            est = np.array([model.yaw(q, f[:1])[0] for q in f[1:]])
+            hdl_err += list(np.abs(wrap_deg(est + angles)))
+        cells = [f"{np.mean(e):.2f} / {np.max(e):.2f}" if e else "-" for e in (self_err, next_err, hdl_err)]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--widths", type=int, nargs="*", default=[8, 16, 64])
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    ap.add_argument("--accuracy", action="store_true", help="yaw accuracy on the real scans instead")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.accuracy:
+        yaw_accuracy()
+        return
     scan_path = KITTI if KITTI.is_file() else list_scans(SAMPLES)[0]
     points = read_scan(scan_path)
     config = BEVConfig()

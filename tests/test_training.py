@@ -174,7 +174,45 @@ def test_short_training_lowers_loss_and_beats_the_untrained_network(world, tmp_p
     assert history[-1]["loss"] < history[0]["loss"]
     trained = load_model(str(out))
     after = retrieval_metrics(trained, data, 3.0, max_queries=40, seed=0)
-    assert after["recall_at_1"] > before["recall_at_1"], (before, after)
+    assert after["recall_at_1"] >= before["recall_at_1"] + 0.2, (before, after)
     # Resuming a finished run trains no further epochs and keeps the history.
     again = train(data, BEVConfig(), opts, out, command="test", resume=True, log=lambda s: None)
     assert again == history
+
+
+# -- the command ---------------------------------------------------------------------
+
+
+def test_train_command_writes_a_loadable_checkpoint_and_resumes(world, tmp_path, one_thread):
+    from typer.testing import CliRunner
+
+    from disco_cli.cli import app
+    from disco_cli.model import load_model
+
+    out = tmp_path / "cli.pt"
+    args = ["train", str(world), "-o", str(out), "--epochs", "1", "--steps", "2", "--batch", "2",
+            "--negatives", "2", "--width", "2", "--seed", "3"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    ckpt = torch.load(out, weights_only=True)
+    assert ckpt["command"].startswith("disco ") and len(ckpt["metrics"]["history"]) == 1
+    assert load_model(str(out)).model_config["width"] == 2
+    # An existing output is not overwritten by accident: one error line, exit 1.
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 1 and "--resume" in again.output and "Traceback" not in again.output
+    more = CliRunner().invoke(app, args[:5] + ["2"] + args[6:] + ["--resume"])
+    assert more.exit_code == 0, more.output
+    assert len(torch.load(out, weights_only=True)["metrics"]["history"]) == 2
+
+
+def test_train_command_reports_missing_poses_in_one_line(tmp_path):
+    from typer.testing import CliRunner
+
+    from disco_cli.cli import app
+
+    seq = tmp_path / "seq"
+    (seq / "velodyne").mkdir(parents=True)
+    _scan(_world(4), 0.0, 0.0, 0.0, np.random.default_rng(0)).tofile(seq / "velodyne" / "000000.bin")
+    result = CliRunner().invoke(app, ["train", str(seq), "-o", str(tmp_path / "m.pt")])
+    assert result.exit_code == 1
+    assert "poses.txt" in result.output and "Traceback" not in result.output

@@ -88,10 +88,12 @@ def train(
         task = bar.add_task("training", total=None, rate="")
 
         def on_step(epoch: int, step: int, total: int, losses: dict[str, float]) -> None:
-            bar.update(
-                task, completed=step, total=total, description=f"epoch {epoch + 1}/{epochs}",
-                rate=" ".join(f"{k} {v:.3f}" for k, v in losses.items()),
-            )
+            text = " ".join(f"{k} {v:.3f}" for k, v in losses.items())
+            bar.update(task, completed=step, total=total, description=f"epoch {epoch + 1}/{epochs}",
+                       rate=text)
+            if not stderr.is_terminal and (step % 25 == 0 or step == total):
+                # No bar in a log file: a line now and then shows that training moves.
+                stderr.print(f"epoch {epoch + 1}/{epochs} step {step}/{total} {text}", soft_wrap=True)
 
         run_training(
             data_set, bev_config, opts, output, command=command, resume=resume, val=val_set,

@@ -107,6 +107,12 @@ def train(
             optim.load_state_dict(state["optimizer"])
         start_epoch = int(state.get("epoch", -1)) + 1
         history = list(ckpt.get("metrics", {}).get("history", []))
+        # Keep the whole provenance: every command that trained these weights, in order.
+        previous = str(ckpt.get("command", ""))
+        if previous and command and previous.split(" ; ")[-1] != command:
+            command = f"{previous} ; {command}"
+        elif previous:
+            command = previous
         log(f"resuming {out_path} after epoch {start_epoch}")
 
     miner = PairMiner(data, opts.d_pos, opts.d_neg, opts.self_supervised, opts.time_gap)
