@@ -7,9 +7,9 @@
 
 #include "disco/version.hpp"
 #include "disco/polar_bev.hpp"  // polar BEV voxelizer
+#include "disco/raycast.hpp"  // simulator ray casting
 #include "disco/icp.hpp"  // relative pose
 #include "disco/int8_search.hpp"  // signature search
-#include "disco/raycast.hpp"  // simulator ray casting
 #include <pybind11/eigen.h>  // relative pose: 4 x 4 transforms
 
 namespace py = pybind11;
@@ -365,6 +365,26 @@ PYBIND11_MODULE(_core, m) {
                 return py::array_t<std::int32_t>(static_cast<py::ssize_t>(out.size()), out.data());
             },
             py::arg("codes"), py::arg("g"), py::arg("threads") = 1, "g . c for every row (int32)");
+        m.def(
+            "int8_encode",
+            [](const py::array_t<float, py::array::c_style>& x, const F64& mean, const F64& scale,
+               int threads) {
+                if (x.ndim() != 2) throw py::value_error("x must be [n, d] float32");
+                const auto n = x.shape(0), d = x.shape(1);
+                if (mean.size() != d || scale.size() != d)
+                    throw py::value_error("mean and scale must have d entries");
+                I8 codes({n, d});
+                F64 code_sq(n), code_norm(n), err(n);
+                {
+                    py::gil_scoped_release release;
+                    disco::int8_encode(x.data(), n, d, mean.data(), scale.data(),
+                                       codes.mutable_data(), code_sq.mutable_data(),
+                                       code_norm.mutable_data(), err.mutable_data(), threads);
+                }
+                return py::make_tuple(codes, code_sq, code_norm, err);
+            },
+            py::arg("x"), py::arg("mean"), py::arg("scale"), py::arg("threads") = 1,
+            "int8 codes of float32 rows, with |scale c|^2, |c| and the error per row");
         m.def("int8_query_limit", &disco::int8_query_limit, py::arg("d"),
               "Largest |g_j| for which g . c cannot overflow int32");
     }

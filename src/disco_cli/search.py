@@ -53,14 +53,16 @@ class SignatureIndex:
             raise ValueError(f"signatures must be [N, D], got {sig.shape}")
         # No copy when the caller hands over a C-contiguous float32 matrix.
         self.matrix = np.ascontiguousarray(sig, dtype=np.float32)
-        if not np.isfinite(self.matrix).all():
+        # A NaN or an infinity anywhere in a row makes its float64 squared norm non-finite.
+        sq64 = np.einsum("ij,ij->i", self.matrix, self.matrix, dtype=np.float64)
+        if not np.isfinite(sq64).all():
             raise ValueError("signatures must be finite")
-        self.sq_norms = np.einsum("ij,ij->i", self.matrix, self.matrix, dtype=np.float32)
+        self.sq_norms = sq64.astype(np.float32)
         self._max_norm = float(np.sqrt(self.sq_norms.max())) if len(self.matrix) else 0.0
         self.threads = threads if threads > 0 else min(4, os.cpu_count() or 1)
         self._codes: _Int8Codes | None = None
         if len(self.matrix) >= max(int8_min_rows, 1) and _Int8Codes.available():
-            self._codes = _Int8Codes(self.matrix)
+            self._codes = _Int8Codes(self.matrix, sq64)
 
     def __len__(self) -> int:
         return len(self.matrix)
@@ -177,37 +179,20 @@ class _Int8Codes:
             return False
         return hasattr(_core, "int8_candidates")
 
-    def __init__(self, matrix: np.ndarray, chunk: int = 2048):
+    def __init__(self, matrix: np.ndarray, sq_norms: np.ndarray):
         from disco_cli import _core
 
         self._core = _core
         n, d = matrix.shape
         self.mean = matrix.mean(axis=0, dtype=np.float64)
-        mean32 = self.mean.astype(np.float32)
-        spread = np.zeros(d, dtype=np.float32)
-        for a in range(0, n, chunk):
-            np.maximum(spread, np.abs(matrix[a:a + chunk] - mean32).max(axis=0), out=spread)
+        spread = np.maximum(matrix.max(axis=0) - self.mean, self.mean - matrix.min(axis=0))
         # A constant dimension gets scale 1 and codes 0: its error is exactly 0.
-        self.scale = np.where(spread > 0, spread.astype(np.float64) / 127.0, 1.0)
-        self.codes = np.empty((n, d), dtype=np.int8)
-        self.code_sq = np.empty(n)
-        self.code_norm = np.empty(n)
-        self.err = np.empty(n)
-        for a in range(0, n, chunk):
-            sl = slice(a, min(n, a + chunk))
-            xc = matrix[sl].astype(np.float64)
-            xnorm = np.sqrt(np.einsum("ij,ij->i", xc, xc))
-            xc -= self.mean
-            c = xc / self.scale
-            np.rint(c, out=c)
-            np.clip(c, -127, 127, out=c)
-            self.codes[sl] = c
-            self.code_norm[sl] = np.sqrt(np.einsum("ij,ij->i", c, c))
-            c *= self.scale
-            self.code_sq[sl] = np.einsum("ij,ij->i", c, c)
-            xc -= c  # x - x_hat
-            # Rounded up: the bound must never be below the true error.
-            self.err[sl] = np.sqrt(np.einsum("ij,ij->i", xc, xc)) * (1 + 1e-9) + 1e-12 * (xnorm + 1)
+        self.scale = np.where(spread > 0, spread / 127.0, 1.0)
+        # One pass in the compiled core (double precision), rounded up: the error bound
+        # must never be below the true error.
+        self.codes, self.code_sq, self.code_norm, err = _core.int8_encode(
+            matrix, self.mean, self.scale, min(4, os.cpu_count() or 1))
+        self.err = err * (1 + 1e-9) + 1e-12 * (np.sqrt(sq_norms) + 1.0)
         self.g_max = int(_core.int8_query_limit(d))
 
     def candidates(

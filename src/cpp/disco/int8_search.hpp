@@ -37,6 +37,13 @@ std::vector<std::int64_t> int8_candidates(const Int8Rows& rows, const Int8Query&
                                           std::int64_t limit, const std::uint8_t* exclude,
                                           int threads);
 
+// Codes of float32 rows x [n, d]: c = clamp(rint((x - mean) / scale), -127, 127), with
+// |scale * c|^2, |c| and |x - mean - scale * c| per row (all in double precision).
+// Outputs are preallocated by the caller: codes [n, d], code_sq, code_norm, err [n].
+void int8_encode(const float* x, std::int64_t n, std::int64_t d, const double* mean,
+                 const double* scale, std::int8_t* codes, double* code_sq, double* code_norm,
+                 double* err, int threads);
+
 // g . c for every row (for tests of the kernel itself).
 std::vector<std::int32_t> int8_dots(const Int8Rows& rows, const std::int16_t* g, int threads);
 
