@@ -595,3 +595,30 @@ def test_bad_device_is_one_line(seq: Path, tmp_path: Path) -> None:
                            "--device", "cuda")
         assert code == 1 and "no CUDA device" in err
     assert not out.exists()
+
+
+def test_real_kitti_folder_with_a_few_frames(realdata: Path, tmp_path: Path) -> None:
+    """KITTI 00 with 12 of its 4541 frames: poses, calibration and times come from the
+    folder by frame number; a turned copy of frame 15 finds frame 15 with its yaw."""
+    from disco_cli.poses import read_kitti_poses, read_times
+
+    seq = realdata / "kitti00"
+    out = tmp_path / "kitti.db"
+    code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "spectral")
+    assert code == 0, err
+    frames = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 15]
+    T = read_kitti_poses(seq / "poses.txt", seq / "calib.txt")[frames]
+    with Database.open(out) as db:
+        assert db.paths() == [str(seq / "velodyne" / f"{i:06d}.bin") for i in frames]
+        poses, times = db.poses()
+    np.testing.assert_allclose(poses[:, :3], T[:, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(poses[:, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0]), atol=1e-9)
+    np.testing.assert_allclose(times, read_times(seq / "times.txt")[frames])
+    from disco_cli.readers import read_scan
+
+    turn(read_scan(seq / "velodyne" / "000015.bin"), 90.0).tofile(tmp_path / "q.bin")
+    code, out_text, err = run("query", str(tmp_path / "q.bin"), "--db", str(out), "--topk", "1",
+                              "--format", "jsonl")
+    assert code == 0, err
+    row = jsonl(out_text)[0]
+    assert row["match"].endswith("000015.bin") and abs(row["yaw_deg"] - (-90.0)) <= 3.0
