@@ -40,7 +40,15 @@ from disco_cli.errors import DiscoError
 
 MODES = ("occupancy", "density", "max_height")
 
-__all__ = ["MODES", "BEVConfig", "BEVConfigError", "BEVInputError", "polar_bev", "polar_bev_batch"]
+__all__ = [
+    "MODES",
+    "BEVConfig",
+    "BEVConfigError",
+    "BEVInputError",
+    "BEVInputTypeError",
+    "polar_bev",
+    "polar_bev_batch",
+]
 
 
 class BEVConfigError(DiscoError, ValueError):
