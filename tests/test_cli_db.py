@@ -552,6 +552,8 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     assert code == 0, err
     rows = jsonl(out)
     assert rows, "no verified loops in data/samples/00"
+    assert set(rows[0]) == {"query_index", "query", "match_index", "match", "distance",
+                            "yaw_deg"}
     edges = [ln.split() for ln in (tmp_path / "loops.g2o").read_text().splitlines()]
     assert len(edges) == len(rows)
     for e, r in zip(edges, rows):
@@ -581,6 +583,14 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     assert all(t["accepted"] == "true" for t in table)
     code, _, err = run(*args, "-o", str(tmp_path / "loops.txt"))
     assert code == 1 and "loops.txt" in err
+    # --verbose without --verify: every pair with its pose; the accepted ones are the above.
+    verbose = [a for a in args if a != "--verify"] + ["--verbose"]
+    code, out, _ = run(*verbose)
+    every = jsonl(out)
+    assert {"dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"} <= set(every[0])
+    assert [(r["query_index"], r["match_index"]) for r in every if r["accepted"]] == [
+        (r["query_index"], r["match_index"]) for r in rows]
+    assert all(r["reason"] for r in every if not r["accepted"])
 
 
 def test_bad_device_is_one_line(seq: Path, tmp_path: Path) -> None:

@@ -260,8 +260,9 @@ def loops(
                                                 m.yaw_deg)
                     if verify and not rp.accepted:
                         continue
-                    row.update(dx=rp.dx, dy=rp.dy, dz=rp.dz, fitness=rp.fitness, rmse=rp.rmse,
-                               accepted=rp.accepted, reason=rp.reason)
+                    if verbose:
+                        row.update(dx=rp.dx, dy=rp.dy, dz=rp.dz, fitness=rp.fitness,
+                                   rmse=rp.rmse, accepted=rp.accepted, reason=rp.reason)
                     t = all_times if all_times is not None else None
                     found_loops.append(Loop(
                         int(i), m.match_id, paths[i], m.path, m.distance, m.yaw_deg, rp,
