@@ -121,3 +121,19 @@ def test_int8_bounds_hold_for_every_row() -> None:
     g = rng.integers(-16000, 16000, 256).astype(np.int16)
     np.testing.assert_array_equal(_core.int8_dots(index._codes.codes, g, 2),
                                   index._codes.codes.astype(np.int64) @ g.astype(np.int64))
+
+
+def test_degenerate_signatures_fall_back_and_stay_exact() -> None:
+    # Rows that differ far below the int8 step: the bounds cannot prune.
+    rng = np.random.default_rng(4)
+    base = rng.random(64).astype(np.float32)
+    sigs = np.repeat(base[None], 6000, axis=0)
+    sigs[:, 0] += rng.normal(scale=1e-6, size=6000).astype(np.float32)
+    sigs[::7] += 1.0  # a few distinct rows keep the int8 range wide
+    q = base + np.float32(1e-7)
+    index = SignatureIndex(sigs, int8_min_rows=0)
+    assert len(index._codes.candidates(q, 5, len(sigs), None, 1)) > len(sigs) // 8
+    rows, dists = index.search(q, 5)
+    want_rows, want_d = _truth(sigs, q, 5)
+    np.testing.assert_array_equal(rows, want_rows)
+    np.testing.assert_allclose(dists, want_d, rtol=1e-9)

@@ -124,8 +124,15 @@ class SignatureIndex:
         return (rows[0], dists[0]) if single else (rows, dists)
 
     def _exact(self, q: np.ndarray, cand: np.ndarray) -> np.ndarray:
-        diff = self.matrix[cand].astype(np.float64) - q.astype(np.float64)
-        return np.einsum("ij,ij->i", diff, diff)
+        """Squared distances in float64, a block of rows at a time (bounded memory even
+        when degenerate signatures make most rows candidates)."""
+        out = np.empty(len(cand))
+        q64 = q.astype(np.float64)
+        step = max(1, _BLOCK_ELEMS // 8 // max(self.dim, 1))
+        for a in range(0, len(cand), step):
+            diff = self.matrix[cand[a:a + step]].astype(np.float64) - q64
+            out[a:a + step] = np.einsum("ij,ij->i", diff, diff)
+        return out
 
     def _topk_int8(
         self, q: np.ndarray, lim: int, k: int, exclude: np.ndarray | None
@@ -134,6 +141,10 @@ class SignatureIndex:
         cand = self._codes.candidates(q, k, lim, exclude, self.threads)
         if len(cand) == 0:
             return np.empty(0, np.int64), np.empty(0)
+        if len(cand) > max(4096, lim // 8):
+            # Signatures closer together than their int8 error: the bounds prune little,
+            # and the float32 product is then cheaper than re-measuring so many rows.
+            return self._topk(q, self.matrix[:lim] @ q, lim, k, exclude)
         exact = self._exact(q, cand)
         order = np.lexsort((cand, exact))[:k]
         return cand[order], np.sqrt(exact[order])
