@@ -227,13 +227,15 @@ inline __m128i codes4(__m128 x, __m128 y, __m128 z, const SimdBinning& s) {
     const __m128 ay = _mm_and_ps(y, abs_mask);
     const __m128 t = _mm_div_ps(_mm_min_ps(ax, ay), _mm_max_ps(ax, ay));
     const __m128 u = _mm_mul_ps(t, t);
-    __m128 p = _mm_add_ps(_mm_mul_ps(_mm_set1_ps(kA6), u), _mm_set1_ps(kA5));
-    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA4));
-    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA3));
-    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA2));
-    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA1));
-    p = _mm_add_ps(_mm_mul_ps(p, u), _mm_set1_ps(kA0));
-    p = _mm_mul_ps(p, t);
+    // Estrin's scheme (shorter dependency chain than Horner's).
+    const __m128 u2 = _mm_mul_ps(u, u);
+    const __m128 u4 = _mm_mul_ps(u2, u2);
+    const __m128 q01 = _mm_add_ps(_mm_mul_ps(_mm_set1_ps(kA1), u), _mm_set1_ps(kA0));
+    const __m128 q23 = _mm_add_ps(_mm_mul_ps(_mm_set1_ps(kA3), u), _mm_set1_ps(kA2));
+    const __m128 q45 = _mm_add_ps(_mm_mul_ps(_mm_set1_ps(kA5), u), _mm_set1_ps(kA4));
+    const __m128 q456 = _mm_add_ps(_mm_mul_ps(_mm_set1_ps(kA6), u2), q45);
+    const __m128 q0123 = _mm_add_ps(_mm_mul_ps(q23, u2), q01);
+    const __m128 p = _mm_mul_ps(_mm_add_ps(_mm_mul_ps(q456, u4), q0123), t);
     __m128 theta =
         select4(_mm_cmpgt_ps(ay, ax), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kPi / 2.0)), p), p);
     theta = select4(_mm_cmplt_ps(x, zero), _mm_sub_ps(_mm_set1_ps(static_cast<float>(kPi)), theta),
