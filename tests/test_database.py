@@ -105,8 +105,10 @@ def test_reader_sees_only_committed_batches(tmp_path: Path) -> None:
 def test_check_model(tmp_path: Path) -> None:
     db = Database.create(tmp_path / "m.db", INFO, _batch(0, 1, np.random.default_rng(0)))
     db.check_model(INFO)
+    # The same weights under another name (a checkpoint path for `default`) are accepted.
+    db.check_model(ModelInfo("default", "abc123", {}, INFO.bev_config))
     with pytest.raises(DatabaseError, match="model 'spectral'.*not 'default'"):
-        db.check_model(ModelInfo("default", "abc123", {}, INFO.bev_config))
+        db.check_model(ModelInfo("default", "def456", {}, INFO.bev_config))
     with pytest.raises(DatabaseError, match="fingerprint"):
         db.check_model(ModelInfo("spectral", "zzz", {}, INFO.bev_config))
     with pytest.raises(DatabaseError, match="BEV configuration.*rings"):

@@ -268,7 +268,9 @@ class Database:
     def check_model(self, model: ModelInfo) -> None:
         """Refuse a model or BEV configuration other than the one that built this database."""
         mine = self.model
-        if model.name != mine.name or model.fingerprint != mine.fingerprint:
+        # The fingerprint decides (weights and configs); the same weights loaded by
+        # another name (`default` or its checkpoint path) are the same model.
+        if model.fingerprint != mine.fingerprint:
             raise DatabaseError(
                 self.path,
                 f"built with model '{mine.name}' (fingerprint {mine.fingerprint[:12]}), "
