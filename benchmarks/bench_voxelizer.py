@@ -162,7 +162,7 @@ def main() -> None:
             print(f"  C++ {levels[best]}, {mode:<10s}{ms:8.3f} ms")
 
     batch = [scans[i % len(scans)] for i in range(args.batch)]
-    reps = max(5, args.repeats // 10)
+    reps = max(5, args.repeats // 3)
     # 1 and 2 threads alternate, so both see the same spells of load from other jobs;
     # the minimum is the run that had the cores to itself.
     wall: dict[int, list[float]] = {1: [], 2: []}
