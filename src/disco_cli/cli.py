@@ -15,6 +15,7 @@ import typer
 
 # from disco_cli.commands import <name>   (one import per command)
 from disco_cli.commands import gt_loops, simulate
+from disco_cli.commands import build_db, info, loops, query
 from disco_cli.commands import evaluate
 from disco_cli.commands import bev
 from disco_cli.commands import train
@@ -32,6 +33,10 @@ app = typer.Typer(
 # app.command("<name>", rich_help_panel="...")(<name>.<function>)
 app.command("simulate", rich_help_panel="Data")(simulate.simulate)
 app.command("gt-loops", rich_help_panel="Data")(gt_loops.gt_loops)
+app.command("build-db", rich_help_panel="Map")(build_db.build_db)
+app.command("info", rich_help_panel="Map")(info.info)
+app.command("query", rich_help_panel="Localize")(query.query)
+app.command("loops", rich_help_panel="Localize")(loops.loops)
 app.command("eval", rich_help_panel="Evaluate")(evaluate.evaluate)
 app.command("eval-loops", rich_help_panel="Evaluate")(evaluate.evaluate_loops)
 app.command("bev", rich_help_panel="Inspect")(bev.bev)
