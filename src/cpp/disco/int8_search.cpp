@@ -4,7 +4,7 @@
 #include <cmath>
 #include <functional>
 #include <limits>
-#include <queue>
+#include <mutex>
 #include <thread>
 
 #if defined(__x86_64__) || defined(__i386__)
@@ -164,39 +164,52 @@ std::vector<std::int64_t> int8_candidates(const Int8Rows& rows, const Int8Query&
     const double inf = std::numeric_limits<double>::infinity();
     // Rounding in the double arithmetic below is far under this relative margin.
     constexpr double kRel = 1e-9;
-    std::vector<double> lower(static_cast<std::size_t>(n)), upper(static_cast<std::size_t>(n));
+    // Per row: the squared lower bound of |q - x_hat| (inf when excluded). Reused across
+    // calls so that a query allocates and faults in no fresh pages.
+    static thread_local std::vector<double> low_sq;
+    if (low_sq.size() < static_cast<std::size_t>(n)) low_sq.resize(static_cast<std::size_t>(n));
+    double* lo = low_sq.data();
+    // Each part keeps the k smallest upper bounds it saw (a max-heap), merged below.
+    std::vector<double> all;
+    std::mutex all_lock;
     parallel_rows(n, threads, [&](std::int64_t a, std::int64_t b) {
+        std::vector<double> heap;
+        heap.reserve(static_cast<std::size_t>(k) + 1);
         for (std::int64_t r = a; r < b; ++r) {
             if (exclude && exclude[r]) {
-                lower[r] = inf;
-                upper[r] = inf;
+                lo[r] = inf;
                 continue;
             }
             const double G = dot(rows.codes + r * rows.d, query.g, rows.d);
             const double A = query.u_sq - 2.0 * query.step * G + rows.code_sq[r];
             const double scale = query.u_sq + rows.code_sq[r] + 2.0 * std::abs(query.step * G);
             const double beta = 2.0 * query.delta_norm * rows.code_norm[r] + kRel * scale;
-            lower[r] = std::sqrt(std::max(A - beta, 0.0)) - rows.err[r];
-            upper[r] = std::sqrt(std::max(A + beta, 0.0)) + rows.err[r];
+            lo[r] = std::max(A - beta, 0.0);
+            const double up = std::sqrt(std::max(A + beta, 0.0)) + rows.err[r];
+            if (static_cast<int>(heap.size()) < k) {
+                heap.push_back(up);
+                std::push_heap(heap.begin(), heap.end());
+            } else if (up < heap.front()) {
+                std::pop_heap(heap.begin(), heap.end());
+                heap.back() = up;
+                std::push_heap(heap.begin(), heap.end());
+            }
         }
+        const std::lock_guard<std::mutex> guard(all_lock);
+        all.insert(all.end(), heap.begin(), heap.end());
     });
-    // The k-th smallest upper bound (over allowed rows).
-    std::priority_queue<double> worst;  // max-heap of the k smallest so far
-    for (std::int64_t r = 0; r < n; ++r) {
-        const double u = upper[r];
-        if (u == inf) continue;
-        if (static_cast<int>(worst.size()) < k) {
-            worst.push(u);
-        } else if (u < worst.top()) {
-            worst.pop();
-            worst.push(u);
-        }
-    }
-    if (worst.empty()) return out;
+    if (all.empty()) return out;
     // Fewer than k allowed rows: every allowed row is a candidate.
-    const double cap = static_cast<int>(worst.size()) < k ? inf : worst.top();
+    double cap = inf;
+    if (static_cast<int>(all.size()) >= k) {
+        std::nth_element(all.begin(), all.begin() + (k - 1), all.end());
+        cap = all[static_cast<std::size_t>(k - 1)];
+    }
+    // Lower bound sqrt(lo) - err <= cap, squared on both sides (cap + err >= 0).
     for (std::int64_t r = 0; r < n; ++r) {
-        if (upper[r] != inf && lower[r] <= cap) out.push_back(r);
+        if (lo[r] == inf) continue;
+        const double reach = cap + rows.err[r];
+        if (lo[r] <= reach * reach) out.push_back(r);
     }
     return out;
 }
