@@ -153,13 +153,13 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
     return out | {"db": str(db_path), "scan": str(scans[0])}
 
 
-def bench_first_result(db: str, scan: str) -> dict:
+def bench_first_result(db: str, scan: str, model: str) -> dict:
     """Wall time of a fresh `disco query` process, and how it splits (from -X importtime
     is too fine; instead time the phases in a fresh interpreter)."""
     exe = Path(sys.executable).parent / "disco"
     t = time.perf_counter()
-    subprocess.run([str(exe), "query", scan, "--db", db, "--format", "tsv"], check=True,
-                   capture_output=True)
+    subprocess.run([str(exe), "query", scan, "--db", db, "--format", "tsv", "--model", model],
+                   check=True, capture_output=True)
     total = time.perf_counter() - t
     code = f"""
 import time; t0 = time.perf_counter()
@@ -167,7 +167,7 @@ import disco_cli.cli; t1 = time.perf_counter()
 import numpy; from disco_cli.model import load_model; from disco_cli.database import Database
 from disco_cli.search import SignatureIndex, match_queries; from disco_cli.pipeline import load_bev
 t2 = time.perf_counter()
-db = Database.open({db!r}); m = load_model(db.model.name); t3 = time.perf_counter()
+db = Database.open({db!r}); m = load_model({model!r}); t3 = time.perf_counter()
 ids, s = db.signatures(); ix = SignatureIndex(s); t4 = time.perf_counter()
 sig, f = m.embed(load_bev({scan!r}, m.bev_config)[None]); match_queries(ix, ids, db, m, sig, f, 10)
 t5 = time.perf_counter()
@@ -200,7 +200,8 @@ def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
                 "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
         t = time.perf_counter()
         res = subprocess.run([sys.executable, "-c", code, str(exe), "query", str(scan), "--db",
-                              str(db)], capture_output=True, text=True, check=True)
+                              str(db), "--model", model_name],
+                             capture_output=True, text=True, check=True)
         out[f"wall{rows}"] = time.perf_counter() - t
         out[rows] = int(res.stdout.split()[-1]) / 1024
         out[f"size{rows}"] = db.stat().st_size / 2**20
@@ -292,12 +293,16 @@ def main() -> None:
     print(f"  peak RSS of this process so far: {peak:.0f} MiB")
 
     with tempfile.TemporaryDirectory() as tmp:
-        s = bench_stream(args.model, args.n_map, args.queries, Path(tmp))
-        print(f"streaming query vs {args.n_map} scans ({args.model}): total {s['total']:.2f} "
+        # `default` without shipped weights: the same architecture, untrained (same cost).
+        from bench_build_db import model_arg
+
+        model, what = model_arg(args.model, Path(tmp))
+        s = bench_stream(model, args.n_map, args.queries, Path(tmp))
+        print(f"streaming query vs {args.n_map} scans ({what}): total {s['total']:.2f} "
               "ms/query"
               f" = read {s['read']:.2f} + voxelize {s['bev']:.2f} + embed {s['embed']:.2f} + "
               f"search {s['search']:.2f} + rows & yaw of top 10 {s['yaw_rows']:.2f} (medians)")
-        f = bench_first_result(s["db"], s["scan"])
+        f = bench_first_result(s["db"], s["scan"], model)
         print(f"first result of a fresh `disco query` process: {f['total_ms']:.0f} ms; a fresh "
               f"interpreter spends: python {f['python_ms']:.0f}, cli import "
               f"{f['cli_import_ms']:.0f}, "
@@ -306,7 +311,7 @@ def main() -> None:
               f"{f['signatures_ms']:.0f}, "
               f"first query {f['first_query_ms']:.0f} ms")
         if args.memory:
-            m = bench_memory(args.model, args.memory, Path(tmp))
+            m = bench_memory(model, args.memory, Path(tmp))
             print(f"peak RSS of `disco query` (one query): {m[100]:.0f} MiB against 100 scans, "
                   f"{m[args.memory]:.0f} MiB against {args.memory} scans "
                   f"({m[f'size{args.memory}']:.0f} MiB on disk); the difference "
