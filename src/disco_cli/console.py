@@ -110,6 +110,10 @@ def _cell(value: Any, digits: int) -> str:
     return str(value)
 
 
+# Columns that hold text (paths, reasons) rather than numbers.
+_TEXT_COLUMNS = {"query", "match", "path", "query_seq", "match_seq", "reason"}
+
+
 class RowWriter:
     """Writes result rows in one format, flushing each batch as it comes.
 
@@ -136,7 +140,11 @@ class RowWriter:
         if self.fmt is OutputFormat.table:
             table = Table(title=title or self.title, title_justify="left")
             for col in self.columns:
-                table.add_column(col, justify="right" if col not in ("query", "match", "path") else "left")
+                if col in _TEXT_COLUMNS:
+                    # Paths are what a person reads first: wrap them, never cut them.
+                    table.add_column(col, justify="left", overflow="fold")
+                else:
+                    table.add_column(col, justify="right", no_wrap=True)
             for row in rows:
                 table.add_row(*(_cell(row.get(c), self.digits) for c in self.columns))
             self._out.print(table)
