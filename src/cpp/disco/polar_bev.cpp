@@ -607,6 +607,21 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     alignas(64) int32_t codes[kChunk];
     float sink = 0.0f;  // dropped points write here, so the scatter has no branch
     float peak = 0.0f;
+    // Density and max_height read-modify-write a cell, and consecutive points of a
+    // scan often share one: combining a run of them in a register and writing once
+    // avoids a chain of dependent loads and stores through memory.
+    int32_t run_cell = kDrop;
+    float run = 0.0f;
+    auto flush = [&]() {
+        if (run_cell < 0) return;
+        float& cell = out[run_cell];
+        if constexpr (Mode == BEVMode::kDensity) {
+            cell += run;  // exact: small integers
+            peak = std::max(peak, cell);
+        } else {
+            cell = std::max(cell, run);
+        }
+    };
     // The SIMD kernels form the cell index in float, exact below 2^24 cells.
     const bool small = static_cast<std::size_t>(b.heights) * b.rings * b.sectors < (1u << 24);
     const int level = small ? std::min(detected_level(), g_level_cap.load()) : 0;
@@ -621,20 +636,27 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
                 c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
                                static_cast<double>(row[2 * cs]), b);
             }
-            float* dst = c >= 0 ? out + c : &sink;
             if constexpr (Mode == BEVMode::kOccupancy) {
+                float* dst = c >= 0 ? out + c : &sink;
                 *dst = 1.0f;
-            } else if constexpr (Mode == BEVMode::kDensity) {
-                *dst += 1.0f;
-                peak = std::max(peak, *dst);
-                sink = 0.0f;  // so a dropped point never counts toward the peak
             } else {
-                // z - z_min of the top point; rounding to float keeps the order.
-                const float v = static_cast<float>(static_cast<double>(row[2 * cs]) - b.z_min);
-                *dst = std::max(*dst, v);
+                if (c < 0) continue;
+                float v = 1.0f;
+                if constexpr (Mode == BEVMode::kMaxHeight) {
+                    // z - z_min of the top point; rounding to float keeps the order.
+                    v = static_cast<float>(static_cast<double>(row[2 * cs]) - b.z_min);
+                }
+                if (c == run_cell) {
+                    run = Mode == BEVMode::kDensity ? run + v : std::max(run, v);
+                } else {
+                    flush();
+                    run_cell = c;
+                    run = v;
+                }
             }
         }
     }
+    if constexpr (Mode != BEVMode::kOccupancy) flush();
     return peak;
 }
 
