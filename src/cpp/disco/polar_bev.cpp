@@ -605,7 +605,7 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     alignas(64) float ys[kChunk];
     alignas(64) float zs[kChunk];
     alignas(64) int32_t codes[kChunk];
-    float sink = 0.0f;  // dropped points write here, so the scatter has no branch
+    float sink = 0.0f;  // occupancy: dropped points write here, so the scatter has no branch
     float peak = 0.0f;
     // Density and max_height read-modify-write a cell, and consecutive points of a
     // scan often share one: combining a run of them in a register and writing once
@@ -630,16 +630,23 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
         const T* row = base + start * rs;
         chunk_codes(level, row, rs, cs, m, b, xs, ys, zs, codes);
         row = base + start * rs;
-        for (int i = 0; i < m; ++i, row += rs) {
-            int32_t c = codes[i];
-            if (c == kExact) {
-                c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
-                               static_cast<double>(row[2 * cs]), b);
-            }
-            if constexpr (Mode == BEVMode::kOccupancy) {
+        if constexpr (Mode == BEVMode::kOccupancy) {
+            for (int i = 0; i < m; ++i, row += rs) {
+                int32_t c = codes[i];
+                if (c == kExact) {
+                    c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
+                                   static_cast<double>(row[2 * cs]), b);
+                }
                 float* dst = c >= 0 ? out + c : &sink;
                 *dst = 1.0f;
-            } else {
+            }
+        } else {
+            for (int i = 0; i < m; ++i, row += rs) {
+                int32_t c = codes[i];
+                if (c == kExact) {
+                    c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
+                                   static_cast<double>(row[2 * cs]), b);
+                }
                 if (c < 0) continue;
                 float v = 1.0f;
                 if constexpr (Mode == BEVMode::kMaxHeight) {
