@@ -640,26 +640,26 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
                 float* dst = c >= 0 ? out + c : &sink;
                 *dst = 1.0f;
             }
-        } else {
-            for (int i = 0; i < m; ++i, row += rs) {
-                int32_t c = codes[i];
-                if (c == kExact) {
-                    c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
-                                   static_cast<double>(row[2 * cs]), b);
-                }
-                if (c < 0) continue;
-                float v = 1.0f;
-                if constexpr (Mode == BEVMode::kMaxHeight) {
-                    // z - z_min of the top point; rounding to float keeps the order.
-                    v = static_cast<float>(static_cast<double>(row[2 * cs]) - b.z_min);
-                }
-                if (c == run_cell) {
-                    run = Mode == BEVMode::kDensity ? run + v : std::max(run, v);
-                } else {
-                    flush();
-                    run_cell = c;
-                    run = v;
-                }
+            continue;  // the loop below is for density and max_height
+        }
+        for (int i = 0; i < m; ++i, row += rs) {
+            int32_t c = codes[i];
+            if (c == kExact) {
+                c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
+                               static_cast<double>(row[2 * cs]), b);
+            }
+            if (c < 0) continue;
+            float v = 1.0f;
+            if constexpr (Mode == BEVMode::kMaxHeight) {
+                // z - z_min of the top point; rounding to float keeps the order.
+                v = static_cast<float>(static_cast<double>(row[2 * cs]) - b.z_min);
+            }
+            if (c == run_cell) {
+                run = Mode == BEVMode::kDensity ? run + v : std::max(run, v);
+            } else {
+                flush();
+                run_cell = c;
+                run = v;
             }
         }
     }
