@@ -39,15 +39,17 @@ KITTI = REPO.parent / "shared" / "realdata" / "kitti00" / "velodyne" / "000000.b
 SAMPLES = REPO / "data" / "samples" / "00"
 
 
-def median_ms(fn, repeat: int, warmup: int = 2) -> float:
+def median_ms(fn, repeat: int, warmup: int = 2) -> tuple[float, float]:
+    """Median wall and CPU (all threads of this process) milliseconds of fn()."""
     for _ in range(warmup):
         fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(repeat):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t)
-    return 1000.0 * statistics.median(times)
+        wall.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+    return 1000.0 * statistics.median(wall), 1000.0 * statistics.median(cpu)
 
 
 def exhaustive_yaw(query: np.ndarray, matches: np.ndarray) -> np.ndarray:
@@ -142,21 +144,23 @@ def main() -> None:
         cfg = default_model_config(config.heights, w)
         models[f"unet-w{w} (random)"] = DiscoModel(build_net(cfg), config, cfg, name=f"w{w}")
 
-    print("\n| model | signature per scan, batched (ms) | single scan: read + BEV + embed (ms) |")
+    print("\n| model | signature per scan, batched: wall / CPU (ms) "
+          "| single scan, read + BEV + embed: wall / CPU (ms) |")
     print("| --- | ---: | ---: |")
     for name, model in models.items():
-        batched = median_ms(lambda m=model: m.embed(bevs), args.repeat) / args.batch
+        bw, bc = median_ms(lambda m=model: m.embed(bevs), args.repeat)
 
         def single(m=model) -> None:
             m.embed(polar_bev_batch([read_scan(scan_path)], config))
 
-        print(f"| {name} | {batched:.2f} | {median_ms(single, args.repeat):.2f} |")
+        sw, sc = median_ms(single, args.repeat)
+        print(f"| {name} | {bw / args.batch:.2f} / {bc / args.batch:.2f} | {sw:.2f} / {sc:.2f} |")
 
     model = models.get("default", models["spectral"])
     _, feats = model.embed(bevs[:11])
     q, cands = feats[0], feats[1:]
-    fast = median_ms(lambda: estimate_yaw(q, cands), max(args.repeat, 20))
-    slow = median_ms(lambda: exhaustive_yaw(q, cands), 3, warmup=1)
+    fast = median_ms(lambda: estimate_yaw(q, cands), max(args.repeat, 20))[0]
+    slow = median_ms(lambda: exhaustive_yaw(q, cands), 3, warmup=1)[0]
     print(f"\nyaw, 10 candidates ({next(k for k, v in models.items() if v is model)} features): "
           f"phase correlation {fast:.3f} ms, exhaustive shift search {slow:.1f} ms "
           f"({slow / fast:.0f}x)")

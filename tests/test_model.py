@@ -232,3 +232,15 @@ def test_scancontext_name_maps_to_its_model():
 def test_default_without_shipped_weights_says_so():
     with pytest.raises(ModelError, match="no shipped weights yet"):
         load_model("default")
+
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason="no shipped weights")
+def test_shipped_weights_are_small_self_describing_and_invariant():
+    raw = torch.load(DEFAULT_WEIGHTS, weights_only=True)
+    assert DEFAULT_WEIGHTS.stat().st_size < 5_000_000
+    assert raw["command"].startswith("disco train") and "train_state" not in raw
+    model = load_model("default")
+    assert model.name == "default" and model.fingerprint == load_model(str(DEFAULT_WEIGHTS)).fingerprint
+    bevs = random_bevs(2, seed=9)
+    sig, _ = model.embed(bevs)
+    np.testing.assert_allclose(model.embed(np.roll(bevs, 40, axis=-1))[0], sig, atol=1e-5)

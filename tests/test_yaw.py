@@ -101,12 +101,19 @@ def test_torch_curves_equal_a_direct_numpy_reference():
         np.testing.assert_allclose(correlation_curves(q[b], m[b][None])[0], ref[b], atol=1e-5)
 
 
-def test_real_scan_rotated_over_the_whole_circle(realdata):
+def _models() -> list[str]:
+    from disco_cli.model import DEFAULT_WEIGHTS
+
+    return ["spectral"] + (["default"] if DEFAULT_WEIGHTS.is_file() else [])
+
+
+@pytest.mark.parametrize("name", _models())
+def test_real_scan_rotated_over_the_whole_circle(realdata, name):
     from disco_cli.bev import polar_bev
     from disco_cli.model import load_model
     from disco_cli.readers import read_scan
 
-    model = load_model("spectral")
+    model = load_model(name)
     points = read_scan(realdata / "kitti00" / "velodyne" / "000000.bin")
     _, f0 = model.embed(polar_bev(points)[None])
     rng = np.random.default_rng(6)
@@ -121,16 +128,16 @@ def test_real_scan_rotated_over_the_whole_circle(realdata):
     assert model.yaw(feats[0], f0)[0] == pytest.approx(-30.0, abs=1.5)
 
 
-def test_consecutive_real_frames_give_the_ground_truth_yaw(realdata):
+@pytest.mark.parametrize("name", _models())
+def test_consecutive_real_frames_give_the_ground_truth_yaw(realdata, name):
     from disco_cli.bev import polar_bev
     from disco_cli.model import load_model
     from disco_cli.poses import read_kitti_poses, relative_yaw_deg
     from disco_cli.readers import read_scan
 
     seq = realdata / "kitti00"
-    poses = read_kitti_poses(seq / "poses.txt", seq / "calib.txt") if (seq / "calib.txt").is_file() \
-        else read_kitti_poses(seq / "poses.txt")
-    model = load_model("spectral")
+    poses = read_kitti_poses(seq / "poses.txt", seq / "calib.txt")
+    model = load_model(name)
     rng = np.random.default_rng(7)
     for i in (0, 4, 8):
         spin = float(rng.uniform(-180.0, 180.0))

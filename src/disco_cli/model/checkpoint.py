@@ -46,3 +46,14 @@ def read_checkpoint(path: str | Path, device: str = "cpu") -> dict[str, Any]:
     if not isinstance(ckpt, dict):
         raise ModelError(f"{path}: not a model checkpoint (holds a {type(ckpt).__name__})")
     return ckpt
+
+
+def export_checkpoint(src: str | Path, dst: str | Path, notes: dict[str, Any] | None = None) -> None:
+    """A copy of a training checkpoint for shipping: without the optimizer state (which
+    doubles the size), with `notes` (e.g. validation figures) added under `metrics`."""
+    ckpt = read_checkpoint(src)
+    ckpt.pop("train_state", None)
+    ckpt.pop("format", None)
+    if notes:
+        ckpt["metrics"] = {**dict(ckpt.get("metrics", {})), **notes}
+    save_checkpoint(dst, ckpt)
