@@ -9,7 +9,7 @@ PIP_INSTALL := $(PIP) install --quiet --disable-pip-version-check -c constraints
 DISCO := $(VENV)/bin/disco
 SAMPLES := data/samples
 OUT := out/demo
-MODEL ?= spectral
+MODEL ?= default
 
 .PHONY: demo test install install-test dev bench clean
 
