@@ -151,6 +151,26 @@ def test_training_without_poses_needs_self_supervised(tmp_path):
 # -- a short training run ------------------------------------------------------------
 
 
+def test_self_supervised_training_runs_and_finds_the_copies(tmp_path, one_thread):
+    from disco_cli.bev import BEVConfig
+    from disco_cli.training.data import load_training_data
+    from disco_cli.training.loop import TrainOptions, train
+
+    seq = tmp_path / "seq"
+    (seq / "velodyne").mkdir(parents=True)
+    rng = np.random.default_rng(1)
+    pillars = _world(5)
+    for i in range(12):
+        _scan(pillars, 15.0 * i, 0.0, 0.0, rng).tofile(seq / "velodyne" / f"{i:06d}.bin")
+    data = load_training_data([seq], BEVConfig(), self_supervised=True, copies=1)
+    opts = TrainOptions(epochs=1, steps=3, batch=2, negatives=2, width=2, self_supervised=True,
+                        time_gap=3, seed=0)
+    history = train(data, BEVConfig(), opts, tmp_path / "ss.pt", log=lambda s: None)
+    # Each augmented copy (rotated, moved, thinned) must find its own source scan.
+    assert history[0]["train_queries"] == 12 and history[0]["train_recall_at_1"] >= 0.9
+    assert history[0]["train_yaw_err_median"] < 3.0
+
+
 def test_short_training_lowers_loss_and_beats_the_untrained_network(world, tmp_path, one_thread):
     from disco_cli.bev import BEVConfig
     from disco_cli.model import load_model
@@ -195,7 +215,10 @@ def test_train_command_writes_a_loadable_checkpoint_and_resumes(world, tmp_path,
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     ckpt = torch.load(out, weights_only=True)
-    assert ckpt["command"].startswith("disco ") and len(ckpt["metrics"]["history"]) == 1
+    assert len(ckpt["metrics"]["history"]) == 1
+    # The provenance spells out every option, defaults included.
+    assert ckpt["command"].startswith(f"disco train {world} -o {out} --epochs 1 --steps 2")
+    assert "--lambda-yaw 0.1" in ckpt["command"] and "--residual" in ckpt["command"]
     assert load_model(str(out)).model_config["width"] == 2
     # An existing output is not overwritten by accident: one error line, exit 1.
     again = CliRunner().invoke(app, args)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import shlex
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -12,8 +11,30 @@ import typer
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
+def _command_line(ctx: typer.Context, data: list[Path], output: Path) -> str:
+    """The full command, every option spelled out (defaults too): the checkpoint's provenance."""
+    words = ["disco", "train", *map(str, data), "-o", str(output)]
+    for name, value in ctx.params.items():
+        flag = "--" + name.replace("_", "-")
+        if name in ("data", "output") or value is None:
+            continue
+        if name == "self_supervised":
+            words += [flag] if value else []
+        elif name == "resume":
+            continue  # resuming is recorded by chaining the commands
+        elif isinstance(value, bool):
+            words.append(flag if value else f"--no-{name.replace('_', '-')}")
+        elif isinstance(value, (list, tuple)):
+            for v in value:
+                words += [flag, str(v)]
+        else:
+            words += [flag, str(value)]
+    return shlex.join(words)
+
+
 @handle_errors
 def train(
+    ctx: typer.Context,
     data: Annotated[
         list[Path],
         typer.Argument(
@@ -21,53 +42,76 @@ def train(
             help="Sequence folders (velodyne/ + poses.txt), or folders of them (one world each).",
         ),
     ],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Checkpoint to write (after every epoch).")],
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Checkpoint to write (after every epoch).")
+    ],
     epochs: Annotated[int, typer.Option(min=1, help="Epochs to train.")] = 10,
-    steps: Annotated[int, typer.Option(min=0, help="Steps per epoch (0: one pass over the queries).")] = 0,
+    steps: Annotated[
+        int, typer.Option(min=0, help="Steps per epoch (0: one pass over the queries).")
+    ] = 0,
     batch: Annotated[int, typer.Option(min=1, help="Quadruplets per step.")] = 8,
     negatives: Annotated[int, typer.Option(min=1, help="Negatives per quadruplet.")] = 4,
-    width: Annotated[int, typer.Option(min=2, help="Channels of the U-Net's first block (paper: 64).")] = 8,
+    width: Annotated[
+        int, typer.Option(min=2, help="Channels of the U-Net's first block (paper: 64).")
+    ] = 8,
     residual: Annotated[
         bool, typer.Option(help="Add the U-Net to the BEV's height sum (start from `spectral`).")
     ] = True,
-    bev_dropout: Annotated[float, typer.Option(help="Share of BEV cells dropped per sample (augmentation).")] = 0.1,
+    bev_dropout: Annotated[
+        float, typer.Option(help="Share of BEV cells dropped per sample (augmentation).")
+    ] = 0.1,
     lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
     lambda_yaw: Annotated[float, typer.Option(help="Weight of the yaw KL loss.")] = 0.1,
     d_pos: Annotated[float, typer.Option(help="Positives lie within this distance (m).")] = 3.0,
     d_neg: Annotated[float, typer.Option(help="Negatives lie beyond this distance (m).")] = 10.0,
-    spacing: Annotated[float, typer.Option(help="Keep one scan per this much travel (m); 0: all.")] = 1.0,
-    hard_after: Annotated[int, typer.Option(help="Epochs of random negatives before hard-negative mining.")] = 2,
+    spacing: Annotated[
+        float, typer.Option(help="Keep one scan per this much travel (m); 0: all.")
+    ] = 1.0,
+    hard_after: Annotated[
+        int, typer.Option(help="Epochs of random negatives before hard-negative mining.")
+    ] = 2,
     self_supervised: Annotated[
-        bool, typer.Option("--self-supervised", help="No poses: positives are augmented copies of a scan.")
+        bool,
+        typer.Option(
+            "--self-supervised", help="No poses: positives are augmented copies of a scan."
+        ),
     ] = False,
-    time_gap: Annotated[int, typer.Option(help="Self-supervised: negatives are at least this many frames apart.")] = 50,
+    time_gap: Annotated[
+        int, typer.Option(help="Self-supervised: negatives are at least this many frames apart.")
+    ] = 50,
     val: Annotated[
         list[Path] | None,
-        typer.Option(exists=True, file_okay=False, help="Held-out sequences for the per-epoch validation (repeatable)."),
+        typer.Option(
+            exists=True, file_okay=False,
+            help="Held-out sequences for the per-epoch validation (repeatable).",
+        ),
     ] = None,
-    resume: Annotated[bool, typer.Option("--resume", help="Continue from the checkpoint at --output.")] = False,
-    device: Annotated[str, typer.Option(help="Torch device: cpu, cuda, cuda:1 ...")] = "cpu",
-    seed: Annotated[int, typer.Option(help="Random seed (sampling, augmentation, initialization).")] = 0,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Continue from the checkpoint at --output.")
+    ] = False,
+    device: Annotated[str, typer.Option(help="Torch device: cpu or cuda.")] = "cpu",
+    seed: Annotated[
+        int, typer.Option(help="Random seed (sampling, augmentation, initialization).")
+    ] = 0,
     threads: Annotated[int, typer.Option(min=0, help="Voxelizer threads (0: all cores).")] = 0,
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
-    import torch
-
     from disco_cli.bev import BEVConfig
+    from disco_cli.pipeline import check_device
     from disco_cli.training.data import load_training_data
-    from disco_cli.training.loop import TrainOptions, train as run_training
+    from disco_cli.training.loop import TrainOptions
+    from disco_cli.training.loop import train as run_training
 
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise fail(f"--device {device}: CUDA is not available on this machine")
+    check_device(device)
     if output.exists() and not resume:
         raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
-    command = shlex.join(["disco", *sys.argv[1:]])
+    command = _command_line(ctx, data, output)
     bev_config = BEVConfig()
     opts = TrainOptions(
         epochs=epochs, steps=steps, batch=batch, negatives=negatives, lr=lr,
-        lambda_yaw=lambda_yaw, d_pos=d_pos, d_neg=d_neg, width=width, residual=residual, bev_dropout=bev_dropout,
-        hard_after=hard_after,
-        self_supervised=self_supervised, time_gap=time_gap, seed=seed, device=device,
+        lambda_yaw=lambda_yaw, d_pos=d_pos, d_neg=d_neg, width=width, residual=residual,
+        bev_dropout=bev_dropout, hard_after=hard_after, self_supervised=self_supervised,
+        time_gap=time_gap, seed=seed, device=device,
     )
 
     def load(paths: list[Path], what: str, ss: bool):
@@ -93,7 +137,8 @@ def train(
                        rate=text)
             if not stderr.is_terminal and (step % 25 == 0 or step == total):
                 # No bar in a log file: a line now and then shows that training moves.
-                stderr.print(f"epoch {epoch + 1}/{epochs} step {step}/{total} {text}", soft_wrap=True)
+                line = f"epoch {epoch + 1}/{epochs} step {step}/{total} {text}"
+                stderr.print(line, soft_wrap=True)
 
         run_training(
             data_set, bev_config, opts, output, command=command, resume=resume, val=val_set,

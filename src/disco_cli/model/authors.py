@@ -92,6 +92,7 @@ def model_from_authors(
         net.load_state_dict(sd, strict=True)
     except RuntimeError as exc:
         first_line = str(exc).strip().splitlines()
-        raise ModelError(f"{path}: authors' layout does not fit: {' '.join(first_line)[:300]}") from None
+        detail = " ".join(first_line)[:300]
+        raise ModelError(f"{path}: authors' layout does not fit: {detail}") from None
     return DiscoModel(net, authors_bev_config(), model_config,
                       name=name or f"{Path(path).stem}", device=device)

@@ -48,7 +48,9 @@ def read_checkpoint(path: str | Path, device: str = "cpu") -> dict[str, Any]:
     return ckpt
 
 
-def export_checkpoint(src: str | Path, dst: str | Path, notes: dict[str, Any] | None = None) -> None:
+def export_checkpoint(
+    src: str | Path, dst: str | Path, notes: dict[str, Any] | None = None
+) -> None:
     """A copy of a training checkpoint for shipping: without the optimizer state (which
     doubles the size), with `notes` (e.g. validation figures) added under `metrics`."""
     ckpt = read_checkpoint(src)

@@ -31,7 +31,9 @@ def _window(n: int, c: int) -> slice:
     return slice(start, start + c)
 
 
-def signatures(features: np.ndarray, crop: tuple[int, int] = DEFAULT_CROP, workers: int = -1) -> np.ndarray:
+def signatures(
+    features: np.ndarray, crop: tuple[int, int] = DEFAULT_CROP, workers: int = -1
+) -> np.ndarray:
     """Signatures [B, cr * cs] float32 of feature images [B, R, S] (or one [R, S])."""
     g = np.asarray(features, dtype=np.float32)
     if g.ndim == 2:

@@ -82,7 +82,9 @@ def _read_poses(seq: Path) -> np.ndarray:
 
     poses_file = seq / "poses.txt"
     if not poses_file.is_file():
-        raise PoseFileError(f"{poses_file}: missing (train with --self-supervised for data without poses)")
+        raise PoseFileError(
+            f"{poses_file}: missing (train with --self-supervised for data without poses)"
+        )
     calib = seq / "calib.txt"
     return read_kitti_poses(poses_file, calib if calib.is_file() else None)
 
@@ -150,7 +152,9 @@ def load_training_data(
         else:
             poses = _read_poses(seq)
             if len(poses) != len(scans):
-                raise PoseFileError(f"{seq / 'poses.txt'}: {len(poses)} poses for {len(scans)} scans")
+                raise PoseFileError(
+                    f"{seq / 'poses.txt'}: {len(poses)} poses for {len(scans)} scans"
+                )
             x, y, yaw = xy_yaw(poses)
             xy = np.stack([x, y], axis=1)
             heading = np.degrees(yaw)
@@ -176,7 +180,8 @@ def load_training_data(
                 for _ in range(copies):
                     for i, pts in enumerate(clouds):
                         a = rng.uniform(-180.0, 180.0)
-                        aug, off = augment_points(pts, rng, a, max_shift, rng.uniform(0.5, 0.9), 0.03)
+                        keep = rng.uniform(0.5, 0.9)
+                        aug, off = augment_points(pts, rng, a, max_shift, keep, 0.03)
                         extra.append(aug)
                         meta_xy.append(off[None])
                         # Points turned by +a: the sensor is turned by -a.
@@ -191,7 +196,7 @@ def load_training_data(
             grp.append(np.full(m, gid))
             sess.append(np.full(m, sid))
             frames = np.arange(start, start + n)
-            frm.append(np.concatenate([frames] + [frames] * (m // n - 1)) if self_supervised else frames)
+            frm.append(np.tile(frames, m // n))
             src.append(np.concatenate(meta_src))
             row += m
             done += m

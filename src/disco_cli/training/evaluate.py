@@ -53,8 +53,15 @@ def query_plan(data: TrainData, radius: float, self_supervised: bool,
     return queries, db
 
 
-def retrieval_metrics(model: Any, data: TrainData, radius: float, self_supervised: bool = False,
-                      max_queries: int = 300, seed: int = 0, time_gap: int = 50) -> dict[str, float]:
+def retrieval_metrics(
+    model: Any,
+    data: TrainData,
+    radius: float,
+    self_supervised: bool = False,
+    max_queries: int = 300,
+    seed: int = 0,
+    time_gap: int = 50,
+) -> dict[str, float]:
     """Recall@1 and yaw error (mean, median, degrees) of `model` on `data`."""
     rng = np.random.default_rng(seed)
     queries, db = query_plan(data, radius, self_supervised, max_queries, rng)

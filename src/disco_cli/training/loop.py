@@ -2,7 +2,8 @@
 
 Every step draws `batch` quadruplets (query, positive, k negatives, one other negative),
 rolls each BEV by a random number of sectors (the paper's N-way rotation augmentation,
-exact on a polar grid), drops a random share of its cells (sparser sensors), and minimizes L_quad + lambda * L_rot. After `hard_after` epochs
+exact on a polar grid), drops a random share of its cells (sparser sensors), and
+minimizes L_quad + lambda * L_rot. After `hard_after` epochs
 half of the negatives are the query's nearest signatures among its true negatives.
 
 A checkpoint is written after every epoch; `resume=True` continues from it. Every epoch's
@@ -25,7 +26,7 @@ from disco_cli.errors import ModelError
 from disco_cli.model.checkpoint import read_checkpoint, save_checkpoint
 from disco_cli.model.disco import DiscoModel, build_net, default_model_config
 from disco_cli.model.signature import signatures_torch
-from disco_cli.model.yaw import correlation_curves_torch
+from disco_cli.model.yaw import correlation_curves_torch, expected_shift_torch
 from disco_cli.training.data import TrainData
 from disco_cli.training.evaluate import retrieval_metrics
 from disco_cli.training.losses import quadruplet_loss, yaw_loss
@@ -100,7 +101,9 @@ def train(
     if resume and out_path.is_file():
         ckpt = read_checkpoint(out_path)
         if dict(ckpt.get("model_config", {})) != model_config:
-            raise ModelError(f"{out_path}: was trained with another model configuration; cannot resume")
+            raise ModelError(
+                f"{out_path}: was trained with another model configuration; cannot resume"
+            )
         net.load_state_dict(ckpt["state_dict"])
         state = ckpt.get("train_state", {})
         if "optimizer" in state:
@@ -127,7 +130,7 @@ def train(
             miner.update_hard(_pool_signatures(net, data, miner.pool, device, crop))
         net.train()
         t0 = time.monotonic()
-        sums = {"loss": 0.0, "quad": 0.0, "yaw": 0.0}
+        sums = {"loss": 0.0, "quad": 0.0, "yaw": 0.0, "yaw_deg": 0.0}
         for step in range(steps):
             qs = rng.choice(miner.queries, size=opts.batch)
             rows = np.empty((opts.batch, per), dtype=np.int64)
@@ -155,10 +158,15 @@ def train(
             shift = torch.as_tensor(head + r[:, 0] - r[:, 1], device=device)
             l_yaw = yaw_loss(log_p, shift)
             loss = l_quad + opts.lambda_yaw * l_yaw
+            with torch.no_grad():
+                # The paper's estimate, the expectation of p(delta), as a readable error.
+                diff = expected_shift_torch(log_p.exp()) - shift + sectors / 2
+                off = torch.remainder(diff, sectors)
+                yaw_deg = ((off - sectors / 2).abs() * 360.0 / sectors).mean()
             optim.zero_grad()
             loss.backward()
             optim.step()
-            for key, v in (("loss", loss), ("quad", l_quad), ("yaw", l_yaw)):
+            for key, v in (("loss", loss), ("quad", l_quad), ("yaw", l_yaw), ("yaw_deg", yaw_deg)):
                 sums[key] += float(v.detach())
             if on_step:
                 on_step(epoch, step + 1, steps, {key: v / (step + 1) for key, v in sums.items()})
@@ -169,9 +177,11 @@ def train(
         metrics = retrieval_metrics(model, check, opts.d_pos, opts.self_supervised and val is None,
                                     max_queries=opts.val_queries, seed=opts.seed,
                                     time_gap=opts.time_gap)
-        entry.update({f"{'val' if val is not None else 'train'}_{key}": v for key, v in metrics.items()})
+        prefix = "val" if val is not None else "train"
+        entry.update({f"{prefix}_{key}": v for key, v in metrics.items()})
         history.append(entry)
-        log(" ".join(f"{key}={v:.4g}" if isinstance(v, float) else f"{key}={v}" for key, v in entry.items()))
+        log(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                     for k, v in entry.items()))
         save_checkpoint(out_path, {
             "state_dict": net.state_dict(),
             "bev_config": bev_config.to_dict(),

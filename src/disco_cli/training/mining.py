@@ -87,7 +87,8 @@ class PairMiner:
         good = np.concatenate(found)
         if len(good) == 0:
             raise DiscoError(
-                f"scan {i} has no negatives beyond {self.d_neg} m: the data covers too small an area"
+                f"scan {i} has no negatives beyond {self.d_neg} m: "
+                "the data covers too small an area"
             )
         return good[:k] if len(good) >= k else rng.choice(good, size=k)
 
