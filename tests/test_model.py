@@ -244,3 +244,16 @@ def test_shipped_weights_are_small_self_describing_and_invariant():
     bevs = random_bevs(2, seed=9)
     sig, _ = model.embed(bevs)
     np.testing.assert_allclose(model.embed(np.roll(bevs, 40, axis=-1))[0], sig, atol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["spectral", "tiny"])
+def test_empty_batches_and_empty_scans(name):
+    model = tiny_model() if name == "tiny" else load_model(name)
+    sigs, feats = model.embed(np.zeros((0, H, R, S), np.float32))
+    assert sigs.shape == (0, 1024) and feats.shape == (0, R, S)
+    assert model.yaw(np.zeros((R, S), np.float32), np.zeros((0, R, S), np.float32)).shape == (0,)
+    # An empty scan (all cells empty) gives finite numbers, not NaN from 0 / 0.
+    sigs, feats = model.embed(np.zeros((2, H, R, S), np.float32))
+    assert np.isfinite(sigs).all() and np.isfinite(model.yaw(feats[0], feats)).all()
+    with pytest.raises(ValueError):
+        model.embed(np.zeros((2, R, S), np.float32))

@@ -42,6 +42,8 @@ def signatures(
         raise ValueError(f"features must be [B, R, S], got shape {g.shape}")
     b, r, s = g.shape
     cr, cs = crop_size(r, s, crop)
+    if b == 0:
+        return np.zeros((0, cr * cs), np.float32)
     spec = scipy.fft.fft2(g, axes=(1, 2), workers=workers)
     spec = scipy.fft.fftshift(spec, axes=(1, 2))[:, _window(r, cr), _window(s, cs)]
     sig = np.abs(spec).reshape(b, -1).astype(np.float32)

@@ -78,6 +78,8 @@ def peak_shift(curves: np.ndarray) -> np.ndarray:
 def estimate_yaw(query: np.ndarray, matches: np.ndarray) -> np.ndarray:
     """Yaw [K] in degrees, (-180, 180], of the query relative to each match."""
     curves = correlation_curves(query, matches)
+    if len(curves) == 0:
+        return np.zeros(0, np.float32)
     yaw = shift_to_yaw(peak_shift(curves), curves.shape[1]).astype(np.float32)
     # Rounding to float32 can turn -179.99999 into -180, which is outside (-180, 180].
     return np.where(yaw <= -180.0, np.float32(180.0), yaw)
