@@ -257,3 +257,8 @@ def test_empty_batches_and_empty_scans(name):
     assert np.isfinite(sigs).all() and np.isfinite(model.yaw(feats[0], feats)).all()
     with pytest.raises(ValueError):
         model.embed(np.zeros((2, R, S), np.float32))
+
+
+def test_a_bev_of_another_configuration_is_a_model_error():
+    with pytest.raises(ModelError, match="expects 20 BEV heights, got 10"):
+        tiny_model().embed(np.zeros((1, 10, R, S), np.float32))

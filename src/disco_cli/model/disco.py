@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from disco_cli.errors import ModelError
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet import DiscoNet
 from disco_cli.model.yaw import estimate_yaw
@@ -84,10 +85,11 @@ class DiscoModel:
         b = np.asarray(bevs, dtype=np.float32)
         if b.ndim != 4:
             raise ValueError(f"bevs must be [B, H, R, S], got shape {b.shape}")
-        if b.shape[1] != self.model_config["in_channels"]:
-            raise ValueError(
+        if b.shape[1:2] != (self.model_config["in_channels"],):
+            # A BEV made with another configuration than the model's: the user's mix-up.
+            raise ModelError(
                 f"model {self.name} expects {self.model_config['in_channels']} BEV heights, "
-                f"got {b.shape[1]}"
+                f"got {b.shape[1]} (was the BEV made with this model's bev_config?)"
             )
         out = []
         for i in range(0, len(b), _BATCH):
