@@ -228,9 +228,11 @@ def test_scancontext_name_maps_to_its_model():
     assert model.rerank_candidates > 0
 
 
-@pytest.mark.skipif(DEFAULT_WEIGHTS.is_file(), reason="shipped weights exist")
-def test_default_without_shipped_weights_says_so():
-    with pytest.raises(ModelError, match="no shipped weights yet"):
+def test_default_without_shipped_weights_says_so(tmp_path, monkeypatch):
+    import disco_cli.model as registry
+
+    monkeypatch.setattr(registry, "DEFAULT_WEIGHTS", tmp_path / "absent.pt")
+    with pytest.raises(ModelError, match="absent.pt: no shipped weights yet"):
         load_model("default")
 
 
