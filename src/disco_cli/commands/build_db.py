@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
-from disco_cli.readers import FormatName
+from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
 
 if TYPE_CHECKING:
     import numpy as np
@@ -119,10 +119,7 @@ def build_db(
                                      "times.txt beside each folder's scans.",
                                      rich_help_panel=PANEL_IN)
     ] = None,
-    scan_format: Annotated[
-        Optional[FormatName], typer.Option("--scan-format", help="Scan format; default: from the "
-                                           "extension and folder.", rich_help_panel=PANEL_IN)
-    ] = None,
+    scan_format: ScanFormatOpt = None,
     append: Annotated[
         bool, typer.Option("--append", help="Add these scans to an existing database built from "
                            "other scans (same model).", rich_help_panel=PANEL_IN)
@@ -131,14 +128,8 @@ def build_db(
         int, typer.Option("--batch", min=1, max=4096, help="Scans per network batch and per "
                           "transaction.", rich_help_panel=PANEL_RUN)
     ] = 32,
-    workers: Annotated[
-        int, typer.Option("--workers", min=1, max=64, help="Threads reading and voxelizing scans.",
-                          rich_help_panel=PANEL_RUN)
-    ] = 1,
-    device: Annotated[
-        str, typer.Option("--device", help="cpu or cuda (for the network).",
-                          rich_help_panel=PANEL_RUN)
-    ] = "cpu",
+    workers: WorkersOpt = 1,
+    device: DeviceOpt = "cpu",
     skip_bad: Annotated[
         bool, typer.Option("--skip-bad", help="Warn about unreadable scans and go on, instead of "
                            "stopping at the first.", rich_help_panel=PANEL_RUN)

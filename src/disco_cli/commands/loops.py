@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 
 from disco_cli.console import OutputFormat, fail, handle_errors, progress, stderr, warn
-from disco_cli.readers import FormatName
+from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
 
 if TYPE_CHECKING:
     import numpy as np
@@ -125,22 +125,13 @@ def loops(
                                      "from this sequence (same model); scans not in it are "
                                      "embedded.", rich_help_panel=PANEL_RUN)
     ] = None,
-    scan_format: Annotated[
-        Optional[FormatName], typer.Option("--scan-format", help="Scan format; default: from the "
-                                           "extension and folder.", rich_help_panel=PANEL_RUN)
-    ] = None,
+    scan_format: ScanFormatOpt = None,
     batch: Annotated[
         int, typer.Option("--batch", min=1, max=4096, help="Scans per network batch.",
                           rich_help_panel=PANEL_RUN)
     ] = 32,
-    workers: Annotated[
-        int, typer.Option("--workers", min=1, max=64, help="Threads reading and voxelizing scans.",
-                          rich_help_panel=PANEL_RUN)
-    ] = 1,
-    device: Annotated[
-        str, typer.Option("--device", help="cpu or cuda (for the network).",
-                          rich_help_panel=PANEL_RUN)
-    ] = "cpu",
+    workers: WorkersOpt = 1,
+    device: DeviceOpt = "cpu",
 ) -> None:
     """Detect loop closures along one sequence of scans."""
     import numpy as np

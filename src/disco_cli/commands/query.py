@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 import typer
 
 from disco_cli.console import OutputFormat, error, fail, handle_errors
-from disco_cli.readers import FormatName
+from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
 
 if TYPE_CHECKING:
     from disco_cli.database import Database
@@ -97,18 +97,9 @@ def query(
                                     "built the database (needed for checkpoint paths).",
                                     rich_help_panel=PANEL_RUN)
     ] = None,
-    scan_format: Annotated[
-        Optional[FormatName], typer.Option("--scan-format", help="Scan format; default: from "
-                                           "the extension and folder.", rich_help_panel=PANEL_RUN)
-    ] = None,
-    workers: Annotated[
-        int, typer.Option("--workers", min=1, max=64, help="Threads reading and voxelizing scans.",
-                          rich_help_panel=PANEL_RUN)
-    ] = 1,
-    device: Annotated[
-        str, typer.Option("--device", help="cpu or cuda (for the network).",
-                          rich_help_panel=PANEL_RUN)
-    ] = "cpu",
+    scan_format: ScanFormatOpt = None,
+    workers: WorkersOpt = 1,
+    device: DeviceOpt = "cpu",
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
