@@ -1,16 +1,16 @@
 // The one pybind11 file: turns the plain C++ library in src/cpp/disco/ into the
 // private module disco_cli._core. Users never import _core; the Python wrappers
 // (disco_cli.bev, ...) check shapes and dtypes and call it.
+#include <pybind11/eigen.h>  // relative pose: 4 x 4 transforms
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
-#include "disco/version.hpp"
-#include "disco/polar_bev.hpp"  // polar BEV voxelizer
-#include "disco/raycast.hpp"  // simulator ray casting
-#include "disco/icp.hpp"  // relative pose
+#include "disco/icp.hpp"          // relative pose
 #include "disco/int8_search.hpp"  // signature search
-#include <pybind11/eigen.h>  // relative pose: 4 x 4 transforms
+#include "disco/polar_bev.hpp"    // polar BEV voxelizer
+#include "disco/raycast.hpp"      // simulator ray casting
+#include "disco/version.hpp"
 
 namespace py = pybind11;
 
@@ -24,9 +24,11 @@ PYBIND11_MODULE(_core, m) {
         // strides and are read in place (no copy); the Python wrapper (disco_cli.bev)
         // converts anything else once before calling.
         auto view_of = [](const py::handle& obj) -> disco::AnyBEVPointsView {
-            if (!py::isinstance<py::array>(obj)) throw py::type_error("points must be a numpy array");
+            if (!py::isinstance<py::array>(obj))
+                throw py::type_error("points must be a numpy array");
             auto a = py::reinterpret_borrow<py::array>(obj);
-            if (a.ndim() != 2 || a.shape(1) < 3) throw py::value_error("points must be N x 3 or wider");
+            if (a.ndim() != 2 || a.shape(1) < 3)
+                throw py::value_error("points must be N x 3 or wider");
             const auto item = a.itemsize();
             const auto rows = a.shape(0);
             // Strides of an empty or one-row array are never used to step, and NumPy
@@ -38,9 +40,11 @@ PYBIND11_MODULE(_core, m) {
             const Eigen::Index n = rows;
             const Eigen::Stride<Eigen::Dynamic, Eigen::Dynamic> stride(rs / item, cs / item);
             if (py::isinstance<py::array_t<float>>(a))
-                return disco::BEVPointsView<float>(static_cast<const float*>(a.data()), n, 3, stride);
+                return disco::BEVPointsView<float>(static_cast<const float*>(a.data()), n, 3,
+                                                   stride);
             if (py::isinstance<py::array_t<double>>(a))
-                return disco::BEVPointsView<double>(static_cast<const double*>(a.data()), n, 3, stride);
+                return disco::BEVPointsView<double>(static_cast<const double*>(a.data()), n, 3,
+                                                    stride);
             throw py::type_error("points must be float32 or float64");
         };
 
@@ -74,7 +78,8 @@ PYBIND11_MODULE(_core, m) {
                 }
                 return out;
             },
-            py::arg("points"), py::arg("config"), "[layers, rings, sectors] float32 BEV of one scan");
+            py::arg("points"), py::arg("config"),
+            "[layers, rings, sectors] float32 BEV of one scan");
         m.def(
             "polar_bev_batch",
             [view_of](const py::list& scans, const disco::BEVConfig& config, int threads) {
@@ -110,27 +115,29 @@ PYBIND11_MODULE(_core, m) {
         // The Python wrapper (disco_cli.simulator.world) builds the primitive table
         // and checks shapes; here only what C++ itself relies on is checked.
         py::class_<disco::RaycastWorld>(m, "RaycastWorld")
-            .def(py::init([](const py::array_t<double, py::array::c_style | py::array::forcecast>&
-                                 table,
-                             double a, double b, double c, double cell_size) {
-                     // table: N x 9 rows of kind, cx, cy, cz, hx, hy, hz, yaw, hit_prob.
-                     if (table.ndim() != 2 || table.shape(1) != 9)
-                         throw py::value_error("primitive table must be N x 9");
-                     std::vector<disco::Primitive> prims(static_cast<std::size_t>(table.shape(0)));
-                     auto t = table.unchecked<2>();
-                     for (py::ssize_t k = 0; k < table.shape(0); ++k) {
-                         const int kind = static_cast<int>(t(k, 0));
-                         if (kind < 0 || kind > 2) throw py::value_error("unknown primitive kind");
-                         auto& p = prims[static_cast<std::size_t>(k)];
-                         p.kind = static_cast<disco::PrimitiveKind>(kind);
-                         p.cx = t(k, 1), p.cy = t(k, 2), p.cz = t(k, 3);
-                         p.hx = t(k, 4), p.hy = t(k, 5), p.hz = t(k, 6);
-                         p.yaw = t(k, 7), p.hit_prob = t(k, 8);
-                     }
-                     disco::GroundPlane ground{a, b, c};
-                     py::gil_scoped_release release;
-                     return new disco::RaycastWorld(std::move(prims), ground, cell_size);
-                 }),
+            .def(py::init(
+                     [](const py::array_t<double, py::array::c_style | py::array::forcecast>& table,
+                        double a, double b, double c, double cell_size) {
+                         // table: N x 9 rows of kind, cx, cy, cz, hx, hy, hz, yaw, hit_prob.
+                         if (table.ndim() != 2 || table.shape(1) != 9)
+                             throw py::value_error("primitive table must be N x 9");
+                         std::vector<disco::Primitive> prims(
+                             static_cast<std::size_t>(table.shape(0)));
+                         auto t = table.unchecked<2>();
+                         for (py::ssize_t k = 0; k < table.shape(0); ++k) {
+                             const int kind = static_cast<int>(t(k, 0));
+                             if (kind < 0 || kind > 2)
+                                 throw py::value_error("unknown primitive kind");
+                             auto& p = prims[static_cast<std::size_t>(k)];
+                             p.kind = static_cast<disco::PrimitiveKind>(kind);
+                             p.cx = t(k, 1), p.cy = t(k, 2), p.cz = t(k, 3);
+                             p.hx = t(k, 4), p.hy = t(k, 5), p.hz = t(k, 6);
+                             p.yaw = t(k, 7), p.hit_prob = t(k, 8);
+                         }
+                         disco::GroundPlane ground{a, b, c};
+                         py::gil_scoped_release release;
+                         return new disco::RaycastWorld(std::move(prims), ground, cell_size);
+                     }),
                  py::arg("table"), py::arg("a"), py::arg("b"), py::arg("c"), py::arg("cell_size"))
             .def_property_readonly("size", &disco::RaycastWorld::size)
             .def_property_readonly("grid_shape",
@@ -235,12 +242,12 @@ PYBIND11_MODULE(_core, m) {
             .def_readonly("inliers", &disco::IcpResult::inliers);
 
         py::class_<disco::PlaneTarget>(m, "PlaneTarget")
-            .def(py::init([icp_view](const py::array_t<float>& points,
-                                     const disco::IcpConfig& config) {
-                     const disco::CloudView view = icp_view(points);
-                     py::gil_scoped_release release;
-                     return new disco::PlaneTarget(view, config);
-                 }),
+            .def(py::init(
+                     [icp_view](const py::array_t<float>& points, const disco::IcpConfig& config) {
+                         const disco::CloudView view = icp_view(points);
+                         py::gil_scoped_release release;
+                         return new disco::PlaneTarget(view, config);
+                     }),
                  py::arg("points"), py::arg("config"))
             .def(
                 "align",
@@ -254,10 +261,9 @@ PYBIND11_MODULE(_core, m) {
                 },
                 py::arg("source"), py::arg("initial"), py::arg("first_stage") = 0,
                 py::arg("last_stage") = -1, py::arg("max_iterations") = -1)
-            .def_property_readonly("points",
-                                   [icp_to_matrix](const disco::PlaneTarget& t) {
-                                       return icp_to_matrix(t.points());
-                                   })
+            .def_property_readonly(
+                "points",
+                [icp_to_matrix](const disco::PlaneTarget& t) { return icp_to_matrix(t.points()); })
             .def_property_readonly("normals", [icp_to_matrix](const disco::PlaneTarget& t) {
                 return icp_to_matrix(t.normals());
             });
@@ -326,10 +332,12 @@ PYBIND11_MODULE(_core, m) {
             "int8_candidates",
             [rows_of](const I8& codes, const F64& code_sq, const F64& code_norm, const F64& err,
                       const I16& g, double u_sq, double step, double delta_norm, int k,
-                      std::int64_t limit, std::optional<py::array_t<std::uint8_t, py::array::c_style>> exclude,
+                      std::int64_t limit,
+                      std::optional<py::array_t<std::uint8_t, py::array::c_style>> exclude,
                       int threads) {
                 const disco::Int8Rows rows = rows_of(codes, code_sq, code_norm, err);
-                if (g.ndim() != 1 || g.shape(0) != rows.d) throw py::value_error("g must be [d] int16");
+                if (g.ndim() != 1 || g.shape(0) != rows.d)
+                    throw py::value_error("g must be [d] int16");
                 const std::uint8_t* ex = nullptr;
                 if (exclude) {
                     if (exclude->size() < std::min<std::int64_t>(limit, rows.n))
@@ -344,9 +352,9 @@ PYBIND11_MODULE(_core, m) {
                 }
                 return py::array_t<std::int64_t>(static_cast<py::ssize_t>(out.size()), out.data());
             },
-            py::arg("codes"), py::arg("code_sq"), py::arg("code_norm"), py::arg("err"), py::arg("g"),
-            py::arg("u_sq"), py::arg("step"), py::arg("delta_norm"), py::arg("k"), py::arg("limit"),
-            py::arg("exclude") = py::none(), py::arg("threads") = 1,
+            py::arg("codes"), py::arg("code_sq"), py::arg("code_norm"), py::arg("err"),
+            py::arg("g"), py::arg("u_sq"), py::arg("step"), py::arg("delta_norm"), py::arg("k"),
+            py::arg("limit"), py::arg("exclude") = py::none(), py::arg("threads") = 1,
             "Rows whose distance lower bound is at most the k-th smallest upper bound");
         m.def(
             "int8_dots",

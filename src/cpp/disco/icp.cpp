@@ -36,8 +36,8 @@ void reorthonormalize(Eigen::Matrix4d* T) {
 Points3d crop_points(const CloudView& points, double max_range) {
     Points3d out;
     out.reserve(static_cast<std::size_t>(points.rows()));
-    const double r2 = max_range > 0.0 ? max_range * max_range
-                                      : std::numeric_limits<double>::infinity();
+    const double r2 =
+        max_range > 0.0 ? max_range * max_range : std::numeric_limits<double>::infinity();
     for (Eigen::Index i = 0; i < points.rows(); ++i) {
         const Eigen::Vector3d p(points(i, 0), points(i, 1), points(i, 2));
         if (!p.allFinite() || p.squaredNorm() > r2) continue;
@@ -167,8 +167,8 @@ IcpResult PlaneTarget::align(const Points3d& source, const Eigen::Matrix4d& init
     for (const auto& p : source) {
         const Eigen::Vector3d q = R * p + t;
         const int c = coarse.nearest(q, nullptr);
-        const bool ground = c >= 0 && normals_[c].allFinite() &&
-                            std::abs(normals_[c].z()) > config_.horizontal_cos;
+        const bool ground =
+            c >= 0 && normals_[c].allFinite() && std::abs(normals_[c].z()) > config_.horizontal_cos;
         structure += ground ? 0 : 1;
         double d2 = 0.0;
         const int j = inlier_grid_.nearest(q, &d2);

@@ -16,20 +16,20 @@
 namespace disco {
 
 // N x C float32 points (C >= 3; x, y, z first) with any strides: a NumPy view.
-using CloudView = Eigen::Map<const Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic,
-                                                  Eigen::RowMajor>,
-                              0, Eigen::Stride<Eigen::Dynamic, Eigen::Dynamic>>;
+using CloudView =
+    Eigen::Map<const Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>, 0,
+               Eigen::Stride<Eigen::Dynamic, Eigen::Dynamic>>;
 
 struct IcpConfig {
-    double source_voxel = 1.0;   // query downsampling (m)
-    double target_voxel = 0.5;   // match downsampling (m)
-    double max_range = 60.0;     // drop points farther from the sensor (m); <= 0 keeps all
-    double normal_radius = 1.0;  // cell edge for the target normals (m)
+    double source_voxel = 1.0;     // query downsampling (m)
+    double target_voxel = 0.5;     // match downsampling (m)
+    double max_range = 60.0;       // drop points farther from the sensor (m); <= 0 keeps all
+    double normal_radius = 1.0;    // cell edge for the target normals (m)
     int normal_min_neighbors = 5;  // fewer points in a cell: no normal there
     // Maximum correspondence distance of each coarse-to-fine stage (m).
     std::vector<double> stages = {2.0, 1.0, 0.5};
-    int max_iterations = 15;     // per stage
-    double convergence = 5e-4;   // stop a stage when the update is smaller (rad and m)
+    int max_iterations = 15;       // per stage
+    double convergence = 5e-4;     // stop a stage when the update is smaller (rad and m)
     double inlier_distance = 0.5;  // a source point is an inlier within this distance (m)
     // A surface with |normal_z| above this is ground-like: left out of `fitness`,
     // since any two flat grounds overlap whether the places match or not.
@@ -42,7 +42,7 @@ struct IcpResult {
     double fitness_all = 0.0;  // inlier ratio over all source points
     double rmse = 0.0;         // RMS point-to-plane distance of the inliers (m)
     int iterations = 0;
-    int source_points = 0;     // after cropping and downsampling
+    int source_points = 0;  // after cropping and downsampling
     int target_points = 0;
     int inliers = 0;
 };
@@ -51,7 +51,7 @@ struct IcpResult {
 Points3d crop_points(const CloudView& points, double max_range);
 
 class PlaneTarget {
-   public:
+  public:
     PlaneTarget(const CloudView& points, const IcpConfig& config);
 
     // Align the (cropped, downsampled) source to the target, starting from
@@ -63,7 +63,7 @@ class PlaneTarget {
     const Points3d& points() const { return points_; }
     const Points3d& normals() const { return normals_; }  // NaN where too few neighbours
 
-   private:
+  private:
     IcpConfig config_;
     Points3d points_;
     Points3d normals_;

@@ -88,24 +88,24 @@ namespace {
 
 // One row's codes and sums. `inline` body shared by the plain and the AVX2 build
 // (where nearbyint becomes one rounding instruction and the loop vectorizes).
-#define DISCO_ENCODE_ROW_BODY                                                      \
-    double sq = 0.0, norm = 0.0, e = 0.0;                                          \
-    for (std::int64_t j = 0; j < d; ++j) {                                         \
-        const double centred = static_cast<double>(row[j]) - mean[j];              \
-        const double v = std::min(127.0, std::max(-127.0, centred * inv[j]));      \
-        const double c = std::nearbyint(v);                                        \
-        out[j] = static_cast<std::int8_t>(c);                                      \
-        const double sc = c * scale[j];                                            \
-        sq += sc * sc;                                                             \
-        norm += c * c;                                                             \
-        e += (centred - sc) * (centred - sc);                                      \
-    }                                                                              \
-    *code_sq = sq;                                                                 \
-    *code_norm = std::sqrt(norm);                                                  \
+#define DISCO_ENCODE_ROW_BODY                                                 \
+    double sq = 0.0, norm = 0.0, e = 0.0;                                     \
+    for (std::int64_t j = 0; j < d; ++j) {                                    \
+        const double centred = static_cast<double>(row[j]) - mean[j];         \
+        const double v = std::min(127.0, std::max(-127.0, centred * inv[j])); \
+        const double c = std::nearbyint(v);                                   \
+        out[j] = static_cast<std::int8_t>(c);                                 \
+        const double sc = c * scale[j];                                       \
+        sq += sc * sc;                                                        \
+        norm += c * c;                                                        \
+        e += (centred - sc) * (centred - sc);                                 \
+    }                                                                         \
+    *code_sq = sq;                                                            \
+    *code_norm = std::sqrt(norm);                                             \
     *err = std::sqrt(e);
 
-using EncodeFn = void (*)(const float*, std::int64_t, const double*, const double*,
-                          const double*, std::int8_t*, double*, double*, double*);
+using EncodeFn = void (*)(const float*, std::int64_t, const double*, const double*, const double*,
+                          std::int8_t*, double*, double*, double*);
 
 void encode_row_plain(const float* row, std::int64_t d, const double* mean, const double* scale,
                       const double* inv, std::int8_t* out, double* code_sq, double* code_norm,
@@ -114,11 +114,11 @@ void encode_row_plain(const float* row, std::int64_t d, const double* mean, cons
 }
 
 #ifdef DISCO_X86
-__attribute__((target("avx2,fma"))) void encode_row_avx2(
-    const float* row, std::int64_t d, const double* mean, const double* scale, const double* inv,
-    std::int8_t* out, double* code_sq, double* code_norm, double* err) {
-    DISCO_ENCODE_ROW_BODY
-}
+__attribute__((target("avx2,fma"))) void encode_row_avx2(const float* row, std::int64_t d,
+                                                         const double* mean, const double* scale,
+                                                         const double* inv, std::int8_t* out,
+                                                         double* code_sq, double* code_norm,
+                                                         double* err){DISCO_ENCODE_ROW_BODY}
 #endif
 #undef DISCO_ENCODE_ROW_BODY
 
@@ -140,8 +140,8 @@ void int8_encode(const float* x, std::int64_t n, std::int64_t d, const double* m
     const EncodeFn encode = pick_encode();
     parallel_rows(n, threads, [&](std::int64_t a, std::int64_t b) {
         for (std::int64_t r = a; r < b; ++r)
-            encode(x + r * d, d, mean, scale, inv.data(), codes + r * d, code_sq + r,
-                   code_norm + r, err + r);
+            encode(x + r * d, d, mean, scale, inv.data(), codes + r * d, code_sq + r, code_norm + r,
+                   err + r);
     });
 }
 

@@ -19,16 +19,16 @@ struct Int8Rows {
     const std::int8_t* codes = nullptr;  // [n, d] row-major
     std::int64_t n = 0;
     std::int64_t d = 0;
-    const double* code_sq = nullptr;  // [n] |scale * c|^2
+    const double* code_sq = nullptr;    // [n] |scale * c|^2
     const double* code_norm = nullptr;  // [n] |c|
-    const double* err = nullptr;  // [n] |x - x_hat|, rounded up
+    const double* err = nullptr;        // [n] |x - x_hat|, rounded up
 };
 
 struct Int8Query {
     const std::int16_t* g = nullptr;  // [d]
-    double u_sq = 0.0;  // |q - mean|^2
-    double step = 0.0;  // t
-    double delta_norm = 0.0;  // |w - t g|
+    double u_sq = 0.0;                // |q - mean|^2
+    double step = 0.0;                // t
+    double delta_norm = 0.0;          // |w - t g|
 };
 
 // Rows < limit that are not excluded (exclude may be null) and whose lower bound is

@@ -12,10 +12,9 @@
 // it crosses (Amanatides-Woo DDA) and stops at the first cell whose far edge
 // lies beyond the nearest hit found so far.
 
+#include <Eigen/Core>
 #include <cstdint>
 #include <vector>
-
-#include <Eigen/Core>
 
 namespace disco {
 
@@ -41,7 +40,7 @@ constexpr std::int32_t kGround = -1;
 constexpr std::int32_t kMiss = -2;
 
 class RaycastWorld {
-   public:
+  public:
     RaycastWorld(std::vector<Primitive> primitives, GroundPlane ground, double cell_size);
 
     // Casts `n` rays from `origin` along unit directions `dirs` (n x 3, world frame,
@@ -60,7 +59,7 @@ class RaycastWorld {
     int grid_nx() const { return nx_; }
     int grid_ny() const { return ny_; }
 
-   private:
+  private:
     bool intersect(std::size_t k, const Eigen::Vector3d& o, const Eigen::Vector3d& d, double t_max,
                    double& t, Eigen::Vector3d& normal) const;
 
@@ -70,7 +69,7 @@ class RaycastWorld {
     double cell_ = 4.0;
     double x0_ = 0, y0_ = 0;
     int nx_ = 0, ny_ = 0;
-    double z_max_ = 0;                    // highest point of any primitive
+    double z_max_ = 0;                      // highest point of any primitive
     std::vector<std::int32_t> cell_start_;  // CSR: cell -> [start, end) in cell_items_
     std::vector<std::int32_t> cell_items_;
     std::vector<float> cell_zmax_;

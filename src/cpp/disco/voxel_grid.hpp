@@ -28,7 +28,7 @@ inline Eigen::Vector3i voxel_of(const Eigen::Vector3d& p, double inv_size) {
 
 // Open-addressing hash table from a packed voxel key to a dense slot 0..size-1.
 class VoxelIndex {
-   public:
+  public:
     explicit VoxelIndex(std::size_t expected = 0) { reserve(expected); }
 
     void reserve(std::size_t expected) {
@@ -65,7 +65,7 @@ class VoxelIndex {
 
     std::size_t size() const { return size_; }
 
-   private:
+  private:
     static constexpr std::int64_t kEmpty = std::numeric_limits<std::int64_t>::min();
 
     // Fibonacci hashing: the top bits of key * 2^64 / phi, which depend on every
@@ -112,7 +112,7 @@ Points3d voxel_downsample(const Points3d& points, double voxel);
 // Points bucketed by voxels of edge `radius`, so that every point within
 // `radius` of a query lies in the 3 x 3 x 3 block of voxels around it.
 class NeighborGrid {
-   public:
+  public:
     NeighborGrid() = default;
     NeighborGrid(const Points3d& points, double radius);
 
@@ -124,7 +124,7 @@ class NeighborGrid {
 
     double radius() const { return radius_; }
 
-   private:
+  private:
     template <typename Visit>
     void visit_cells(const Eigen::Vector3d& q, const double* bound2, Visit&& visit) const;
 
