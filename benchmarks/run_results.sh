@@ -7,14 +7,13 @@
 #   benchmarks/run_results.sh               # all models that are available
 #   MODELS="spectral scancontext" benchmarks/run_results.sh
 #
-# Seeds >= 1000 are never used for training. Takes a few minutes on 2 cores.
+# Seeds >= 1000 are never used for training. Takes about 7 minutes on 2 cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DISCO=${DISCO:-.venv/bin/disco}
 PY=${PY:-.venv/bin/python}
 OUT=${OUT:-out/results}
 REALDATA=${REALDATA:-../shared/realdata}
-LENGTH_M=${LENGTH_M:-300}
 if [[ -z "${MODELS:-}" ]]; then
   MODELS="spectral scancontext"
   # The shipped network, once its weights exist.
@@ -26,12 +25,14 @@ mkdir -p "$OUT/reports"
 
 # name:sensor:seed. sim-vlp16-s1000 is the town of sim-hdl32 (same seed, same routes) seen
 # by a 16-beam sensor: its session 01 queried against sim-hdl32's map is the cross-sensor test.
-WORLDS="sim-hdl32:hdl32:1000 sim-vlp16:vlp16:1001 sim-vlp16-s1000:vlp16:1000"
+# The 400 m towns (seeds 1002, 1003) are larger, and their revisits run 2-3 m from the map.
+WORLDS="sim-hdl32:hdl32:1000:300 sim-vlp16:vlp16:1001:300 sim-vlp16-s1000:vlp16:1000:300"
+WORLDS="$WORLDS sim400-hdl32:hdl32:1002:400 sim400-vlp16:vlp16:1003:400"
 
 for spec in $WORLDS; do
-  IFS=: read -r name sensor seed <<<"$spec"
+  IFS=: read -r name sensor seed length <<<"$spec"
   if [[ ! -f "$OUT/$name/world.json" ]]; then
-    "$DISCO" simulate "$OUT/$name" --sessions 2 --length-m "$LENGTH_M" --sensor "$sensor" --seed "$seed"
+    "$DISCO" simulate "$OUT/$name" --sessions 2 --length-m "$length" --sensor "$sensor" --seed "$seed"
   fi
 done
 
@@ -84,6 +85,8 @@ fi
 DATA="sim-hdl32:$OUT/sim-hdl32/00:$OUT/sim-hdl32/01"
 DATA="$DATA sim-vlp16:$OUT/sim-vlp16/00:$OUT/sim-vlp16/01"
 DATA="$DATA sim-hdl32-map-vlp16-queries:$OUT/sim-hdl32/00:$OUT/sim-vlp16-s1000/01"
+DATA="$DATA sim400-hdl32:$OUT/sim400-hdl32/00:$OUT/sim400-hdl32/01"
+DATA="$DATA sim400-vlp16:$OUT/sim400-vlp16/00:$OUT/sim400-vlp16/01"
 for name in kitti00-rot kitti00-self; do
   [[ -d "$OUT/$name" ]] && DATA="$DATA $name:$OUT/$name/map:$OUT/$name/query"
 done
@@ -101,7 +104,7 @@ done
 
 # Single-sequence loop closure: session 00 of each world drives a closed loop, so its last
 # scans revisit its first; each scan searches the scans at least 100 frames (100 m) before it.
-LOOPS="sim-hdl32 sim-vlp16"
+LOOPS="sim-hdl32 sim-vlp16 sim400-hdl32 sim400-vlp16"
 for name in $LOOPS; do
   for model in $MODELS; do
     "$DISCO" eval-loops "$OUT/$name/00" --model "$model" --radius 3 --exclude-frames 100 \
