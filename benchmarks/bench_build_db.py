@@ -41,8 +41,15 @@ def model_arg(name: str, tmp: Path) -> tuple[str, str]:
     bev = BEVConfig()
     cfg = default_model_config(bev.heights)
     path = tmp / "untrained-default.pt"
-    save_checkpoint(path, {"state_dict": build_net(cfg).state_dict(), "bev_config": bev.to_dict(),
-                           "model_config": cfg, "command": "bench_build_db"})
+    save_checkpoint(
+        path,
+        {
+            "state_dict": build_net(cfg).state_dict(),
+            "bev_config": bev.to_dict(),
+            "model_config": cfg,
+            "command": "bench_build_db",
+        },
+    )
     return str(path), "default architecture, untrained weights (no shipped weights yet)"
 
 
@@ -50,9 +57,22 @@ def run_cli(scans: Path, out: Path, model: str, workers: int, batch: int) -> tup
     exe = Path(sys.executable).parent / "disco"
     t = time.perf_counter()
     proc = subprocess.run(
-        [str(exe), "build-db", str(scans), "-o", str(out), "--model", model,
-         "--workers", str(workers), "--batch", str(batch)],
-        capture_output=True, text=True, check=True,
+        [
+            str(exe),
+            "build-db",
+            str(scans),
+            "-o",
+            str(out),
+            "--model",
+            model,
+            "--workers",
+            str(workers),
+            "--batch",
+            str(batch),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
     )
     wall = time.perf_counter() - t
     m = re.search(r"\(([\d.]+) scans/s\)", proc.stderr)
@@ -71,7 +91,7 @@ def serial_baseline(paths: list[Path], model_name: str, batch: int, out: Path) -
     db = None
     start = time.perf_counter()
     for s in range(0, len(paths), batch):
-        chunk = paths[s:s + batch]
+        chunk = paths[s : s + batch]
         t0 = time.perf_counter()
         pts = [read_scan(p) for p in chunk]
         t1 = time.perf_counter()
@@ -92,8 +112,13 @@ def serial_baseline(paths: list[Path], model_name: str, batch: int, out: Path) -
     db.close()
     total = time.perf_counter() - start
     n = len(paths)
-    return {"rate": n / total, "read_ms": 1e3 * t_read / n, "bev_ms": 1e3 * t_bev / n,
-            "net_ms": 1e3 * t_net / n, "write_ms": 1e3 * t_write / n}
+    return {
+        "rate": n / total,
+        "read_ms": 1e3 * t_read / n,
+        "bev_ms": 1e3 * t_bev / n,
+        "net_ms": 1e3 * t_net / n,
+        "write_ms": 1e3 * t_write / n,
+    }
 
 
 def main() -> None:
@@ -118,14 +143,18 @@ def main() -> None:
             paths.append(p)
         print(f"{args.scans} scans of {args.points} points; model: {what}")
         base = serial_baseline(paths, model, args.batch, tmp / "serial.db")
-        print(f"serial baseline (this process): {base['rate']:.1f} scans/s = read "
-              f"{base['read_ms']:.2f} + voxelize {base['bev_ms']:.2f} + network "
-              f"{base['net_ms']:.2f} + write {base['write_ms']:.2f} ms/scan")
+        print(
+            f"serial baseline (this process): {base['rate']:.1f} scans/s = read "
+            f"{base['read_ms']:.2f} + voxelize {base['bev_ms']:.2f} + network "
+            f"{base['net_ms']:.2f} + write {base['write_ms']:.2f} ms/scan"
+        )
         for workers in (1, 2):
             rate, wall = run_cli(scans, tmp / f"cli{workers}.db", model, workers, args.batch)
-            print(f"disco build-db --workers {workers} --batch {args.batch}: {rate:.1f} scans/s "
-                  f"(as printed; {args.scans / wall:.1f} scans/s including process start, "
-                  f"{wall:.1f} s wall); {rate / base['rate']:.2f}x the serial baseline")
+            print(
+                f"disco build-db --workers {workers} --batch {args.batch}: {rate:.1f} scans/s "
+                f"(as printed; {args.scans / wall:.1f} scans/s including process start, "
+                f"{wall:.1f} s wall); {rate / base['rate']:.2f}x the serial baseline"
+            )
 
 
 if __name__ == "__main__":

@@ -82,8 +82,11 @@ def yaw_accuracy(spins: int = 8) -> None:
     poses = read_kitti_poses(seq / "poses.txt", seq / "calib.txt")
     frames = sorted(list_scans(seq / "velodyne"))
     names = ["spectral"] + (["default"] if DEFAULT_WEIGHTS.is_file() else [])
-    print("\n| model | KITTI scan vs rotated self: mean / max error (deg) | KITTI i vs i+1: mean / max "
-          "| hdl32 scan vs rotated self: mean / max |")
+    print(
+        "\n| model | KITTI scan vs rotated self: mean / max error (deg) "
+        "| KITTI i vs i+1: mean / max "
+        "| hdl32 scan vs rotated self: mean / max |"
+    )
     print("| --- | ---: | ---: | ---: |")
     for name in names:
         model = load_model(name)
@@ -106,20 +109,29 @@ def yaw_accuracy(spins: int = 8) -> None:
         for path in sorted((real / "hdl32_pair").glob("*.bin")):
             pts = read_scan(path)
             angles = rng.uniform(-180.0, 180.0, spins)
-            _, f = model.embed(polar_bev_batch([pts] + [rotate(pts, a) for a in angles], model.bev_config))
+            _, f = model.embed(
+                polar_bev_batch([pts] + [rotate(pts, a) for a in angles], model.bev_config)
+            )
             est = np.array([model.yaw(q, f[:1])[0] for q in f[1:]])
             hdl_err += list(np.abs(wrap_deg(est + angles)))
-        cells = [f"{np.mean(e):.2f} / {np.max(e):.2f}" if e else "-" for e in (self_err, next_err, hdl_err)]
+        cells = [
+            f"{np.mean(e):.2f} / {np.max(e):.2f}" if e else "-"
+            for e in (self_err, next_err, hdl_err)
+        ]
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--widths", type=int, nargs="*", default=[8, 16, 64])
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    ap.add_argument("--accuracy", action="store_true", help="yaw accuracy on the real scans instead")
+    ap.add_argument(
+        "--accuracy", action="store_true", help="yaw accuracy on the real scans instead"
+    )
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -132,9 +144,14 @@ def main() -> None:
     bev = polar_bev(points, config)
     rng = np.random.default_rng(0)
     bevs = np.stack([np.roll(bev, int(k), axis=-1) for k in rng.integers(0, 120, args.batch)])
-    print(f"# bench_model: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"torch {torch.__version__} on {torch.get_num_threads()} threads")
-    print(f"# scan {scan_path.name}: {len(points)} points; batch {args.batch}; medians of {args.repeat}")
+    print(
+        f"# bench_model: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"torch {torch.__version__} on {torch.get_num_threads()} threads"
+    )
+    print(
+        f"# scan {scan_path.name}: {len(points)} points; batch {args.batch}; "
+        f"medians of {args.repeat}"
+    )
 
     models = {"spectral": load_model("spectral")}
     if DEFAULT_WEIGHTS.is_file():
@@ -144,8 +161,10 @@ def main() -> None:
         cfg = default_model_config(config.heights, w)
         models[f"unet-w{w} (random)"] = DiscoModel(build_net(cfg), config, cfg, name=f"w{w}")
 
-    print("\n| model | signature per scan, batched: wall / CPU (ms) "
-          "| single scan, read + BEV + embed: wall / CPU (ms) |")
+    print(
+        "\n| model | signature per scan, batched: wall / CPU (ms) "
+        "| single scan, read + BEV + embed: wall / CPU (ms) |"
+    )
     print("| --- | ---: | ---: |")
     for name, model in models.items():
         bw, bc = median_ms(lambda m=model: m.embed(bevs), args.repeat)
@@ -161,9 +180,11 @@ def main() -> None:
     q, cands = feats[0], feats[1:]
     fast = median_ms(lambda: estimate_yaw(q, cands), max(args.repeat, 20))[0]
     slow = median_ms(lambda: exhaustive_yaw(q, cands), 3, warmup=1)[0]
-    print(f"\nyaw, 10 candidates ({next(k for k, v in models.items() if v is model)} features): "
-          f"phase correlation {fast:.3f} ms, exhaustive shift search {slow:.1f} ms "
-          f"({slow / fast:.0f}x)")
+    print(
+        f"\nyaw, 10 candidates ({next(k for k, v in models.items() if v is model)} features): "
+        f"phase correlation {fast:.3f} ms, exhaustive shift search {slow:.1f} ms "
+        f"({slow / fast:.0f}x)"
+    )
 
 
 if __name__ == "__main__":

@@ -65,21 +65,29 @@ def synthetic_street(rng: np.random.Generator, n: int = 30000) -> np.ndarray:
     for side in (-1, 1):
         for x0 in np.arange(-40, 40, 12.0):
             m = n // 30
-            parts.append(np.c_[rng.uniform(x0, x0 + rng.uniform(6, 11), m),
-                               np.full(m, side * rng.uniform(7, 12)), rng.uniform(-1.8, 8, m)])
+            parts.append(
+                np.c_[
+                    rng.uniform(x0, x0 + rng.uniform(6, 11), m),
+                    np.full(m, side * rng.uniform(7, 12)),
+                    rng.uniform(-1.8, 8, m),
+                ]
+            )
     for _ in range(12):
         c = rng.uniform(-35, 35, 2)
         m = n // 60
-        parts.append(np.c_[c[0] + rng.uniform(-2, 2, m), np.full(m, c[1] + 1.0),
-                           rng.uniform(-1.8, 0.5, m)])
+        parts.append(
+            np.c_[c[0] + rng.uniform(-2, 2, m), np.full(m, c[1] + 1.0), rng.uniform(-1.8, 0.5, m)]
+        )
     pts = np.concatenate(parts)
     return np.c_[pts, np.zeros(len(pts))].astype(np.float32)
 
 
 # --- the NumPy + SciPy baseline: the same ICP, written the obvious way -------------------
 
-def baseline_icp(source: np.ndarray, match: np.ndarray, initial: np.ndarray,
-                 config: PoseConfig) -> np.ndarray:
+
+def baseline_icp(
+    source: np.ndarray, match: np.ndarray, initial: np.ndarray, config: PoseConfig
+) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     target = _core.icp_voxel_downsample(match, config.target_voxel)
@@ -118,6 +126,7 @@ def baseline_icp(source: np.ndarray, match: np.ndarray, initial: np.ndarray,
 
 # --- timing -------------------------------------------------------------------------------
 
+
 def measure(fn, repeats: int) -> tuple[float, float]:
     """Median wall and CPU milliseconds of fn() (after one warm-up call)."""
     fn()
@@ -146,9 +155,11 @@ def calibrate(config: PoseConfig) -> None:
             return
         f = np.array([r.fitness for r in results])
         e = np.array([r.rmse for r in results])
-        print(f"{name}: {len(results)} pairs, fitness {f.min():.2f}-{f.max():.2f}, "
-              f"rmse {np.nanmin(e):.2f}-{np.nanmax(e):.2f} m, accepted "
-              f"{sum(r.accepted for r in results)}")
+        print(
+            f"{name}: {len(results)} pairs, fitness {f.min():.2f}-{f.max():.2f}, "
+            f"rmse {np.nanmin(e):.2f}-{np.nanmax(e):.2f} m, accepted "
+            f"{sum(r.accepted for r in results)}"
+        )
 
     if (SAMPLES / "00" / "poses.txt").is_file():
         from disco_cli.poses import read_kitti_poses
@@ -172,8 +183,9 @@ def calibrate(config: PoseConfig) -> None:
             a, b = items[rng.integers(len(items))], items[rng.integers(len(items))]
             T = np.linalg.inv(poses[b[0]][b[1]]) @ poses[a[0]][a[1]]
             if np.linalg.norm(T[:2, 3]) > 20.0:
-                wrong.append(estimate_relative_pose(scan(*a), scan(*b), rng.uniform(-180, 180),
-                                                    config))
+                wrong.append(
+                    estimate_relative_pose(scan(*a), scan(*b), rng.uniform(-180, 180), config)
+                )
         report("simulated revisits within 3 m (data/samples)", right)
         # Farther pairs, 3-14 m (beyond max_translation some must fail): the fitness of
         # those registered right (within 0.2 m of the truth) and of those registered wrong.
@@ -189,9 +201,11 @@ def calibrate(config: PoseConfig) -> None:
                 err = float(np.linalg.norm((np.linalg.inv(T) @ r.T)[:3, 3]))
                 (good if err < 0.2 else bad).append((d, r.fitness))
         g, w = np.array(good), np.array(bad)
-        print(f"simulated pairs 3-14 m apart: {len(g)} registered within 0.2 m, fitness min "
-              f"{g[:, 1].min():.2f} (min {g[g[:, 0] < 10, 1].min():.2f} within 10 m); "
-              f"{len(w)} registered wrong, fitness max {w[:, 1].max():.2f}")
+        print(
+            f"simulated pairs 3-14 m apart: {len(g)} registered within 0.2 m, fitness min "
+            f"{g[:, 1].min():.2f} (min {g[g[:, 0] < 10, 1].min():.2f} within 10 m); "
+            f"{len(w)} registered wrong, fitness max {w[:, 1].max():.2f}"
+        )
         report("simulated wrong places (> 20 m apart, random yaw)", wrong)
         # Why ground-like points are left out of fitness: ICP from identity on wrong pairs.
         icp = _icp_config(config)
@@ -201,11 +215,14 @@ def calibrate(config: PoseConfig) -> None:
             T = np.linalg.inv(poses[b[0]][b[1]]) @ poses[a[0]][a[1]]
             if np.linalg.norm(T[:2, 3]) > 20.0:
                 r = _core.PlaneTarget(scan(*b), icp).align(
-                    _core.icp_prepare_source(scan(*a), icp), np.eye(4))
+                    _core.icp_prepare_source(scan(*a), icp), np.eye(4)
+                )
                 ratios.append((r.fitness, r.fitness_all))
         f = np.array(ratios)
-        print(f"  wrong places, ICP from identity: fitness without ground-like points max "
-              f"{f[:, 0].max():.2f}, with them max {f[:, 1].max():.2f}")
+        print(
+            f"  wrong places, ICP from identity: fitness without ground-like points max "
+            f"{f[:, 0].max():.2f}, with them max {f[:, 1].max():.2f}"
+        )
     if (REAL / "kitti00").is_dir():
         from disco_cli.poses import read_kitti_poses
 
@@ -216,15 +233,24 @@ def calibrate(config: PoseConfig) -> None:
         for i in range(1, 11):
             T = np.linalg.inv(poses[0]) @ poses[i]
             yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
-            real.append(estimate_relative_pose(read_bin(d / "velodyne" / f"{i:06d}.bin"),
-                                               frame0, yaw, config))
+            real.append(
+                estimate_relative_pose(
+                    read_bin(d / "velodyne" / f"{i:06d}.bin"), frame0, yaw, config
+                )
+            )
         h = REAL / "hdl32_pair"
-        real.append(estimate_relative_pose(read_bin(h / "source.bin"), read_bin(h / "target.bin"),
-                                           0.0, config))
+        real.append(
+            estimate_relative_pose(
+                read_bin(h / "source.bin"), read_bin(h / "target.bin"), 0.0, config
+            )
+        )
         report("real consecutive scans (KITTI 0 vs 1..10, HDL-32 pair)", real)
         other = read_bin(h / "source.bin")
-        cross = [estimate_relative_pose(q, m, yaw, config)
-                 for q, m in ((frame0, other), (other, frame0)) for yaw in (0.0, 90.0, -135.0)]
+        cross = [
+            estimate_relative_pose(q, m, yaw, config)
+            for q, m in ((frame0, other), (other, frame0))
+            for yaw in (0.0, 90.0, -135.0)
+        ]
         report("real wrong places (KITTI frame 0 vs HDL-32 scan)", cross)
 
 
@@ -232,8 +258,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=10, help="random transforms per case")
     parser.add_argument("--repeats", type=int, default=5, help="timed calls per pair")
-    parser.add_argument("--calibrate", action="store_true",
-                        help="print fitness/rmse of correct and wrong pairs instead of timings")
+    parser.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="print fitness/rmse of correct and wrong pairs instead of timings",
+    )
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     config = PoseConfig()
@@ -250,8 +279,10 @@ def main() -> None:
     else:
         match, source = synthetic_street(rng), "synthetic street (realdata absent)"
         other = synthetic_street(np.random.default_rng(99))
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"Python {sys.version.split()[0]}; data: {source}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"Python {sys.version.split()[0]}; data: {source}"
+    )
 
     rows = []
     walls, cpus, base_walls, icp_walls, errors = [], [], [], [], []
@@ -280,17 +311,27 @@ def main() -> None:
         icp_walls.append(cw)
     err = np.array(errors)
     rows.append(("correct candidate (30k pts)", np.median(walls), np.median(cpus)))
-    print(f"\ncorrect candidates, {args.pairs} random transforms (yaw +-180, up to 4 m), "
-          f"median of {args.repeats} calls each:")
-    print(f"  estimate_relative_pose  wall {np.median(walls):6.1f} ms  "
-          f"cpu {np.median(cpus):6.1f} ms"
-          f"  (max of medians: wall {max(walls):.1f} ms)")
-    print(f"  NumPy/SciPy ICP alone   wall {np.median(base_walls):6.1f} ms"
-          f"   -> whole C++ pipeline {np.median(base_walls) / np.median(walls):.1f}x faster")
-    print(f"  C++ ICP alone (same)    wall {np.median(icp_walls):6.1f} ms"
-          f"   -> {np.median(base_walls) / np.median(icp_walls):.1f}x the NumPy/SciPy ICP")
-    print(f"  errors: translation max {err[:, 0].max():.3f} m, rotation max {err[:, 1].max():.3f} "
-          f"deg, accepted {int(err[:, 2].sum())}/{len(err)}")
+    print(
+        f"\ncorrect candidates, {args.pairs} random transforms (yaw +-180, up to 4 m), "
+        f"median of {args.repeats} calls each:"
+    )
+    print(
+        f"  estimate_relative_pose  wall {np.median(walls):6.1f} ms  "
+        f"cpu {np.median(cpus):6.1f} ms"
+        f"  (max of medians: wall {max(walls):.1f} ms)"
+    )
+    print(
+        f"  NumPy/SciPy ICP alone   wall {np.median(base_walls):6.1f} ms"
+        f"   -> whole C++ pipeline {np.median(base_walls) / np.median(walls):.1f}x faster"
+    )
+    print(
+        f"  C++ ICP alone (same)    wall {np.median(icp_walls):6.1f} ms"
+        f"   -> {np.median(base_walls) / np.median(icp_walls):.1f}x the NumPy/SciPy ICP"
+    )
+    print(
+        f"  errors: translation max {err[:, 0].max():.3f} m, rotation max {err[:, 1].max():.3f} "
+        f"deg, accepted {int(err[:, 2].sum())}/{len(err)}"
+    )
 
     if full is not None:
         T = np.eye(4)
@@ -301,14 +342,18 @@ def main() -> None:
         w, c = measure(lambda: estimate_relative_pose(query, full, 128.0, config), args.repeats * 3)
         rows.append((f"full KITTI scan ({len(full) // 1000}k pts)", w, c))
         dt, dr = pose_error(T, res.T)
-        print(f"\nfull KITTI scan ({len(full)} points, query {len(query)}): wall {w:6.1f} ms  "
-              f"cpu {c:6.1f} ms; error {dt:.3f} m, {dr:.3f} deg, accepted {res.accepted}")
+        print(
+            f"\nfull KITTI scan ({len(full)} points, query {len(query)}): wall {w:6.1f} ms  "
+            f"cpu {c:6.1f} ms; error {dt:.3f} m, {dr:.3f} deg, accepted {res.accepted}"
+        )
 
     w, c = measure(lambda: estimate_relative_pose(match, other, 40.0, config), args.repeats * 3)
     res = estimate_relative_pose(match, other, 40.0, config)
     rows.append(("wrong candidate (30k pts)", w, c))
-    print(f"\nwrong candidate (KITTI vs elsewhere): wall {w:6.1f} ms  cpu {c:6.1f} ms  "
-          f"accepted {res.accepted} ({res.reason})")
+    print(
+        f"\nwrong candidate (KITTI vs elsewhere): wall {w:6.1f} ms  cpu {c:6.1f} ms  "
+        f"accepted {res.accepted} ({res.reason})"
+    )
 
     if (SAMPLES / "00" / "poses.txt").is_file():
         from disco_cli.poses import read_kitti_poses
@@ -332,13 +377,22 @@ def main() -> None:
                 sc.append(c)
         if sw:
             e = np.array(serr)
-            rows.append((f"simulated reverse revisit (~{len(q) // 1000}k pts)", np.median(sw),
-                         np.median(sc)))
-            print(f"\nsimulated reverse-direction revisits (data/samples 01 vs 00, within 3 m, "
-                  f"|yaw| > 150): {len(sw)} pairs")
-            print(f"  wall {np.median(sw):6.1f} ms  cpu {np.median(sc):6.1f} ms; errors max "
-                  f"{e[:, 0].max():.3f} m, {e[:, 1].max():.3f} deg; accepted {int(e[:, 2].sum())}"
-                  f"/{len(e)}; fitness {e[:, 3].min():.2f}-{e[:, 3].max():.2f}")
+            rows.append(
+                (
+                    f"simulated reverse revisit (~{len(q) // 1000}k pts)",
+                    np.median(sw),
+                    np.median(sc),
+                )
+            )
+            print(
+                f"\nsimulated reverse-direction revisits (data/samples 01 vs 00, within 3 m, "
+                f"|yaw| > 150): {len(sw)} pairs"
+            )
+            print(
+                f"  wall {np.median(sw):6.1f} ms  cpu {np.median(sc):6.1f} ms; errors max "
+                f"{e[:, 0].max():.3f} m, {e[:, 1].max():.3f} deg; accepted {int(e[:, 2].sum())}"
+                f"/{len(e)}; fitness {e[:, 3].min():.2f}-{e[:, 3].max():.2f}"
+            )
 
     print("\n| case | median wall (ms) | median CPU (ms) |\n| --- | --- | --- |")
     for name, w, c in rows:

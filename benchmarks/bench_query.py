@@ -80,8 +80,13 @@ def bench_search(n: int, dim: int, reps: int) -> dict:
         r, _ = index.search(q, 10)
         assert (r == brute_force_topk(index.matrix, q, 10)[0]).all()
     return {
-        "n": n, "dim": dim, "search_ms": median_ms(ts[2:]), "cpu_ms": median_ms(cpu[2:]),
-        "brute_ms": median_ms(base), "sig_mib": n * dim * 4 / 2**20, "index_extra_mib": held,
+        "n": n,
+        "dim": dim,
+        "search_ms": median_ms(ts[2:]),
+        "cpu_ms": median_ms(cpu[2:]),
+        "brute_ms": median_ms(base),
+        "sig_mib": n * dim * 4 / 2**20,
+        "index_extra_mib": held,
         "build_s": build,
     }
 
@@ -145,8 +150,10 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
         t4 = time.perf_counter()
         match_queries(index, ids, db, model, sig, feat, 10)  # search again + rows + yaw
         t5 = time.perf_counter()
-        for k, v in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, (t5 - t4) - (t4 - t3),
-                                 (t3 - t0) + (t5 - t4))):
+        for k, v in zip(
+            stages,
+            (t1 - t0, t2 - t1, t3 - t2, t4 - t3, (t5 - t4) - (t4 - t3), (t3 - t0) + (t5 - t4)),
+        ):
             stages[k].append(v)
     db.close()
     out = {k: median_ms(v[2:]) for k, v in stages.items()}
@@ -158,8 +165,11 @@ def bench_first_result(db: str, scan: str, model: str) -> dict:
     is too fine; instead time the phases in a fresh interpreter)."""
     exe = Path(sys.executable).parent / "disco"
     t = time.perf_counter()
-    subprocess.run([str(exe), "query", scan, "--db", db, "--format", "tsv", "--model", model],
-                   check=True, capture_output=True)
+    subprocess.run(
+        [str(exe), "query", scan, "--db", db, "--format", "tsv", "--model", model],
+        check=True,
+        capture_output=True,
+    )
     total = time.perf_counter() - t
     code = f"""
 import time; t0 = time.perf_counter()
@@ -178,9 +188,15 @@ print(t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)
     interp = time.perf_counter() - t
     cli, imports, model, sigs, first = (float(v) for v in out.stdout.split())
     startup = interp - (cli + imports + model + sigs + first)
-    return {"total_ms": total * 1e3, "python_ms": startup * 1e3, "cli_import_ms": cli * 1e3,
-            "imports_ms": imports * 1e3, "model_ms": model * 1e3, "signatures_ms": sigs * 1e3,
-            "first_query_ms": first * 1e3}
+    return {
+        "total_ms": total * 1e3,
+        "python_ms": startup * 1e3,
+        "cli_import_ms": cli * 1e3,
+        "imports_ms": imports * 1e3,
+        "model_ms": model * 1e3,
+        "signatures_ms": sigs * 1e3,
+        "first_query_ms": first * 1e3,
+    }
 
 
 def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
@@ -195,13 +211,29 @@ def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
     for rows in (100, n):
         db = tmp / f"mem{rows}.db"
         build_synthetic_db(db, model, rows)
-        code = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, "
-                "stdout=subprocess.DEVNULL); "
-                "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+        code = (
+            "import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, "
+            "stdout=subprocess.DEVNULL); "
+            "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
+        )
         t = time.perf_counter()
-        res = subprocess.run([sys.executable, "-c", code, str(exe), "query", str(scan), "--db",
-                              str(db), "--model", model_name],
-                             capture_output=True, text=True, check=True)
+        res = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                code,
+                str(exe),
+                "query",
+                str(scan),
+                "--db",
+                str(db),
+                "--model",
+                model_name,
+            ],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
         out[f"wall{rows}"] = time.perf_counter() - t
         out[rows] = int(res.stdout.split()[-1]) / 1024
         out[f"size{rows}"] = db.stat().st_size / 2**20
@@ -211,8 +243,9 @@ def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
     return out
 
 
-def bench_yaw_f16(model_name: str, map_dir: Path, query_dir: Path, tmp: Path,
-                  radius: float = 5.0) -> dict:
+def bench_yaw_f16(
+    model_name: str, map_dir: Path, query_dir: Path, tmp: Path, radius: float = 5.0
+) -> dict:
     """Yaw from features stored as float16 (through a real database) vs float32, on
     revisits: each query scan with its nearest map scan within `radius` m (poses.txt)."""
     from disco_cli.bev import polar_bev
@@ -225,14 +258,16 @@ def bench_yaw_f16(model_name: str, map_dir: Path, query_dir: Path, tmp: Path,
 
     def embed(folder: Path) -> tuple[list[Path], np.ndarray, np.ndarray, np.ndarray]:
         paths = list_scans(folder)
-        sig, feat = model.embed(np.stack([polar_bev(read_scan(p), model.bev_config)
-                                          for p in paths]))
+        sig, feat = model.embed(
+            np.stack([polar_bev(read_scan(p), model.bev_config) for p in paths])
+        )
         return paths, sig, feat, read_kitti_poses(folder / "poses.txt")
 
     m_paths, m_sig, m_feat, m_pose = embed(map_dir)
     q_paths, _, q_feat, q_pose = embed(query_dir)
-    db = Database.create(tmp / "yaw.db", ModelInfo.of(model),
-                         ScanBatch([str(p) for p in m_paths], m_sig, m_feat))
+    db = Database.create(
+        tmp / "yaw.db", ModelInfo.of(model), ScanBatch([str(p) for p in m_paths], m_sig, m_feat)
+    )
     ids, _ = db.signatures()
     m_feat16 = db.rows(ids).features
     db.close()
@@ -245,16 +280,22 @@ def bench_yaw_f16(model_name: str, map_dir: Path, query_dir: Path, tmp: Path,
         if d[j] > radius:
             continue
         truth = wrap_deg(np.degrees(qyaw[i] - myaw[j]))
-        y32 = float(model.yaw(q_feat[i], m_feat[j:j + 1])[0])
-        y16 = float(model.yaw(q_feat[i], m_feat16[j:j + 1])[0])
+        y32 = float(model.yaw(q_feat[i], m_feat[j : j + 1])[0])
+        y16 = float(model.yaw(q_feat[i], m_feat16[j : j + 1])[0])
         diffs.append(abs(wrap_deg(y16 - y32)))
         err32.append(abs(wrap_deg(y32 - truth)))
         err16.append(abs(wrap_deg(y16 - truth)))
     diffs = np.asarray(diffs)
-    return {"pairs": len(diffs), "max_diff": float(diffs.max()), "mean_diff": float(diffs.mean()),
-            "changed": int(np.count_nonzero(diffs > 1e-3)),
-            "err32": float(np.median(err32)), "err16": float(np.median(err16)),
-            "mean32": float(np.mean(err32)), "mean16": float(np.mean(err16))}
+    return {
+        "pairs": len(diffs),
+        "max_diff": float(diffs.max()),
+        "mean_diff": float(diffs.mean()),
+        "changed": int(np.count_nonzero(diffs > 1e-3)),
+        "err32": float(np.median(err32)),
+        "err16": float(np.median(err16)),
+        "mean32": float(np.mean(err32)),
+        "mean16": float(np.mean(err16)),
+    }
 
 
 def main() -> None:
@@ -264,31 +305,43 @@ def main() -> None:
     ap.add_argument("--dim", type=int, default=1024)
     ap.add_argument("--n-map", type=int, default=10_000)
     ap.add_argument("--queries", type=int, default=30)
-    ap.add_argument("--memory", type=int, default=0,
-                    help="also measure the peak RSS of `disco query` against this many scans")
-    ap.add_argument("--yaw-f16", nargs=2, type=Path, metavar=("MAP_DIR", "QUERY_DIR"),
-                    help="only measure the yaw cost of float16 features on two sessions")
+    ap.add_argument(
+        "--memory",
+        type=int,
+        default=0,
+        help="also measure the peak RSS of `disco query` against this many scans",
+    )
+    ap.add_argument(
+        "--yaw-f16",
+        nargs=2,
+        type=Path,
+        metavar=("MAP_DIR", "QUERY_DIR"),
+        help="only measure the yaw cost of float16 features on two sessions",
+    )
     args = ap.parse_args()
     if args.yaw_f16:
         with tempfile.TemporaryDirectory() as tmp:
             y = bench_yaw_f16(args.model, *args.yaw_f16, Path(tmp))
-        print(f"yaw from float16 vs float32 features ({args.model}), {y['pairs']} revisit pairs: "
-              f"|difference| mean {y['mean_diff']:.4f}, max {y['max_diff']:.4f} deg, "
-              f"{y['changed']} pairs changed by > 0.001 deg; |error| vs ground truth: median "
-              f"{y['err32']:.3f} (float32) / {y['err16']:.3f} (float16), mean {y['mean32']:.3f} "
-              f"/ {y['mean16']:.3f} deg")
+        print(
+            f"yaw from float16 vs float32 features ({args.model}), {y['pairs']} revisit pairs: "
+            f"|difference| mean {y['mean_diff']:.4f}, max {y['max_diff']:.4f} deg, "
+            f"{y['changed']} pairs changed by > 0.001 deg; |error| vs ground truth: median "
+            f"{y['err32']:.3f} (float32) / {y['err16']:.3f} (float16), mean {y['mean32']:.3f} "
+            f"/ {y['mean16']:.3f} deg"
+        )
         return
-    print(f"cores: {os.cpu_count()}, numpy {np.__version__}, load average "
-          f"{os.getloadavg()[0]:.1f}")
+    print(f"cores: {os.cpu_count()}, numpy {np.__version__}, load average {os.getloadavg()[0]:.1f}")
 
     for n in (10_000, args.n_search):
         r = bench_search(n, args.dim, 30)
-        print(f"search alone, random signatures, {r['n']} x {r['dim']} float32 "
-              f"({r['sig_mib']:.0f} MiB): {r['search_ms']:.2f} ms/query (median; CPU time of all "
-              f"threads {r['cpu_ms']:.2f} ms), NumPy brute "
-              f"force {r['brute_ms']:.1f} ms ({r['brute_ms'] / r['search_ms']:.1f}x); index "
-              f"built in {r['build_s']:.2f} s and holds +{r['index_extra_mib']:.1f} MiB beyond "
-              "the signature matrix")
+        print(
+            f"search alone, random signatures, {r['n']} x {r['dim']} float32 "
+            f"({r['sig_mib']:.0f} MiB): {r['search_ms']:.2f} ms/query (median; CPU time of all "
+            f"threads {r['cpu_ms']:.2f} ms), NumPy brute "
+            f"force {r['brute_ms']:.1f} ms ({r['brute_ms'] / r['search_ms']:.1f}x); index "
+            f"built in {r['build_s']:.2f} s and holds +{r['index_extra_mib']:.1f} MiB beyond "
+            "the signature matrix"
+        )
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"  peak RSS of this process so far: {peak:.0f} MiB")
 
@@ -298,27 +351,33 @@ def main() -> None:
 
         model, what = model_arg(args.model, Path(tmp))
         s = bench_stream(model, args.n_map, args.queries, Path(tmp))
-        print(f"streaming query vs {args.n_map} scans ({what}): total {s['total']:.2f} "
-              "ms/query"
-              f" = read {s['read']:.2f} + voxelize {s['bev']:.2f} + embed {s['embed']:.2f} + "
-              f"search {s['search']:.2f} + rows & yaw of top 10 {s['yaw_rows']:.2f} (medians)")
+        print(
+            f"streaming query vs {args.n_map} scans ({what}): total {s['total']:.2f} "
+            "ms/query"
+            f" = read {s['read']:.2f} + voxelize {s['bev']:.2f} + embed {s['embed']:.2f} + "
+            f"search {s['search']:.2f} + rows & yaw of top 10 {s['yaw_rows']:.2f} (medians)"
+        )
         f = bench_first_result(s["db"], s["scan"], model)
-        print(f"first result of a fresh `disco query` process: {f['total_ms']:.0f} ms; a fresh "
-              f"interpreter spends: python {f['python_ms']:.0f}, cli import "
-              f"{f['cli_import_ms']:.0f}, "
-              f"numpy/model/db imports {f['imports_ms']:.0f}, open db + load model "
-              f"{f['model_ms']:.0f}, read {args.n_map} signatures + index "
-              f"{f['signatures_ms']:.0f}, "
-              f"first query {f['first_query_ms']:.0f} ms")
+        print(
+            f"first result of a fresh `disco query` process: {f['total_ms']:.0f} ms; a fresh "
+            f"interpreter spends: python {f['python_ms']:.0f}, cli import "
+            f"{f['cli_import_ms']:.0f}, "
+            f"numpy/model/db imports {f['imports_ms']:.0f}, open db + load model "
+            f"{f['model_ms']:.0f}, read {args.n_map} signatures + index "
+            f"{f['signatures_ms']:.0f}, "
+            f"first query {f['first_query_ms']:.0f} ms"
+        )
         if args.memory:
             m = bench_memory(model, args.memory, Path(tmp))
-            print(f"peak RSS of `disco query` (one query): {m[100]:.0f} MiB against 100 scans, "
-                  f"{m[args.memory]:.0f} MiB against {args.memory} scans "
-                  f"({m[f'size{args.memory}']:.0f} MiB on disk); the difference "
-                  f"{m[args.memory] - m[100]:.0f} MiB = "
-                  f"{(m[args.memory] - m[100]) / m['sig_mib']:.2f}x the {m['sig_mib']:.0f} MiB "
-                  f"of signatures; that process ran {m[f'wall{args.memory}']:.1f} s (vs "
-                  f"{m['wall100']:.1f} s against 100 scans)")
+            print(
+                f"peak RSS of `disco query` (one query): {m[100]:.0f} MiB against 100 scans, "
+                f"{m[args.memory]:.0f} MiB against {args.memory} scans "
+                f"({m[f'size{args.memory}']:.0f} MiB on disk); the difference "
+                f"{m[args.memory] - m[100]:.0f} MiB = "
+                f"{(m[args.memory] - m[100]) / m['sig_mib']:.2f}x the {m['sig_mib']:.0f} MiB "
+                f"of signatures; that process ran {m[f'wall{args.memory}']:.1f} s (vs "
+                f"{m['wall100']:.1f} s against 100 scans)"
+            )
 
 
 if __name__ == "__main__":

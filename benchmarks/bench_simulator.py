@@ -42,9 +42,11 @@ def main() -> None:
     world = town.session_world(0)
     dirs = sensor.directions()
     town.ground_reflectivity(np.zeros((1, 2)))  # paint the ground once, outside the timing
-    print(f"town: {len(town.streets)} streets, {world.caster.size} primitives, "
-          f"grid {world.caster.grid_shape}; sensor {sensor.name}: {sensor.rays} rays per scan; "
-          f"{os.cpu_count()} cores")
+    print(
+        f"town: {len(town.streets)} streets, {world.caster.size} primitives, "
+        f"grid {world.caster.grid_shape}; sensor {sensor.name}: {sensor.rays} rays per scan; "
+        f"{os.cpu_count()} cores"
+    )
 
     # 1. Ray casting alone, one thread, against one big cell.
     one_cell = _core.RaycastWorld(world.table, *town.ground, 1e4)
@@ -61,9 +63,11 @@ def main() -> None:
             base.append(time.perf_counter() - t)
             assert np.array_equal(ids, ids2), "grid and brute force disagree"
     cast_ms, base_ms = median_ms(ts), median_ms(base)
-    print(f"1. ray casting, 1 thread: median {cast_ms:.1f} ms per scan = {1e3 / cast_ms:.1f} "
-          f"scans/s ({np.median(points):.0f} returns before dropout); one cell (every ray x "
-          f"every primitive): {base_ms:.0f} ms, {base_ms / cast_ms:.0f}x slower")
+    print(
+        f"1. ray casting, 1 thread: median {cast_ms:.1f} ms per scan = {1e3 / cast_ms:.1f} "
+        f"scans/s ({np.median(points):.0f} returns before dropout); one cell (every ray x "
+        f"every primitive): {base_ms:.0f} ms, {base_ms / cast_ms:.0f}x slower"
+    )
 
     # 2. A whole scan on one core.
     ts, sizes = [], []
@@ -71,13 +75,16 @@ def main() -> None:
         t = time.perf_counter()
         w = world.at(i / sensor.rate_hz, plan.poses[i, :2, 3])  # with the moving cars
         r, ids, cosi = cast(w, plan.poses[i], sensor, np.array([i], np.uint64), 1)
-        pts = finish_scan(np.random.default_rng(i), sensor, dirs, plan.poses[i], r[0], ids[0],
-                          cosi[0], w, town)
+        pts = finish_scan(
+            np.random.default_rng(i), sensor, dirs, plan.poses[i], r[0], ids[0], cosi[0], w, town
+        )
         ts.append(time.perf_counter() - t)
         sizes.append(len(pts))
     full_ms = median_ms(ts)
-    print(f"2. whole scan, 1 core: median {full_ms:.1f} ms = {1e3 / full_ms:.1f} scans/s "
-          f"({np.median(sizes):.0f} points)")
+    print(
+        f"2. whole scan, 1 core: median {full_ms:.1f} ms = {1e3 / full_ms:.1f} scans/s "
+        f"({np.median(sizes):.0f} points)"
+    )
 
     # 3. End to end, all cores, written to disk.
     n = 2 * args.scans
@@ -85,9 +92,11 @@ def main() -> None:
         t = time.perf_counter()
         simulate(tmp, sessions=2, frames=args.scans, step_m=2.0, seed=args.seed, threads=0)
         wall = time.perf_counter() - t
-    print(f"3. simulate(), 2 sessions x {args.scans} scans, all cores: {wall:.1f} s incl. town "
-          f"generation = {n / wall:.1f} scans/s; 2,000 scans at this rate: "
-          f"{2000 / (n / wall):.0f} s")
+    print(
+        f"3. simulate(), 2 sessions x {args.scans} scans, all cores: {wall:.1f} s incl. town "
+        f"generation = {n / wall:.1f} scans/s; 2,000 scans at this rate: "
+        f"{2000 / (n / wall):.0f} s"
+    )
 
 
 if __name__ == "__main__":

@@ -156,8 +156,9 @@ def test_polar_png_puts_points_where_they_are(scan: Path, tmp_path: Path) -> Non
 
     c = BEVConfig(mode="occupancy")
     out = tmp_path / "polar.png"
-    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "--polar", "-s", "4",
-                                 "-m", "occupancy"])
+    result = runner.invoke(
+        app, ["bev", str(scan), "-o", str(out), "--polar", "-s", "4", "-m", "occupancy"]
+    )
     assert result.exit_code == 0, result.output
     image = decode_png(out.read_bytes())
     size = 2 * c.rings * 4
@@ -273,7 +274,9 @@ def test_console_entry_point_prints_one_line_for_a_bad_file(tmp_path: Path) -> N
     bad.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n")
     proc = subprocess.run(
         [sys.executable, "-m", "disco_cli.cli", "bev", str(bad), "-o", str(tmp_path / "o.png")],
-        capture_output=True, text=True, timeout=60,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert proc.returncode == 1
     lines = proc.stderr.strip().splitlines()

@@ -95,8 +95,9 @@ def queries(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def map_db(seq: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("db") / "map.db"
-    res = CliRunner().invoke(app, ["build-db", str(seq), "-o", str(out), "--model", "spectral",
-                                   "--batch", "3"])
+    res = CliRunner().invoke(
+        app, ["build-db", str(seq), "-o", str(out), "--model", "spectral", "--batch", "3"]
+    )
     assert res.exit_code == 0, res.output
     return out
 
@@ -167,7 +168,10 @@ def test_build_from_stdin_with_the_installed_executable(seq: Path, tmp_path: Pat
     out = tmp_path / "stdin.db"
     proc = subprocess.run(
         [_disco(), "build-db", "-", "-o", str(out), "--model", "spectral"],
-        input="".join(f"{f}\n" for f in files), capture_output=True, text=True, timeout=120,
+        input="".join(f"{f}\n" for f in files),
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
     with Database.open(out) as db:
@@ -175,16 +179,26 @@ def test_build_from_stdin_with_the_installed_executable(seq: Path, tmp_path: Pat
         assert not db.has_poses()
 
 
-def test_unreadable_scan_stops_the_build_and_leaves_no_file(seq: Path, queries: Path,
-                                                            tmp_path: Path) -> None:
+def test_unreadable_scan_stops_the_build_and_leaves_no_file(
+    seq: Path, queries: Path, tmp_path: Path
+) -> None:
     out = tmp_path / "new.db"
     code, _, err = run("build-db", str(queries / "bad.bin"), "-o", str(out), "--model", "spectral")
     assert code == 1 and "bad.bin" in err and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []  # no half-initialized database
     # With --skip-bad: a warning, a count, and the good scans stored.
     good = seq / "velodyne" / "000001.bin"
-    code, _, err = run("build-db", str(good), str(queries / "bad.bin"), str(queries / "empty.bin"),
-                       "-o", str(out), "--model", "spectral", "--skip-bad")
+    code, _, err = run(
+        "build-db",
+        str(good),
+        str(queries / "bad.bin"),
+        str(queries / "empty.bin"),
+        "-o",
+        str(out),
+        "--model",
+        "spectral",
+        "--skip-bad",
+    )
     assert code == 0, err
     assert "bad.bin" in err and "empty.bin" in err and "2 unreadable scans skipped" in err
     with Database.open(out) as db:
@@ -192,12 +206,19 @@ def test_unreadable_scan_stops_the_build_and_leaves_no_file(seq: Path, queries: 
 
 
 def test_missing_input_and_model_without_weights(tmp_path: Path) -> None:
-    code, _, err = run("build-db", str(tmp_path / "nope"), "-o", str(tmp_path / "m.db"),
-                       "--model", "spectral")
+    code, _, err = run(
+        "build-db", str(tmp_path / "nope"), "-o", str(tmp_path / "m.db"), "--model", "spectral"
+    )
     assert code == 1 and "nope" in err and "Traceback" not in err
     scene(0).tofile(tmp_path / "a.bin")
-    code, _, err = run("build-db", str(tmp_path / "a.bin"), "-o", str(tmp_path / "m.db"),
-                       "--model", str(tmp_path / "missing.pt"))
+    code, _, err = run(
+        "build-db",
+        str(tmp_path / "a.bin"),
+        "-o",
+        str(tmp_path / "m.db"),
+        "--model",
+        str(tmp_path / "missing.pt"),
+    )
     assert code == 1 and "missing.pt" in err
     assert not (tmp_path / "m.db").exists()
 
@@ -214,8 +235,9 @@ def test_refuses_to_overwrite_a_non_database(tmp_path: Path) -> None:
     scene(0).tofile(tmp_path / "a.bin")
     target = tmp_path / "notes.txt"
     target.write_text("my precious notes\n")
-    code, _, err = run("build-db", str(tmp_path / "a.bin"), "-o", str(target),
-                       "--model", "spectral")
+    code, _, err = run(
+        "build-db", str(tmp_path / "a.bin"), "-o", str(target), "--model", "spectral"
+    )
     assert code == 1 and "notes.txt" in err and "not a disco database" in err
     assert target.read_text() == "my precious notes\n"
 
@@ -262,8 +284,17 @@ def test_resume_after_kill(tmp_path: Path, sig: signal.Signals) -> None:
 
 
 def test_query_finds_the_turned_scene_with_its_yaw(map_db: Path, seq: Path, queries: Path) -> None:
-    code, out, err = run("query", str(queries / "q3.bin"), str(queries / "q5.bin"), "--db",
-                         str(map_db), "--topk", "3", "--format", "jsonl")
+    code, out, err = run(
+        "query",
+        str(queries / "q3.bin"),
+        str(queries / "q5.bin"),
+        "--db",
+        str(map_db),
+        "--topk",
+        "3",
+        "--format",
+        "jsonl",
+    )
     assert code == 0, err
     rows = jsonl(out)
     assert [r["rank"] for r in rows] == [1, 2, 3, 1, 2, 3]
@@ -284,16 +315,34 @@ def test_query_equals_numpy_brute_force(map_db: Path, queries: Path) -> None:
         paths = db.paths()
     d = np.sqrt(((sigs.astype(np.float64) - sig.astype(np.float64)) ** 2).sum(1))
     order = np.argsort(d, kind="stable")
-    code, out, _ = run("query", str(queries / "q5.bin"), "--db", str(map_db), "--topk",
-                       str(N_SCENES), "--format", "jsonl")
+    code, out, _ = run(
+        "query",
+        str(queries / "q5.bin"),
+        "--db",
+        str(map_db),
+        "--topk",
+        str(N_SCENES),
+        "--format",
+        "jsonl",
+    )
     rows = jsonl(out)
     assert [r["match"] for r in rows] == [paths[i] for i in order]
     assert [r["match_id"] for r in rows] == [int(ids[i]) for i in order]
     np.testing.assert_allclose([r["distance"] for r in rows], d[order], rtol=1e-6)
     # --max-distance keeps exactly the brute-force rows within it.
     cut = float((d[order[2]] + d[order[3]]) / 2)
-    code, out, _ = run("query", str(queries / "q5.bin"), "--db", str(map_db), "--topk", "10",
-                       "--max-distance", str(cut), "--format", "jsonl")
+    code, out, _ = run(
+        "query",
+        str(queries / "q5.bin"),
+        "--db",
+        str(map_db),
+        "--topk",
+        "10",
+        "--max-distance",
+        str(cut),
+        "--format",
+        "jsonl",
+    )
     assert [r["match_id"] for r in jsonl(out)] == [int(ids[i]) for i in order[:3]]
 
 
@@ -301,26 +350,41 @@ def test_exclude_radius_drops_nearby_map_scans(map_db: Path, queries: Path, tmp_
     # The query stands where scene 3 was (x=30, y=6): scenes within 15 m (2, 3, 4) go.
     poses = tmp_path / "qposes.txt"
     poses.write_text(kitti_line(30.0, 6.0, 0.0))
-    code, out, err = run("query", str(queries / "q3.bin"), "--db", str(map_db), "--topk", "10",
-                         "--exclude-radius", "15", "--query-poses", str(poses), "--format", "jsonl")
+    code, out, err = run(
+        "query",
+        str(queries / "q3.bin"),
+        "--db",
+        str(map_db),
+        "--topk",
+        "10",
+        "--exclude-radius",
+        "15",
+        "--query-poses",
+        str(poses),
+        "--format",
+        "jsonl",
+    )
     assert code == 0, err
     got = {r["match_id"] for r in jsonl(out)}
     xy = np.stack([10.0 * np.arange(N_SCENES), 2.0 * np.arange(N_SCENES)], 1)
     keep = {i + 1 for i in range(N_SCENES) if np.hypot(*(xy[i] - [30.0, 6.0])) > 15.0}
     assert got == keep and 4 not in got
-    code, _, err = run("query", str(queries / "q3.bin"), "--db", str(map_db),
-                       "--exclude-radius", "15")
+    code, _, err = run(
+        "query", str(queries / "q3.bin"), "--db", str(map_db), "--exclude-radius", "15"
+    )
     assert code != 0 and "--query-poses" in err
 
 
 def test_tsv_has_a_header_and_the_same_columns(map_db: Path, queries: Path) -> None:
-    code, out, _ = run("query", str(queries / "q3.bin"), "--db", str(map_db), "--topk", "2",
-                       "--format", "tsv")
+    code, out, _ = run(
+        "query", str(queries / "q3.bin"), "--db", str(map_db), "--topk", "2", "--format", "tsv"
+    )
     lines = out.splitlines()
     assert lines[0].split("\t") == ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
     assert len(lines) == 3 and lines[1].split("\t")[1] == "1"
-    code, out, _ = run("query", str(queries / "q3.bin"), "--db", str(map_db), "--topk", "2",
-                       "--format", "table")
+    code, out, _ = run(
+        "query", str(queries / "q3.bin"), "--db", str(map_db), "--topk", "2", "--format", "table"
+    )
     # A titled table with one row per match: long paths wrap inside their cells, so a
     # row is a line whose rank cell (the second) holds a number.
     assert code == 0 and out.startswith(str(queries / "q3.bin"))
@@ -329,9 +393,19 @@ def test_tsv_has_a_header_and_the_same_columns(map_db: Path, queries: Path) -> N
 
 
 def test_bad_query_scans_are_reported_and_the_rest_go_on(map_db: Path, queries: Path) -> None:
-    code, out, err = run("query", str(queries / "bad.bin"), str(queries / "nope.bin"),
-                         str(queries / "empty.bin"), str(queries / "q3.bin"), "--db", str(map_db),
-                         "--topk", "1", "--format", "jsonl")
+    code, out, err = run(
+        "query",
+        str(queries / "bad.bin"),
+        str(queries / "nope.bin"),
+        str(queries / "empty.bin"),
+        str(queries / "q3.bin"),
+        "--db",
+        str(map_db),
+        "--topk",
+        "1",
+        "--format",
+        "jsonl",
+    )
     assert code == 1
     assert [r["query"] for r in jsonl(out)] == [str(queries / "q3.bin")]
     lines = [ln for ln in err.splitlines() if ln.strip()]
@@ -350,8 +424,9 @@ def test_bad_databases(map_db: Path, queries: Path, tmp_path: Path) -> None:
     newer = tmp_path / "newer.db"
     newer.write_bytes(map_db.read_bytes())
     with sqlite3.connect(newer) as conn:
-        conn.execute("UPDATE meta SET value=? WHERE key='format_version'",
-                     (str(FORMAT_VERSION + 1),))
+        conn.execute(
+            "UPDATE meta SET value=? WHERE key='format_version'", (str(FORMAT_VERSION + 1),)
+        )
     cases[newer] = "newer"
     empty = tmp_path / "empty.db"
     empty.write_bytes(map_db.read_bytes())
@@ -377,8 +452,9 @@ def test_scancontext_rerank_through_the_database(seq: Path, queries: Path, tmp_p
     out = tmp_path / "sc.db"
     code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "scancontext")
     assert code == 0, err
-    code, text, err = run("query", str(queries / "q3.bin"), "--db", str(out), "--topk", "3",
-                          "--format", "jsonl")
+    code, text, err = run(
+        "query", str(queries / "q3.bin"), "--db", str(out), "--topk", "3", "--format", "jsonl"
+    )
     assert code == 0, err
     rows = jsonl(text)
     assert rows[0]["match_id"] == 4
@@ -398,7 +474,10 @@ def test_scancontext_rerank_through_the_database(seq: Path, queries: Path, tmp_p
 def test_streaming_first_result_before_stdin_closes(map_db: Path, queries: Path) -> None:
     proc = subprocess.Popen(
         [_disco(), "query", "-", "--db", str(map_db), "--topk", "1", "--format", "tsv"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     lines: queue.Queue = queue.Queue()
     reader = threading.Thread(target=lambda: [lines.put(ln) for ln in proc.stdout], daemon=True)
@@ -425,10 +504,13 @@ def test_streaming_first_result_before_stdin_closes(map_db: Path, queries: Path)
 
 def test_closed_pipe_is_quiet(map_db: Path, queries: Path) -> None:
     # `... | disco query - | head -1`: the reader goes away after one line.
-    shell = (f"yes {queries / 'q3.bin'} | head -200 | {_disco()} query - --db {map_db} "
-             "--topk 5 --format tsv | head -1")
-    proc = subprocess.run(["bash", "-o", "pipefail", "-c", shell], capture_output=True, text=True,
-                          timeout=120)
+    shell = (
+        f"yes {queries / 'q3.bin'} | head -200 | {_disco()} query - --db {map_db} "
+        "--topk 5 --format tsv | head -1"
+    )
+    proc = subprocess.run(
+        ["bash", "-o", "pipefail", "-c", shell], capture_output=True, text=True, timeout=120
+    )
     assert proc.stdout.splitlines() == ["query\trank\tmatch\tmatch_id\tdistance\tyaw_deg"]
     assert "Traceback" not in proc.stderr and "Error" not in proc.stderr, proc.stderr
 
@@ -443,8 +525,9 @@ def test_loops_finds_the_revisit(tmp_path: Path) -> None:
         scene(200 + i).tofile(seq / "velodyne" / f"{i:06d}.bin")
     turn(scene(201), 90.0).tofile(seq / "velodyne" / "000006.bin")  # back at scene 1, turned
     (seq / "times.txt").write_text("".join(f"{0.1 * i}\n" for i in range(7)))
-    code, out, err = run("loops", str(seq), "--model", "spectral", "--exclude-frames", "3",
-                         "--format", "jsonl")
+    code, out, err = run(
+        "loops", str(seq), "--model", "spectral", "--exclude-frames", "3", "--format", "jsonl"
+    )
     assert code == 0, err
     rows = jsonl(out)
     # Query i searches frames [0, i - 3]: frames 3.. have candidates, top-1 each.
@@ -456,15 +539,37 @@ def test_loops_finds_the_revisit(tmp_path: Path) -> None:
     others = [r["distance"] for r in rows[:-1]]
     assert last["distance"] < min(others)
     cut = (last["distance"] + min(others)) / 2
-    code, out, _ = run("loops", str(seq), "--model", "spectral", "--exclude-seconds", "0.25",
-                       "--threshold", str(cut), "--format", "jsonl")
+    code, out, _ = run(
+        "loops",
+        str(seq),
+        "--model",
+        "spectral",
+        "--exclude-seconds",
+        "0.25",
+        "--threshold",
+        str(cut),
+        "--format",
+        "jsonl",
+    )
     rows = jsonl(out)
     assert [(r["query_index"], r["match_index"]) for r in rows] == [(6, 1)]
     # The same answer from a database of the sequence.
     db = tmp_path / "loop.db"
     assert run("build-db", str(seq), "-o", str(db), "--model", "spectral")[0] == 0
-    code, out2, _ = run("loops", str(seq), "--model", "spectral", "--exclude-seconds", "0.25",
-                        "--threshold", str(cut), "--format", "jsonl", "--db", str(db))
+    code, out2, _ = run(
+        "loops",
+        str(seq),
+        "--model",
+        "spectral",
+        "--exclude-seconds",
+        "0.25",
+        "--threshold",
+        str(cut),
+        "--format",
+        "jsonl",
+        "--db",
+        str(db),
+    )
     assert jsonl(out2) == rows
 
 
@@ -531,8 +636,9 @@ def samples_db(samples: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_query_pose_matches_the_simulator_truth(samples: Path, samples_db: Path) -> None:
     # 01/000005 drives past 00/000004 in the opposite direction, about 1.9 m away.
     q = samples / "01" / "velodyne" / "000005.bin"
-    code, out, err = run("query", str(q), "--db", str(samples_db), "--topk", "5", "--pose",
-                         "--format", "jsonl")
+    code, out, err = run(
+        "query", str(q), "--db", str(samples_db), "--topk", "5", "--pose", "--format", "jsonl"
+    )
     assert code == 0, err
     rows = jsonl(out)
     assert len(rows) == 5 and {"dx", "dy", "dz", "fitness", "accepted"} <= set(rows[0])
@@ -541,21 +647,32 @@ def test_query_pose_matches_the_simulator_truth(samples: Path, samples_db: Path)
     T = _gt_relative(samples, ("01", 5), ("00", 4))
     assert np.hypot(hit[0]["dx"] - T[0, 3], hit[0]["dy"] - T[1, 3]) < 0.3
     # --verify keeps exactly the accepted ones, in the same order.
-    code, out, _ = run("query", str(q), "--db", str(samples_db), "--topk", "5", "--verify",
-                       "--format", "jsonl")
+    code, out, _ = run(
+        "query", str(q), "--db", str(samples_db), "--topk", "5", "--verify", "--format", "jsonl"
+    )
     assert [r["match_id"] for r in jsonl(out)] == [r["match_id"] for r in rows if r["accepted"]]
 
 
 def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     seq = samples / "00"
-    args = ["loops", str(seq), "--model", "spectral", "--exclude-frames", "5", "--threshold",
-            "0.5", "--verify", "--format", "jsonl"]
+    args = [
+        "loops",
+        str(seq),
+        "--model",
+        "spectral",
+        "--exclude-frames",
+        "5",
+        "--threshold",
+        "0.5",
+        "--verify",
+        "--format",
+        "jsonl",
+    ]
     code, out, err = run(*args, "-o", str(tmp_path / "loops.g2o"))
     assert code == 0, err
     rows = jsonl(out)
     assert rows, "no verified loops in data/samples/00"
-    assert set(rows[0]) == {"query_index", "query", "match_index", "match", "distance",
-                            "yaw_deg"}
+    assert set(rows[0]) == {"query_index", "query", "match_index", "match", "distance", "yaw_deg"}
     edges = [ln.split() for ln in (tmp_path / "loops.g2o").read_text().splitlines()]
     assert len(edges) == len(rows)
     for e, r in zip(edges, rows):
@@ -591,7 +708,8 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     every = jsonl(out)
     assert {"dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"} <= set(every[0])
     assert [(r["query_index"], r["match_index"]) for r in every if r["accepted"]] == [
-        (r["query_index"], r["match_index"]) for r in rows]
+        (r["query_index"], r["match_index"]) for r in rows
+    ]
     assert all(r["reason"] for r in every if not r["accepted"])
 
 
@@ -599,12 +717,14 @@ def test_bad_device_is_one_line(seq: Path, tmp_path: Path) -> None:
     import torch
 
     out = tmp_path / "m.db"
-    code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "spectral",
-                       "--device", "tpu")
+    code, _, err = run(
+        "build-db", str(seq), "-o", str(out), "--model", "spectral", "--device", "tpu"
+    )
     assert code == 1 and "'tpu'" in err and "Traceback" not in err
     if not torch.cuda.is_available():
-        code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "spectral",
-                           "--device", "cuda")
+        code, _, err = run(
+            "build-db", str(seq), "-o", str(out), "--model", "spectral", "--device", "cuda"
+        )
         assert code == 1 and "no CUDA device" in err
     assert not out.exists()
 
@@ -629,8 +749,9 @@ def test_real_kitti_folder_with_a_few_frames(realdata: Path, tmp_path: Path) -> 
     from disco_cli.readers import read_scan
 
     turn(read_scan(seq / "velodyne" / "000015.bin"), 90.0).tofile(tmp_path / "q.bin")
-    code, out_text, err = run("query", str(tmp_path / "q.bin"), "--db", str(out), "--topk", "1",
-                              "--format", "jsonl")
+    code, out_text, err = run(
+        "query", str(tmp_path / "q.bin"), "--db", str(out), "--topk", "1", "--format", "jsonl"
+    )
     assert code == 0, err
     row = jsonl(out_text)[0]
     assert row["match"].endswith("000015.bin") and abs(row["yaw_deg"] - (-90.0)) <= 3.0

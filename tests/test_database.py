@@ -144,8 +144,9 @@ def test_newer_format_refused(tmp_path: Path) -> None:
     path = tmp_path / "m.db"
     Database.create(path, INFO, _batch(0, 1, np.random.default_rng(0))).close()
     with sqlite3.connect(path) as conn:
-        conn.execute("UPDATE meta SET value=? WHERE key='format_version'",
-                     (str(FORMAT_VERSION + 1),))
+        conn.execute(
+            "UPDATE meta SET value=? WHERE key='format_version'", (str(FORMAT_VERSION + 1),)
+        )
     with pytest.raises(DatabaseError, match=f"version {FORMAT_VERSION + 1} is newer"):
         Database.open(path)
 

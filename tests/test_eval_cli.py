@@ -13,8 +13,14 @@ from disco_cli.evaluation import metrics as m
 from disco_cli.evaluation import plots, report
 
 KEYS = [
-    "recall@1", "recall@1%", "recall@N", "auc", "f1_max",
-    "yaw_err_mean_deg", "yaw_err_std_deg", "yaw_err_median_deg",
+    "recall@1",
+    "recall@1%",
+    "recall@N",
+    "auc",
+    "f1_max",
+    "yaw_err_mean_deg",
+    "yaw_err_std_deg",
+    "yaw_err_median_deg",
 ]
 
 # --- a tiny world -----------------------------------------------------------------------------
@@ -28,7 +34,7 @@ def world_points(rng: np.random.Generator) -> np.ndarray:
     for _ in range(160):
         cx, cy = rng.uniform(-70, 330), rng.uniform(-70, 70)
         w, d, h = rng.uniform(1, 8), rng.uniform(1, 8), rng.uniform(1, 15)
-        n = int(40 * (w + d) * h ** 0.5)
+        n = int(40 * (w + d) * h**0.5)
         t = rng.uniform(0, 1, n)
         side = rng.integers(0, 4, n)
         x = np.where(side < 2, cx - w / 2 + t * w, cx + np.where(side == 2, -w / 2, w / 2))
@@ -95,6 +101,7 @@ def databases(tiny_world, tmp_path_factory) -> dict[str, Path]:
 
 def truth_counts(world: Path, radius: float) -> tuple[int, int]:
     """(queries, queries with a map scan within radius), by a plain loop over the poses."""
+
     def xy(f: Path):
         rows = [ln.split() for ln in f.read_text().splitlines() if ln]
         return [(float(r[3]), float(r[7])) for r in rows]
@@ -107,8 +114,16 @@ def truth_counts(world: Path, radius: float) -> tuple[int, int]:
 def test_eval_writes_metrics_json(tiny_world, databases, tmp_path, model):
     out = tmp_path / "report"
     result = run(
-        "eval", tiny_world / "01", "--db", databases[model], "--topk", "5",
-        "--report", out, "--format", "jsonl",
+        "eval",
+        tiny_world / "01",
+        "--db",
+        databases[model],
+        "--topk",
+        "5",
+        "--report",
+        out,
+        "--format",
+        "jsonl",
     )
     assert result.exit_code == 0, result.output
     got = json.loads((out / "metrics.json").read_text())
@@ -137,8 +152,16 @@ def test_scancontext_finds_the_reverse_revisits(tiny_world, databases, tmp_path)
     # must find it (within a sector) for the places it retrieves.
     out = tmp_path / "r"
     result = run(
-        "eval", tiny_world / "01", "--db", databases["scancontext"], "--topk", "3",
-        "--report", out, "--format", "jsonl",
+        "eval",
+        tiny_world / "01",
+        "--db",
+        databases["scancontext"],
+        "--topk",
+        "3",
+        "--report",
+        out,
+        "--format",
+        "jsonl",
     )
     assert result.exit_code == 0, result.output
     got = json.loads((out / "metrics.json").read_text())
@@ -160,8 +183,16 @@ def test_eval_loops_runs(tiny_world, tmp_path):
     (seq / "poses.txt").write_text(poses)
     out = tmp_path / "loops"
     result = run(
-        "eval-loops", seq, "--model", "scancontext", "--exclude-frames", "10",
-        "--report", out, "--format", "jsonl",
+        "eval-loops",
+        seq,
+        "--model",
+        "scancontext",
+        "--exclude-frames",
+        "10",
+        "--report",
+        out,
+        "--format",
+        "jsonl",
     )
     assert result.exit_code == 0, result.output
     got = json.loads((out / "metrics.json").read_text())
@@ -236,8 +267,9 @@ def test_eval_loops_bad_exclusion_options(tiny_world, tmp_path):
     # The default exclusion is 30 s, which needs timestamps.
     result = run("eval-loops", seq, "--model", "spectral")
     assert result.exit_code == 1 and "no times" in result.output
-    both = run("eval-loops", seq, "--model", "spectral", "--exclude-frames", "2",
-               "--exclude-seconds", "3")
+    both = run(
+        "eval-loops", seq, "--model", "spectral", "--exclude-frames", "2", "--exclude-seconds", "3"
+    )
     assert both.exit_code == 1 and "not both" in both.output
 
 

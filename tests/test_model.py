@@ -93,12 +93,15 @@ def test_unet_signature_is_nearly_invariant_to_other_rolls(shift):
 def test_checkpoint_round_trip_with_weights_only(tmp_path):
     model = tiny_model(seed=5)
     path = tmp_path / "m.pt"
-    save_checkpoint(path, {
-        "state_dict": model.net.state_dict(),
-        "bev_config": model.bev_config.to_dict(),
-        "model_config": model.model_config,
-        "command": "disco train x -o m.pt",
-    })
+    save_checkpoint(
+        path,
+        {
+            "state_dict": model.net.state_dict(),
+            "bev_config": model.bev_config.to_dict(),
+            "model_config": model.model_config,
+            "command": "disco train x -o m.pt",
+        },
+    )
     raw = torch.load(path, weights_only=True)
     assert raw["command"] == "disco train x -o m.pt"
     loaded = load_model(str(path))
@@ -123,8 +126,15 @@ def test_missing_corrupt_and_foreign_checkpoints_raise_model_error(tmp_path):
     model = tiny_model()
     sd = model.net.state_dict()
     sd.pop("unet.conv_last.weight")
-    save_checkpoint(damaged, {"state_dict": sd, "bev_config": model.bev_config.to_dict(),
-                              "model_config": model.model_config, "command": ""})
+    save_checkpoint(
+        damaged,
+        {
+            "state_dict": sd,
+            "bev_config": model.bev_config.to_dict(),
+            "model_config": model.model_config,
+            "command": "",
+        },
+    )
     with pytest.raises(ModelError, match="damaged.pt"):
         load_model(str(damaged))
 
@@ -151,8 +161,12 @@ def test_a_pickled_object_is_refused_not_executed(tmp_path):
 # -- the authors' DiSCO-pytorch layout ------------------------------------------------
 
 AUTHORS_BLOCKS = {
-    "dconv_down1": (H, 64), "dconv_down2": (64, 128), "dconv_down3": (128, 256),
-    "dconv_down4": (256, 512), "dconv_up3": (512 + 256, 256), "dconv_up2": (256 + 128, 128),
+    "dconv_down1": (H, 64),
+    "dconv_down2": (64, 128),
+    "dconv_down3": (128, 256),
+    "dconv_down4": (256, 512),
+    "dconv_up3": (512 + 256, 256),
+    "dconv_up2": (256 + 128, 128),
     "dconv_up1": (128 + 64, 64),
 }
 
@@ -181,7 +195,11 @@ def authors_forward(sd: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tenso
 
     def block(name: str, t: torch.Tensor) -> torch.Tensor:
         for idx in (0, 2):
-            t = F.relu(F.conv2d(t, sd[f"unet.{name}.{idx}.weight"], sd[f"unet.{name}.{idx}.bias"], padding=1))
+            t = F.relu(
+                F.conv2d(
+                    t, sd[f"unet.{name}.{idx}.weight"], sd[f"unet.{name}.{idx}.bias"], padding=1
+                )
+            )
         return t
 
     def up(t: torch.Tensor) -> torch.Tensor:
@@ -242,7 +260,10 @@ def test_shipped_weights_are_small_self_describing_and_invariant():
     assert DEFAULT_WEIGHTS.stat().st_size < 5_000_000
     assert raw["command"].startswith("disco train") and "train_state" not in raw
     model = load_model("default")
-    assert model.name == "default" and model.fingerprint == load_model(str(DEFAULT_WEIGHTS)).fingerprint
+    assert (
+        model.name == "default"
+        and model.fingerprint == load_model(str(DEFAULT_WEIGHTS)).fingerprint
+    )
     bevs = random_bevs(2, seed=9)
     sig, _ = model.embed(bevs)
     np.testing.assert_allclose(model.embed(np.roll(bevs, 40, axis=-1))[0], sig, atol=1e-5)

@@ -57,8 +57,12 @@ def test_calib_turns_camera_poses_into_lidar_poses(tmp_path):
     Tr = np.eye(4)
     Tr[:3, :3], Tr[:3, 3] = R, t
     (tmp_path / "calib.txt").write_text(
-        "P0: " + " ".join(["0"] * 12) + "\n"
-        + "Tr: " + " ".join(f"{v:.6f}" for v in Tr[:3].ravel()) + "\n"
+        "P0: "
+        + " ".join(["0"] * 12)
+        + "\n"
+        + "Tr: "
+        + " ".join(f"{v:.6f}" for v in Tr[:3].ravel())
+        + "\n"
     )
     # Frame 0: identity. Frame 1: camera 1 m ahead (camera z). Frame 2: camera
     # turned +90 deg about its y axis (which points down).
@@ -128,8 +132,10 @@ def test_xy_yaw_one_and_stack():
 
 
 def test_wrap_deg_interval():
-    np.testing.assert_allclose(wrap_deg(np.array([180.0, -180.0, 540.0, 181.0, -181.0, 0.0])),
-                               [180.0, 180.0, 180.0, -179.0, 179.0, 0.0])
+    np.testing.assert_allclose(
+        wrap_deg(np.array([180.0, -180.0, 540.0, 181.0, -181.0, 0.0])),
+        [180.0, 180.0, 180.0, -179.0, 179.0, 0.0],
+    )
 
 
 def test_relative_yaw_follows_the_convention():
@@ -148,8 +154,11 @@ def test_relative_yaw_follows_the_convention():
     a = 30.0
     p_match = np.array([10.0, 0.0, 0.0, 1.0])
     T_query = pose(0, 0, -a)  # sensor turned -a sees the world point at R(+a) p
-    np.testing.assert_allclose((np.linalg.inv(T_query) @ p_match)[:2],
-                               [10 * np.cos(np.radians(a)), 10 * np.sin(np.radians(a))], atol=1e-12)
+    np.testing.assert_allclose(
+        (np.linalg.inv(T_query) @ p_match)[:2],
+        [10 * np.cos(np.radians(a)), 10 * np.sin(np.radians(a))],
+        atol=1e-12,
+    )
     assert relative_yaw_deg(np.eye(4), T_query) == pytest.approx(-a)
 
 

@@ -149,8 +149,14 @@ def _pcd_header(fields, sizes, types, counts, n, data) -> bytes:
 
 def test_pcd_ascii(tmp_path: Path) -> None:
     # Fields out of order, an rgb field to skip and intensity as an integer.
-    head = _pcd_header(["z", "rgb", "y", "x", "intensity"], [4, 4, 4, 4, 2], "F F F F U".split(),
-                       [1] * 5, len(XYZI), "ascii")
+    head = _pcd_header(
+        ["z", "rgb", "y", "x", "intensity"],
+        [4, 4, 4, 4, 2],
+        "F F F F U".split(),
+        [1] * 5,
+        len(XYZI),
+        "ascii",
+    )
     body = "".join(f"{z} 0.0 {y} {x} {int(i * 8)}\n" for x, y, z, i in XYZI.tolist())
     (tmp_path / "a.pcd").write_bytes(head + body.encode())
     _assert_points(read_scan(tmp_path / "a.pcd"), XYZI[:, :3], XYZI[:, 3] * 8)
@@ -159,8 +165,14 @@ def test_pcd_ascii(tmp_path: Path) -> None:
 def test_pcd_binary_with_count_padding_and_doubles(tmp_path: Path) -> None:
     # x as double, a 3-wide normal field (COUNT 3), a 1-byte padding field `_`,
     # y, z as float, intensity as float; records packed, little-endian.
-    head = _pcd_header(["x", "normal", "_", "y", "z", "intensity"], [8, 4, 1, 4, 4, 4],
-                       "F F U F F F".split(), [1, 3, 1, 1, 1, 1], len(XYZI), "binary")
+    head = _pcd_header(
+        ["x", "normal", "_", "y", "z", "intensity"],
+        [8, 4, 1, 4, 4, 4],
+        "F F U F F F".split(),
+        [1, 3, 1, 1, 1, 1],
+        len(XYZI),
+        "binary",
+    )
     body = b"".join(
         struct.pack("<d3fB3f", x, 9.0, 9.0, 9.0, 0xAB, y, z, i) for x, y, z, i in XYZI.tolist()
     )
@@ -232,8 +244,14 @@ def test_pcd_binary_compressed(tmp_path: Path) -> None:
     raw = x.tobytes() + normal.tobytes() + y.tobytes() + z.tobytes() + intensity.tobytes()
     packed = lzf_compress(raw)
     assert len(packed) < len(raw)  # the encoder really used back references
-    head = _pcd_header(["x", "normal", "y", "z", "intensity"], [4, 4, 4, 4, 1],
-                       "F F F F U".split(), [1, 2, 1, 1, 1], n, "binary_compressed")
+    head = _pcd_header(
+        ["x", "normal", "y", "z", "intensity"],
+        [4, 4, 4, 4, 1],
+        "F F F F U".split(),
+        [1, 2, 1, 1, 1],
+        n,
+        "binary_compressed",
+    )
     path = tmp_path / "c.pcd"
     path.write_bytes(head + struct.pack("<II", len(packed), len(raw)) + packed)
     _assert_points(read_scan(path), np.stack([x, y, z], axis=1), intensity)
@@ -257,13 +275,17 @@ def test_pcd_bad_files(tmp_path: Path) -> None:
         "truncated.pcd": head + struct.pack("<3f", 1, 2, 3) * 2 + b"\0\0",
         "compressed.pcd": head.replace(b"DATA binary", b"DATA binary_compressed") + b"\0" * 40,
         "noxyz.pcd": _pcd_header(["a", "b"], [4, 4], "F F".split(), [1, 1], 1, "ascii") + b"1 2\n",
-        "badtype.pcd": _pcd_header(["x", "y", "z"], [3, 4, 4], "F F F".split(), [1, 1, 1], 1,
-                                   "ascii") + b"1 2 3\n",
+        "badtype.pcd": _pcd_header(
+            ["x", "y", "z"], [3, 4, 4], "F F F".split(), [1, 1, 1], 1, "ascii"
+        )
+        + b"1 2 3\n",
         "zero.pcd": _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 0, "ascii"),
-        "shortascii.pcd": _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 2,
-                                      "ascii") + b"1 2 3\n4 5\n",
-        "words.pcd": _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 1,
-                                 "ascii") + b"1 two 3\n",
+        "shortascii.pcd": _pcd_header(
+            ["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 2, "ascii"
+        )
+        + b"1 2 3\n4 5\n",
+        "words.pcd": _pcd_header(["x", "y", "z"], [4, 4, 4], "F F F".split(), [1, 1, 1], 1, "ascii")
+        + b"1 two 3\n",
         "garbage.pcd": bytes(range(256)) * 8,
         "empty.pcd": b"",
     }
@@ -291,11 +313,18 @@ def _ply_header(fmt: str, elements: list[tuple[str, int, list[str]]]) -> bytes:
 
 def test_ply_ascii_with_other_elements(tmp_path: Path) -> None:
     # A camera element before the vertices and faces after: both skipped.
-    head = _ply_header("ascii", [
-        ("camera", 1, ["float px", "float py"]),
-        ("vertex", len(XYZI), ["uchar red", "float x", "float y", "float z", "float reflectance"]),
-        ("face", 1, ["list uchar int vertex_indices"]),
-    ])
+    head = _ply_header(
+        "ascii",
+        [
+            ("camera", 1, ["float px", "float py"]),
+            (
+                "vertex",
+                len(XYZI),
+                ["uchar red", "float x", "float y", "float z", "float reflectance"],
+            ),
+            ("face", 1, ["list uchar int vertex_indices"]),
+        ],
+    )
     body = "0.5 0.25\n" + "".join(f"200 {x} {y} {z} {i}\n" for x, y, z, i in XYZI.tolist())
     body += "3 0 1 2\n"
     (tmp_path / "a.ply").write_bytes(head + body.encode())
@@ -304,12 +333,18 @@ def test_ply_ascii_with_other_elements(tmp_path: Path) -> None:
 
 def test_ply_binary_little_endian_with_lists_before_vertices(tmp_path: Path) -> None:
     # A list element before the vertices can only be skipped by reading its counts.
-    head = _ply_header("binary_little_endian", [
-        ("tag", 2, ["list uchar int ids", "short k"]),
-        ("vertex", len(XYZI),
-         ["double x", "double y", "float z", "ushort ring", "float intensity"]),
-        ("face", 1, ["list uchar int vertex_indices"]),
-    ])
+    head = _ply_header(
+        "binary_little_endian",
+        [
+            ("tag", 2, ["list uchar int ids", "short k"]),
+            (
+                "vertex",
+                len(XYZI),
+                ["double x", "double y", "float z", "ushort ring", "float intensity"],
+            ),
+            ("face", 1, ["list uchar int vertex_indices"]),
+        ],
+    )
     tags = struct.pack("<B3ih", 3, 1, 2, 3, -4) + struct.pack("<Bh", 0, 5)
     verts = b"".join(struct.pack("<ddfHf", x, y, z, 17, i) for x, y, z, i in XYZI.tolist())
     faces = struct.pack("<B3i", 3, 0, 1, 2)
@@ -318,11 +353,15 @@ def test_ply_binary_little_endian_with_lists_before_vertices(tmp_path: Path) -> 
 
 
 def test_ply_binary_vertex_with_a_list_property(tmp_path: Path) -> None:
-    head = _ply_header("binary_big_endian", [
-        ("vertex", len(XYZI), ["float x", "list uchar float extra", "float y", "float z"]),
-    ])
+    head = _ply_header(
+        "binary_big_endian",
+        [
+            ("vertex", len(XYZI), ["float x", "list uchar float extra", "float y", "float z"]),
+        ],
+    )
     verts = b"".join(
-        struct.pack(">fB", x, k % 3) + struct.pack(f">{k % 3}f", *([7.0] * (k % 3)))
+        struct.pack(">fB", x, k % 3)
+        + struct.pack(f">{k % 3}f", *([7.0] * (k % 3)))
         + struct.pack(">ff", y, z)
         for k, (x, y, z, _) in enumerate(XYZI.tolist())
     )
@@ -346,12 +385,20 @@ def test_ply_bad_files(tmp_path: Path) -> None:
         "noend.ply": b"ply\nformat ascii 1.0\nelement vertex 1\n",
         "garbage.ply": b"\x00\xff" * 500,
         "empty.ply": b"",
-        "hugecount.ply": _ply_header("binary_little_endian", [
-            ("vertex", 10**15, ["float x", "float y", "float z", "list uchar float e"]),
-        ]) + struct.pack("<3fB", 1, 2, 3, 0),
-        "listtrunc.ply": _ply_header("binary_little_endian", [
-            ("vertex", 2, ["float x", "float y", "float z", "list uchar float e"]),
-        ]) + struct.pack("<3fB", 1, 2, 3, 200),
+        "hugecount.ply": _ply_header(
+            "binary_little_endian",
+            [
+                ("vertex", 10**15, ["float x", "float y", "float z", "list uchar float e"]),
+            ],
+        )
+        + struct.pack("<3fB", 1, 2, 3, 0),
+        "listtrunc.ply": _ply_header(
+            "binary_little_endian",
+            [
+                ("vertex", 2, ["float x", "float y", "float z", "list uchar float e"]),
+            ],
+        )
+        + struct.pack("<3fB", 1, 2, 3, 200),
     }
     for name, content in cases.items():
         (tmp_path / name).write_bytes(content)
@@ -395,8 +442,15 @@ def test_every_format_refuses_a_missing_file_and_unknown_format(tmp_path: Path) 
 def test_natural_key_orders_numbers_by_value() -> None:
     names = ["10.bin", "2.bin", "1.bin", "scan_10_b.pcd", "scan_9_b.pcd", "scan_9_a.pcd", "a.bin"]
     ordered = sorted(names, key=natural_key)
-    assert ordered == ["1.bin", "2.bin", "10.bin", "a.bin", "scan_9_a.pcd", "scan_9_b.pcd",
-                       "scan_10_b.pcd"]
+    assert ordered == [
+        "1.bin",
+        "2.bin",
+        "10.bin",
+        "a.bin",
+        "scan_9_a.pcd",
+        "scan_9_b.pcd",
+        "scan_10_b.pcd",
+    ]
 
 
 def test_list_scans_layouts(tmp_path: Path) -> None:
@@ -460,7 +514,10 @@ def test_real_kitti_scan(realdata: Path) -> None:
     assert r.max() > 50 and 0.0 <= points[:, 3].min() and points[:, 3].max() <= 1.0
     assert -2.0 < np.median(points[:, 2]) < 0.0
     assert [p.name for p in list_scans(realdata / "kitti00")][:3] == [
-        "000000.bin", "000001.bin", "000002.bin"]
+        "000000.bin",
+        "000001.bin",
+        "000002.bin",
+    ]
 
 
 @pytest.mark.parametrize("name", ["source", "target"])
@@ -473,8 +530,16 @@ def test_real_ply_agrees_with_its_bin_conversion(realdata: Path, name: str) -> N
 
 # -- random layouts -------------------------------------------------------------------
 
-_PCD_TYPES = [("F", 4, "f"), ("F", 8, "d"), ("U", 1, "B"), ("U", 2, "H"), ("I", 2, "h"),
-              ("I", 4, "i"), ("U", 4, "I"), ("I", 8, "q")]
+_PCD_TYPES = [
+    ("F", 4, "f"),
+    ("F", 8, "d"),
+    ("U", 1, "B"),
+    ("U", 2, "H"),
+    ("I", 2, "h"),
+    ("I", 4, "i"),
+    ("U", 4, "I"),
+    ("I", 8, "q"),
+]
 
 
 def test_pcd_and_ply_binary_random_layouts(tmp_path: Path) -> None:
@@ -492,11 +557,17 @@ def test_pcd_and_ply_binary_random_layouts(tmp_path: Path) -> None:
         names += [f"extra{k}" for k in range(extras)]
         names = data.draw(st.permutations(names))
         kinds = {name: data.draw(st.sampled_from(_PCD_TYPES)) for name in names}
-        counts = {name: 1 if name in ("x", "y", "z", "intensity") else data.draw(st.integers(1, 3))
-                  for name in names}
+        counts = {
+            name: 1 if name in ("x", "y", "z", "intensity") else data.draw(st.integers(1, 3))
+            for name in names
+        }
         # Small integers fit every type, signed or not.
-        values = {name: data.draw(st.lists(st.integers(0, 100), min_size=n * counts[name],
-                                           max_size=n * counts[name])) for name in names}
+        values = {
+            name: data.draw(
+                st.lists(st.integers(0, 100), min_size=n * counts[name], max_size=n * counts[name])
+            )
+            for name in names
+        }
         expected = np.zeros((n, 4))
         for col, name in enumerate(["x", "y", "z", "intensity"]):
             if name in values:
@@ -509,14 +580,28 @@ def test_pcd_and_ply_binary_random_layouts(tmp_path: Path) -> None:
                 c = counts[name]
                 row += struct.pack("<" + kinds[name][2] * c, *values[name][i * c : (i + 1) * c])
             rows.append(row)
-        head = _pcd_header(names, [kinds[m][1] for m in names], [kinds[m][0] for m in names],
-                           [counts[m] for m in names], n, "binary")
+        head = _pcd_header(
+            names,
+            [kinds[m][1] for m in names],
+            [kinds[m][0] for m in names],
+            [counts[m] for m in names],
+            n,
+            "binary",
+        )
         (tmp_path / "r.pcd").write_bytes(head + b"".join(rows))
         np.testing.assert_array_equal(read_scan(tmp_path / "r.pcd"), expected.astype(np.float32))
 
         # The same records as PLY vertices: a list property stands in for COUNT > 1.
-        ply_type = {"f": "float", "d": "double", "B": "uchar", "H": "ushort", "h": "short",
-                    "i": "int", "I": "uint", "q": None}
+        ply_type = {
+            "f": "float",
+            "d": "double",
+            "B": "uchar",
+            "H": "ushort",
+            "h": "short",
+            "i": "int",
+            "I": "uint",
+            "q": None,
+        }
         props, ply_rows = [], []
         for name in names:
             t = ply_type[kinds[name][2]] or "int"
@@ -543,22 +628,32 @@ def test_damaged_files_raise_only_scan_read_error(tmp_path: Path) -> None:
     valid["kitti.bin"] = XYZI.tobytes()
     np.save(tmp_path / "v.npy", XYZI)
     valid["v.npy"] = (tmp_path / "v.npy").read_bytes()
-    head = _pcd_header(["x", "y", "z", "intensity"], [4] * 4, "F F F F".split(), [1] * 4,
-                       len(XYZI), "binary")
+    head = _pcd_header(
+        ["x", "y", "z", "intensity"], [4] * 4, "F F F F".split(), [1] * 4, len(XYZI), "binary"
+    )
     valid["b.pcd"] = head + XYZI.tobytes()
     raw = XYZI.T.tobytes() + bytes(40)  # field by field, then a zero run
-    head = _pcd_header(["x", "y", "z", "intensity", "_"], [4] * 5, "F F F F U".split(),
-                       [1, 1, 1, 1, 2], len(XYZI), "binary_compressed")
+    head = _pcd_header(
+        ["x", "y", "z", "intensity", "_"],
+        [4] * 5,
+        "F F F F U".split(),
+        [1, 1, 1, 1, 2],
+        len(XYZI),
+        "binary_compressed",
+    )
     packed = lzf_compress(raw)
     valid["c.pcd"] = head + struct.pack("<II", len(packed), len(raw)) + packed
-    head = _pcd_header(["x", "y", "z", "intensity"], [4] * 4, "F F F F".split(), [1] * 4,
-                       len(XYZI), "ascii")
+    head = _pcd_header(
+        ["x", "y", "z", "intensity"], [4] * 4, "F F F F".split(), [1] * 4, len(XYZI), "ascii"
+    )
     valid["a.pcd"] = head + "".join(" ".join(map(str, r)) + "\n" for r in XYZI.tolist()).encode()
     props = ["float x", "float y", "float z", "float intensity", "list uchar int e"]
     head = _ply_header("binary_little_endian", [("vertex", len(XYZI), props)])
     valid["b.ply"] = head + b"".join(struct.pack("<4fB2i", *r, 2, 7, 8) for r in XYZI.tolist())
-    valid["a.ply"] = _ply_header("ascii", [("vertex", len(XYZI), props)]) + "".join(
-        " ".join(map(str, r)) + " 2 7 8\n" for r in XYZI.tolist()).encode()
+    valid["a.ply"] = (
+        _ply_header("ascii", [("vertex", len(XYZI), props)])
+        + "".join(" ".join(map(str, r)) + " 2 7 8\n" for r in XYZI.tolist()).encode()
+    )
     rng = np.random.default_rng(7)
     for name, content in valid.items():
         path = tmp_path / name

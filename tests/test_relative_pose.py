@@ -78,8 +78,13 @@ def synthetic_scene(seed: int, n: int = 20000) -> np.ndarray:
             y0 = side * rng.uniform(7.0, 12.0)
             height = rng.uniform(4.0, 12.0)
             m = int(length * height * 6)
-            parts.append(np.c_[rng.uniform(x, x + length, m), np.full(m, y0),
-                               rng.uniform(-1.8, -1.8 + height, m)])
+            parts.append(
+                np.c_[
+                    rng.uniform(x, x + length, m),
+                    np.full(m, y0),
+                    rng.uniform(-1.8, -1.8 + height, m),
+                ]
+            )
             x += length + rng.uniform(1.0, 6.0)
     # Boxes (cars, kiosks): their four vertical faces.
     for _ in range(rng.integers(8, 14)):
@@ -87,11 +92,21 @@ def synthetic_scene(seed: int, n: int = 20000) -> np.ndarray:
         hx, hy, h = rng.uniform(0.8, 2.5), rng.uniform(0.8, 2.0), rng.uniform(1.0, 3.0)
         m = 200
         for sx in (-1, 1):
-            parts.append(np.c_[np.full(m, cx + sx * hx), rng.uniform(cy - hy, cy + hy, m),
-                               rng.uniform(-1.8, -1.8 + h, m)])
+            parts.append(
+                np.c_[
+                    np.full(m, cx + sx * hx),
+                    rng.uniform(cy - hy, cy + hy, m),
+                    rng.uniform(-1.8, -1.8 + h, m),
+                ]
+            )
         for sy in (-1, 1):
-            parts.append(np.c_[rng.uniform(cx - hx, cx + hx, m), np.full(m, cy + sy * hy),
-                               rng.uniform(-1.8, -1.8 + h, m)])
+            parts.append(
+                np.c_[
+                    rng.uniform(cx - hx, cx + hx, m),
+                    np.full(m, cy + sy * hy),
+                    rng.uniform(-1.8, -1.8 + h, m),
+                ]
+            )
     # Poles: thin cylinders.
     for _ in range(rng.integers(10, 20)):
         cx, cy = rng.uniform(-38, 38), rng.choice([-1, 1]) * rng.uniform(5.0, 7.0)
@@ -169,8 +184,12 @@ def test_known_transform_on_hdl32(realdata):
     assert r.accepted
 
 
-@settings(max_examples=12, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=12,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(
     yaw=st.floats(-180.0, 180.0),
     distance=st.floats(0.0, 4.0),
@@ -195,8 +214,9 @@ def test_yaw_hint_off_by_180_is_recovered(street):
     dt, dr = pose_errors(T, r.T)
     assert dt < TRANSLATION_TOL and dr < ROTATION_TOL, (dt, dr)
     # ... and only because of it: without the flip, the same hint fails verification.
-    r1 = estimate_relative_pose(query, street, 60.0 - 180.0 + 2.0,
-                                PoseConfig(try_flipped_yaw=False))
+    r1 = estimate_relative_pose(
+        query, street, 60.0 - 180.0 + 2.0, PoseConfig(try_flipped_yaw=False)
+    )
     assert not r1.accepted
 
 
@@ -211,6 +231,7 @@ def test_real_consecutive_hdl32_scans(realdata):
 
 # --- simulated revisits (data/samples) ---------------------------------------------------
 
+
 def _sample_pairs(samples: Path, min_abs_yaw: float) -> list[tuple[Path, Path, np.ndarray]]:
     from disco_cli.poses import read_kitti_poses
 
@@ -222,8 +243,13 @@ def _sample_pairs(samples: Path, min_abs_yaw: float) -> list[tuple[Path, Path, n
             T = np.linalg.inv(p0[j]) @ p1[i]  # match (00/j) <- query (01/i)
             yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
             if np.linalg.norm(T[:2, 3]) < 3.0 and abs(yaw) > min_abs_yaw:
-                pairs.append((samples / "01" / "velodyne" / f"{i:06d}.bin",
-                              samples / "00" / "velodyne" / f"{j:06d}.bin", T))
+                pairs.append(
+                    (
+                        samples / "01" / "velodyne" / f"{i:06d}.bin",
+                        samples / "00" / "velodyne" / f"{j:06d}.bin",
+                        T,
+                    )
+                )
     return pairs
 
 
@@ -264,6 +290,7 @@ def test_consecutive_sample_scans_along_a_street(samples, hint_error):
 
 # --- other places are rejected -----------------------------------------------------------
 
+
 def test_two_synthetic_places_rejected(street):
     other = synthetic_scene(2)
     for yaw in (0.0, 90.0):
@@ -299,6 +326,7 @@ def test_rmse_threshold_names_the_failed_check(street):
 
 
 # --- inputs and outputs ------------------------------------------------------------------
+
 
 def test_inputs_float64_views_and_nan_rows(street):
     T = make_transform(-20.0, (0.7, -1.4, 0.0))
@@ -364,8 +392,10 @@ def test_threads_give_the_same_answers(street):
     query = query_from(street, T, np.random.default_rng(4))
     serial = estimate_relative_pose(query, street, 33.0).T
     out: list[np.ndarray] = []
-    threads = [threading.Thread(target=lambda: out.append(
-        estimate_relative_pose(query, street, 33.0).T)) for _ in range(3)]
+    threads = [
+        threading.Thread(target=lambda: out.append(estimate_relative_pose(query, street, 33.0).T))
+        for _ in range(3)
+    ]
     for t in threads:
         t.start()
     for t in threads:
@@ -374,6 +404,7 @@ def test_threads_give_the_same_answers(street):
 
 
 # --- the pieces against NumPy references -------------------------------------------------
+
 
 def test_height_image_matches_numpy(street):
     yaw, cell, half = 0.7, 0.4, 20.0
@@ -441,6 +472,7 @@ def test_phase_correlation_finds_a_known_shift(street):
 
 # --- the boundary between Python and C++ ---------------------------------------------------
 
+
 def test_strided_views_give_the_same_answer_as_copies(street):
     T = make_transform(-75.0, (2.0, 1.0, 0.0))
     query = query_from(street, T, np.random.default_rng(12))
@@ -459,8 +491,12 @@ def test_strided_views_give_the_same_answer_as_copies(street):
 def test_nan_and_inf_rows_are_ignored_exactly(street):
     T = make_transform(12.0, (1.0, -1.0, 0.0))
     query = query_from(street, T, np.random.default_rng(13))
-    dirty = np.insert(query, [0, 100, 5000], [[np.nan, 0, 0, 0], [np.inf, 1, 1, 0],
-                                              [0, -np.inf, np.nan, 0]], axis=0)
+    dirty = np.insert(
+        query,
+        [0, 100, 5000],
+        [[np.nan, 0, 0, 0], [np.inf, 1, 1, 0], [0, -np.inf, np.nan, 0]],
+        axis=0,
+    )
     a = estimate_relative_pose(query, street, 12.0)
     b = estimate_relative_pose(dirty, street, 12.0)
     assert np.array_equal(a.T, b.T) and a.fitness == b.fitness

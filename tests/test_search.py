@@ -37,7 +37,7 @@ def test_search_equals_brute_force(n: int, dim: int, k: int, first_pass: dict) -
         want_rows, want_d = _truth(sigs, q, k)
         np.testing.assert_array_equal(rows[i, : len(want_rows)], want_rows)
         np.testing.assert_allclose(dists[i, : len(want_d)], want_d, rtol=1e-12)
-        assert (rows[i, len(want_rows):] == -1).all()
+        assert (rows[i, len(want_rows) :] == -1).all()
 
 
 def test_near_ties_with_large_common_offset(first_pass: dict) -> None:
@@ -68,15 +68,16 @@ def test_limit_and_exclude_mask(first_pass: dict) -> None:
     queries = rng.normal(size=(4, 32)).astype(np.float32)
     limit = np.array([0, 3, 100, 300])
     exclude = rng.random((4, 300)) < 0.5
-    rows, dists = SignatureIndex(sigs, **first_pass).search(queries, 5, limit=limit,
-                                                             exclude=exclude)
+    rows, dists = SignatureIndex(sigs, **first_pass).search(
+        queries, 5, limit=limit, exclude=exclude
+    )
     for i, q in enumerate(queries):
         allowed = (np.arange(300) < limit[i]) & ~exclude[i]
         want_rows, want_d = _truth(sigs, q, 5, allowed)
         np.testing.assert_array_equal(rows[i, : len(want_rows)], want_rows)
         np.testing.assert_allclose(dists[i, : len(want_d)], want_d, rtol=1e-12)
-        assert (rows[i, len(want_rows):] == -1).all()
-        assert np.isinf(dists[i, len(want_rows):]).all()
+        assert (rows[i, len(want_rows) :] == -1).all()
+        assert np.isinf(dists[i, len(want_rows) :]).all()
 
 
 def test_rejects_bad_shapes() -> None:
@@ -119,8 +120,10 @@ def test_int8_bounds_hold_for_every_row() -> None:
     assert set(np.flatnonzero(d <= kth)) <= set(cand.tolist())
     assert len(cand) < len(sigs) // 2  # and it does prune
     g = rng.integers(-16000, 16000, 256).astype(np.int16)
-    np.testing.assert_array_equal(_core.int8_dots(index._codes.codes, g, 2),
-                                  index._codes.codes.astype(np.int64) @ g.astype(np.int64))
+    np.testing.assert_array_equal(
+        _core.int8_dots(index._codes.codes, g, 2),
+        index._codes.codes.astype(np.int64) @ g.astype(np.int64),
+    )
 
 
 def test_degenerate_signatures_fall_back_and_stay_exact() -> None:

@@ -31,8 +31,9 @@ def rot(yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0) -> np.nda
     return Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True).as_matrix()
 
 
-def pose(x: float, y: float, z: float, yaw: float = 0.0, pitch: float = 0.0,
-         roll: float = 0.0) -> np.ndarray:
+def pose(
+    x: float, y: float, z: float, yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0
+) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = rot(yaw, pitch, roll)
     T[:3, 3] = [x, y, z]
@@ -101,8 +102,9 @@ def test_ray_casting_matches_a_numpy_reference():
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     origin = np.array([1.0, -2.0, 2.0])
     T = pose(*origin)
-    ranges, ids, _ = world.caster.cast_scans(T[None], dirs.astype(np.float32), 80.0,
-                                             np.array([1], np.uint64), 1)
+    ranges, ids, _ = world.caster.cast_scans(
+        T[None], dirs.astype(np.float32), 80.0, np.array([1], np.uint64), 1
+    )
     d32 = dirs.astype(np.float32).astype(np.float64)
     d32 /= np.linalg.norm(d32, axis=1, keepdims=True)
     n_objects = 0
@@ -132,14 +134,26 @@ def test_axis_aligned_vertical_and_outside_rays_match_the_reference(origin):
     rng = np.random.default_rng(1)
     table = random_table(rng, 40)
     world = primitives_world(table, (0.0, 0.0, 0.0), cell_size=4.0)
-    dirs = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1),
-            (1, 1, 0), (-1, 1, -0.1), (1, -1, 0.05), (1e-9, 1, 0), (0.3, 0.2, -1)]
+    dirs = [
+        (1, 0, 0),
+        (-1, 0, 0),
+        (0, 1, 0),
+        (0, -1, 0),
+        (0, 0, 1),
+        (0, 0, -1),
+        (1, 1, 0),
+        (-1, 1, -0.1),
+        (1, -1, 0.05),
+        (1e-9, 1, 0),
+        (0.3, 0.2, -1),
+    ]
     towards = -np.array(origin) / np.linalg.norm(origin)  # at the town's centre
     dirs = np.array(dirs + [tuple(towards)] * 1, float)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     o = np.array(origin)
-    ranges, ids, _ = world.caster.cast_scans(pose(*o)[None], dirs.astype(np.float32), 500.0,
-                                             np.array([1], np.uint64), 1)
+    ranges, ids, _ = world.caster.cast_scans(
+        pose(*o)[None], dirs.astype(np.float32), 500.0, np.array([1], np.uint64), 1
+    )
     for r, d in enumerate(dirs.astype(np.float32).astype(np.float64)):
         d /= np.linalg.norm(d)
         t = np.array([ref_hit(row, o, d) for row in table])
@@ -149,8 +163,9 @@ def test_axis_aligned_vertical_and_outside_rays_match_the_reference(origin):
         elif tg <= t.min():
             assert ids[0, r] == -1 and ranges[0, r] == pytest.approx(tg, abs=1e-4)
         else:
-            assert ids[0, r] == int(np.argmin(t)) and ranges[0, r] == pytest.approx(t.min(),
-                                                                                  abs=1e-4)
+            assert ids[0, r] == int(np.argmin(t)) and ranges[0, r] == pytest.approx(
+                t.min(), abs=1e-4
+            )
 
 
 def test_caster_rejects_bad_tables_and_poses():
@@ -162,14 +177,17 @@ def test_caster_rejects_bad_tables_and_poses():
         _core.RaycastWorld(np.array([[7, 0, 0, 0, 1, 1, 1, 0, 1.0]]), 0, 0, 0, 4.0)
     world = primitives_world(np.zeros((0, 9)))
     with pytest.raises(ValueError, match="4 x 4"):
-        world.caster.cast_scans(np.eye(3)[None], np.ones((2, 3), np.float32), 10.0,
-                                np.array([1], np.uint64), 1)
+        world.caster.cast_scans(
+            np.eye(3)[None], np.ones((2, 3), np.float32), 10.0, np.array([1], np.uint64), 1
+        )
     with pytest.raises(ValueError, match="one seed per pose"):
-        world.caster.cast_scans(np.eye(4)[None], np.ones((2, 3), np.float32), 10.0,
-                                np.array([1, 2], np.uint64), 1)
+        world.caster.cast_scans(
+            np.eye(4)[None], np.ones((2, 3), np.float32), 10.0, np.array([1, 2], np.uint64), 1
+        )
     # An empty world still has its ground.
-    r, ids, _ = world.caster.cast_scans(pose(0, 0, 2)[None], np.array([[1, 0, -1]], np.float32),
-                                        10.0, np.array([1], np.uint64), 1)
+    r, ids, _ = world.caster.cast_scans(
+        pose(0, 0, 2)[None], np.array([[1, 0, -1]], np.float32), 10.0, np.array([1], np.uint64), 1
+    )
     assert ids[0, 0] == -1 and r[0, 0] == pytest.approx(2 * np.sqrt(2), abs=1e-5)
 
 
@@ -213,10 +231,12 @@ def test_tree_crowns_are_partly_see_through():
     # A crown (hit probability 0.4) in front of a wall: about 40 % of the rays that
     # cross it stop on it; the others reach the wall.
     p = 0.4
-    table = np.array([
-        [ELLIPSOID, 10.0, 0.0, 2.0, 2.0, 2.0, 2.0, 0.0, p],
-        [BOX, 20.5, 0.0, 5.0, 0.5, 30.0, 5.0, 0.0, 1.0],
-    ])
+    table = np.array(
+        [
+            [ELLIPSOID, 10.0, 0.0, 2.0, 2.0, 2.0, 2.0, 0.0, p],
+            [BOX, 20.5, 0.0, 5.0, 0.5, 30.0, 5.0, 0.0, 1.0],
+        ]
+    )
     world = primitives_world(table)
     sensor = get_sensor("hdl64")
     ranges, ids, _ = cast(world, pose(0, 0, 2.0), sensor, np.array([7], np.uint64))
@@ -237,8 +257,12 @@ def test_tree_crowns_are_partly_see_through():
 
 
 def test_sensor_patterns():
-    for name, beams, lo, hi in (("hdl32", 32, -30.67, 10.67), ("hdl64", 64, -24.9, 2.0),
-                                ("vlp16", 16, -15.0, 15.0), ("os1-64", 64, -16.6, 16.6)):
+    for name, beams, lo, hi in (
+        ("hdl32", 32, -30.67, 10.67),
+        ("hdl64", 64, -24.9, 2.0),
+        ("vlp16", 16, -15.0, 15.0),
+        ("os1-64", 64, -16.6, 16.6),
+    ):
         s = get_sensor(name)
         el = np.degrees(np.arcsin(s.directions()[:, 2].astype(np.float64)))
         assert s.beams == beams
@@ -270,8 +294,9 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path):
     assert len(files) == 2 * (3 + 2) + 1
     for f in files:
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
-    assert (tmp_path / "a/00/velodyne/000000.bin").read_bytes() != \
-        (tmp_path / "c/00/velodyne/000000.bin").read_bytes()
+    assert (tmp_path / "a/00/velodyne/000000.bin").read_bytes() != (
+        tmp_path / "c/00/velodyne/000000.bin"
+    ).read_bytes()
     meta = json.loads((tmp_path / "a/world.json").read_text())
     assert meta["seed"] == 4 and meta["sensor"]["name"] == "vlp16"
     assert meta["town"]["params"]["blocks_x"] == 2
@@ -294,8 +319,9 @@ def test_sessions_revisit_in_the_opposite_direction():
     assert len(loops) > 0 and loops[:, 1].min() < 10
     # Poses are rigid, and the sensor rides at mount height over the ground.
     R = a[:, :3, :3]
-    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.tile(np.eye(3), (len(a), 1, 1)),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        R @ np.swapaxes(R, 1, 2), np.tile(np.eye(3), (len(a), 1, 1)), atol=1e-9
+    )
     z_ground = town.ground_z(a[:, 0, 3], a[:, 1, 3])
     assert np.all(np.abs(a[:, 2, 3] - z_ground - 1.8) < 0.05)
 
@@ -323,11 +349,28 @@ def test_changeable_things_differ_between_sessions():
 def test_cli_simulate_and_gt_loops(tmp_path):
     runner = CliRunner()
     out = tmp_path / "sim"
-    res = runner.invoke(app, ["simulate", str(out), "--sessions", "2", "--frames", "2",
-                              "--step-m", "4", "--sensor", "vlp16", "--seed", "1"])
+    res = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(out),
+            "--sessions",
+            "2",
+            "--frames",
+            "2",
+            "--step-m",
+            "4",
+            "--sensor",
+            "vlp16",
+            "--seed",
+            "1",
+        ],
+    )
     assert res.exit_code == 0, res.output
-    assert sorted(p.name for p in (out / "00" / "velodyne").iterdir()) == ["000000.bin",
-                                                                          "000001.bin"]
+    assert sorted(p.name for p in (out / "00" / "velodyne").iterdir()) == [
+        "000000.bin",
+        "000001.bin",
+    ]
     # A second run refuses to overwrite without --force.
     res = runner.invoke(app, ["simulate", str(out), "--frames", "2"])
     assert res.exit_code == 1 and "--force" in res.output
@@ -337,12 +380,20 @@ def test_cli_simulate_and_gt_loops(tmp_path):
 
 def test_gt_loops_lists_exactly_the_pairs_within_the_radius(samples):
     runner = CliRunner()
-    res = runner.invoke(app, ["gt-loops", str(samples / "00"), str(samples / "01"),
-                              "--radius", "3", "--format", "tsv"])
+    res = runner.invoke(
+        app,
+        ["gt-loops", str(samples / "00"), str(samples / "01"), "--radius", "3", "--format", "tsv"],
+    )
     assert res.exit_code == 0, res.output
     lines = res.output.strip().splitlines()
-    assert lines[0].split("\t") == ["query_seq", "query", "match_seq", "match", "distance_m",
-                                    "yaw_deg"]
+    assert lines[0].split("\t") == [
+        "query_seq",
+        "query",
+        "match_seq",
+        "match",
+        "distance_m",
+        "yaw_deg",
+    ]
     rows = [line.split("\t") for line in lines[1:]]
     a = read_kitti_poses(samples / "00" / "poses.txt")
     b = read_kitti_poses(samples / "01" / "poses.txt")
@@ -350,8 +401,9 @@ def test_gt_loops_lists_exactly_the_pairs_within_the_radius(samples):
     assert {(int(r[1]), int(r[3])) for r in rows} == {tuple(p) for p in np.argwhere(d <= 3.0)}
     # The sample's second session drives back the other way.
     assert any(abs(float(r[5])) > 150 for r in rows)
-    res = runner.invoke(app, ["gt-loops", str(samples / "00"), "--exclude-frames", "5",
-                              "--format", "jsonl"])
+    res = runner.invoke(
+        app, ["gt-loops", str(samples / "00"), "--exclude-frames", "5", "--format", "jsonl"]
+    )
     rows = [json.loads(line) for line in res.output.strip().splitlines()]
     assert rows and all(r["query"] - r["match"] >= 5 and r["distance_m"] <= 3 for r in rows)
 
@@ -386,10 +438,12 @@ def test_sample_regenerates_byte_for_byte(samples, tmp_path):
     assert meta["command"].replace("OUT", "data/samples") + " --force" in readme
     res = CliRunner().invoke(app, ["simulate", str(tmp_path / "again"), *args])
     assert res.exit_code == 0, res.output
-    committed = sorted(p.relative_to(samples) for p in samples.rglob("*")
-                       if p.is_file() and p.name != "README.md")
-    again = sorted(p.relative_to(tmp_path / "again") for p in (tmp_path / "again").rglob("*")
-                   if p.is_file())
+    committed = sorted(
+        p.relative_to(samples) for p in samples.rglob("*") if p.is_file() and p.name != "README.md"
+    )
+    again = sorted(
+        p.relative_to(tmp_path / "again") for p in (tmp_path / "again").rglob("*") if p.is_file()
+    )
     assert committed == again
     for rel in committed:
         assert (samples / rel).read_bytes() == (tmp_path / "again" / rel).read_bytes(), rel
@@ -468,8 +522,13 @@ def test_motion_distortion_measures_each_ray_from_where_the_sensor_fired():
     assert f_ray[np.argmin(np.abs(az - 90))] == pytest.approx(0.25, abs=0.002)
     # Turning 4 degrees during the sweep: each point, put back with the rotation of its
     # own firing time, lies on the wall.
-    r, ids, _ = cast(world, pose(0, 0, 1.8, yaw=-2), sensor, np.array([1], np.uint64),
-                     poses_end=pose(0, 0, 1.8, yaw=2))
+    r, ids, _ = cast(
+        world,
+        pose(0, 0, 1.8, yaw=-2),
+        sensor,
+        np.array([1], np.uint64),
+        poses_end=pose(0, 0, 1.8, yaw=2),
+    )
     wall = ids[0] == 0
     p = d[wall] * r[0][wall, None]
     yaw = np.radians(-2 + 4 * f_ray[wall])
@@ -478,16 +537,16 @@ def test_motion_distortion_measures_each_ray_from_where_the_sensor_fired():
     steady = np.stack([pose(2.0 * i, 0, 1.8, yaw=3 * i) for i in range(4)])
     starts, ends = sweep_poses(steady)
     for i in range(4):
-        np.testing.assert_allclose(starts[i], pose(2.0 * i - 1, 0, 1.8, yaw=3 * i - 1.5),
-                                   atol=1e-9)
+        np.testing.assert_allclose(starts[i], pose(2.0 * i - 1, 0, 1.8, yaw=3 * i - 1.5), atol=1e-9)
         np.testing.assert_allclose(ends[i], pose(2.0 * i + 1, 0, 1.8, yaw=3 * i + 1.5), atol=1e-9)
 
 
 def test_town_parameters_from_toml_or_world_json(tmp_path):
     from disco_cli.errors import DiscoError
 
-    (tmp_path / "town.toml").write_text("[town]\nblocks_x = 2\nblocks_y = 3\n"
-                                        "road_width_m = [9, 10]\ntraffic_per_km = 0\n")
+    (tmp_path / "town.toml").write_text(
+        "[town]\nblocks_x = 2\nblocks_y = 3\nroad_width_m = [9, 10]\ntraffic_per_km = 0\n"
+    )
     params = TownParams.load(tmp_path / "town.toml")
     assert (params.blocks_x, params.blocks_y, params.road_width_m) == (2, 3, (9.0, 10.0))
     assert params.traffic_per_km == 0.0 and params.max_slope == TownParams().max_slope
@@ -498,36 +557,69 @@ def test_town_parameters_from_toml_or_world_json(tmp_path):
     assert not (town.session_world(0).movers[:, 9] == 0).any()  # no traffic
     # A world.json carries the parameters it was made with; the CLI takes either file.
     runner = CliRunner()
-    res = runner.invoke(app, ["simulate", str(tmp_path / "a"), "--frames", "2", "--sessions", "1",
-                              "--sensor", "vlp16", "--town", str(tmp_path / "town.toml")])
+    res = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(tmp_path / "a"),
+            "--frames",
+            "2",
+            "--sessions",
+            "1",
+            "--sensor",
+            "vlp16",
+            "--town",
+            str(tmp_path / "town.toml"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert TownParams.load(tmp_path / "a" / "world.json") == params
     meta = json.loads((tmp_path / "a" / "world.json").read_text())
     assert "--town OUT/world.json" in meta["command"]
-    res = runner.invoke(app, ["simulate", str(tmp_path / "b"), "--frames", "2", "--sessions", "1",
-                              "--sensor", "vlp16", "--town", str(tmp_path / "a" / "world.json")])
+    res = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(tmp_path / "b"),
+            "--frames",
+            "2",
+            "--sessions",
+            "1",
+            "--sensor",
+            "vlp16",
+            "--town",
+            str(tmp_path / "a" / "world.json"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     for f in ("00/poses.txt", "00/velodyne/000001.bin", "world.json"):
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes()
     # Unknown keys, wrong types and impossible values: one clear error naming the file.
-    for text, what in (("foo = 1\n", "unknown town parameters: foo"),
-                       ("blocks_x = 'a'\n", "blocks_x"), ("blocks_x = 1.5\n", "blocks_x"),
-                       ("block_min_m = 90\nblock_max_m = 60\n", "block_min_m"),
-                       ("road_width_m = [10]\n", "road_width_m"), ("blocks_x = [\n", "TOML")):
+    for text, what in (
+        ("foo = 1\n", "unknown town parameters: foo"),
+        ("blocks_x = 'a'\n", "blocks_x"),
+        ("blocks_x = 1.5\n", "blocks_x"),
+        ("block_min_m = 90\nblock_max_m = 60\n", "block_min_m"),
+        ("road_width_m = [10]\n", "road_width_m"),
+        ("blocks_x = [\n", "TOML"),
+    ):
         (tmp_path / "bad.toml").write_text(text)
         with pytest.raises(DiscoError, match=what) as info:
             TownParams.load(tmp_path / "bad.toml")
         assert "bad.toml" in str(info.value)
-    res = runner.invoke(app, ["simulate", str(tmp_path / "c"), "--frames", "2",
-                              "--town", str(tmp_path / "bad.toml")])
+    res = runner.invoke(
+        app,
+        ["simulate", str(tmp_path / "c"), "--frames", "2", "--town", str(tmp_path / "bad.toml")],
+    )
     assert res.exit_code == 1 and "bad.toml" in res.output and "Traceback" not in res.output
 
 
 def test_documented_town_defaults_are_the_defaults():
-    import tomllib
     from pathlib import Path
 
+    import tomllib
+
     text = (Path(__file__).parent.parent / "docs" / "simulator.md").read_text()
-    block = text[text.index("```toml") + len("```toml"):]
-    block = block[:block.index("```")]
+    block = text[text.index("```toml") + len("```toml") :]
+    block = block[: block.index("```")]
     assert TownParams.from_dict(tomllib.loads(block)["town"]) == TownParams()

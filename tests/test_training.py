@@ -13,7 +13,6 @@ torch = pytest.importorskip("torch")
 from disco_cli.errors import DiscoError  # noqa: E402
 from disco_cli.training.losses import quadruplet_loss, shift_target, yaw_loss  # noqa: E402
 
-
 # -- a tiny world: pillars seen from two drives along the same road ----------------------
 
 
@@ -21,13 +20,19 @@ def _world(seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     n = 90
     # Pillars (x, y, radius, height) scattered around a 200 m road along x.
-    return np.column_stack([
-        rng.uniform(-40, 240, n), rng.uniform(-40, 40, n),
-        rng.uniform(0.4, 3.0, n), rng.uniform(1.0, 12.0, n),
-    ])
+    return np.column_stack(
+        [
+            rng.uniform(-40, 240, n),
+            rng.uniform(-40, 40, n),
+            rng.uniform(0.4, 3.0, n),
+            rng.uniform(1.0, 12.0, n),
+        ]
+    )
 
 
-def _scan(pillars: np.ndarray, x: float, y: float, yaw: float, rng: np.random.Generator) -> np.ndarray:
+def _scan(
+    pillars: np.ndarray, x: float, y: float, yaw: float, rng: np.random.Generator
+) -> np.ndarray:
     pts = []
     for px, py, rad, h in pillars:
         if np.hypot(px - x, py - y) > 45:
@@ -86,7 +91,8 @@ def test_quadruplet_loss_by_hand():
     p = torch.tensor([[0.6, 0.8]])  # |q - p|^2 = 0.16 + 0.64 = 0.8
     negs = torch.tensor([[[0.0, 1.0], [-1.0, 0.0]]])  # |q - n|^2 = 2 and 4
     other = torch.tensor([[0.0, -1.0]])  # |o - n|^2 = 4 and 2
-    # first: max(0.5 + 0.8 - 2, 0.5 + 0.8 - 4, 0) = 0; second: max(0.2 + 0.8 - 4, 0.2 + 0.8 - 2, 0) = 0
+    # first: max(0.5 + 0.8 - 2, 0.5 + 0.8 - 4, 0) = 0;
+    # second: max(0.2 + 0.8 - 4, 0.2 + 0.8 - 2, 0) = 0
     assert float(quadruplet_loss(q, p, negs, other)) == pytest.approx(0.0)
     p_far = torch.tensor([[-0.6, 0.8]])  # |q - p|^2 = 2.56 + 0.64 = 3.2
     # first: 0.5 + 3.2 - 2 = 1.7; second: 0.2 + 3.2 - 2 = 1.4
@@ -163,8 +169,9 @@ def test_self_supervised_training_runs_and_finds_the_copies(tmp_path, one_thread
     for i in range(12):
         _scan(pillars, 15.0 * i, 0.0, 0.0, rng).tofile(seq / "velodyne" / f"{i:06d}.bin")
     data = load_training_data([seq], BEVConfig(), self_supervised=True, copies=1)
-    opts = TrainOptions(epochs=1, steps=3, batch=2, negatives=2, width=2, self_supervised=True,
-                        time_gap=3, seed=0)
+    opts = TrainOptions(
+        epochs=1, steps=3, batch=2, negatives=2, width=2, self_supervised=True, time_gap=3, seed=0
+    )
     history = train(data, BEVConfig(), opts, tmp_path / "ss.pt", log=lambda s: None)
     # Each augmented copy (rotated, moved, thinned) must find its own source scan.
     assert history[0]["train_queries"] == 12 and history[0]["train_recall_at_1"] >= 0.9
@@ -181,9 +188,20 @@ def test_short_training_lowers_loss_and_beats_the_untrained_network(world, tmp_p
 
     data = load_training_data([world], BEVConfig())
     # A plain U-Net (no residual path to the spectral floor), so that it must learn.
-    opts = TrainOptions(epochs=2, steps=10, batch=4, negatives=2, width=4, lr=3e-3,
-                        residual=False, hard_after=1, d_pos=3.0, d_neg=10.0, seed=0,
-                        val_queries=40)
+    opts = TrainOptions(
+        epochs=2,
+        steps=10,
+        batch=4,
+        negatives=2,
+        width=4,
+        lr=3e-3,
+        residual=False,
+        hard_after=1,
+        d_pos=3.0,
+        d_neg=10.0,
+        seed=0,
+        val_queries=40,
+    )
     torch.manual_seed(opts.seed)
     config = {**default_model_config(20, 4), "residual": False}
     untrained = DiscoModel(build_net(config), BEVConfig(), config)
@@ -210,8 +228,24 @@ def test_train_command_writes_a_loadable_checkpoint_and_resumes(world, tmp_path,
     from disco_cli.model import load_model
 
     out = tmp_path / "cli.pt"
-    args = ["train", str(world), "-o", str(out), "--epochs", "1", "--steps", "2", "--batch", "2",
-            "--negatives", "2", "--width", "2", "--seed", "3"]
+    args = [
+        "train",
+        str(world),
+        "-o",
+        str(out),
+        "--epochs",
+        "1",
+        "--steps",
+        "2",
+        "--batch",
+        "2",
+        "--negatives",
+        "2",
+        "--width",
+        "2",
+        "--seed",
+        "3",
+    ]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     ckpt = torch.load(out, weights_only=True)
@@ -235,7 +269,9 @@ def test_train_command_reports_missing_poses_in_one_line(tmp_path):
 
     seq = tmp_path / "seq"
     (seq / "velodyne").mkdir(parents=True)
-    _scan(_world(4), 0.0, 0.0, 0.0, np.random.default_rng(0)).tofile(seq / "velodyne" / "000000.bin")
+    _scan(_world(4), 0.0, 0.0, 0.0, np.random.default_rng(0)).tofile(
+        seq / "velodyne" / "000000.bin"
+    )
     result = CliRunner().invoke(app, ["train", str(seq), "-o", str(tmp_path / "m.pt")])
     assert result.exit_code == 1
     assert "poses.txt" in result.output and "Traceback" not in result.output

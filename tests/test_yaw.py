@@ -59,7 +59,9 @@ def test_fractional_shift_is_refined_below_one_bin():
             base[r] += np.exp(4 * (np.cos(theta - c) - 1))
     for shift in (0.3, 10.5, 47.8, -20.25):
         freq = np.fft.rfftfreq(S) * S
-        shifted = np.fft.irfft(np.fft.rfft(base, axis=-1) * np.exp(-2j * np.pi * freq * shift / S), n=S)
+        shifted = np.fft.irfft(
+            np.fft.rfft(base, axis=-1) * np.exp(-2j * np.pi * freq * shift / S), n=S
+        )
         got = estimate_yaw(shifted.astype(np.float32), base[None].astype(np.float32))[0]
         assert angle_diff(got, -3.0 * shift) < 0.5, (shift, got)
 

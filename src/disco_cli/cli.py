@@ -14,11 +14,17 @@ from typing import Annotated
 import typer
 
 # from disco_cli.commands import <name>   (one import per command)
-from disco_cli.commands import gt_loops, simulate
-from disco_cli.commands import build_db, info, loops, query
-from disco_cli.commands import evaluate
-from disco_cli.commands import bev
-from disco_cli.commands import train
+from disco_cli.commands import (
+    bev,
+    build_db,
+    evaluate,
+    gt_loops,
+    info,
+    loops,
+    query,
+    simulate,
+    train,
+)
 
 app = typer.Typer(
     name="disco",
@@ -51,7 +57,9 @@ def _print_version(value: bool) -> None:
     try:
         from disco_cli import _core
     except ImportError as exc:
-        typer.echo(f"disco {__version__}: the compiled core cannot load ({exc}); reinstall disco", err=True)
+        typer.echo(
+            f"disco {__version__}: the compiled core cannot load ({exc}); reinstall disco", err=True
+        )
         raise typer.Exit(1) from None
     typer.echo(f"disco {__version__} (core {_core.__version__})")
     raise typer.Exit(0)
@@ -61,7 +69,12 @@ def _print_version(value: bool) -> None:
 def _root(
     version: Annotated[
         bool,
-        typer.Option("--version", callback=_print_version, is_eager=True, help="Print the version and check the install."),
+        typer.Option(
+            "--version",
+            callback=_print_version,
+            is_eager=True,
+            help="Print the version and check the install.",
+        ),
     ] = False,
 ) -> None:
     """LiDAR loop closure: which place in my map is this scan, and how am I turned?"""

@@ -153,7 +153,9 @@ class RowWriter:
             if not self._header_done:
                 lines.append("\t".join(self.columns))
                 self._header_done = True
-            lines += ["\t".join(_cell(row.get(c), self.digits) for c in self.columns) for row in rows]
+            lines += [
+                "\t".join(_cell(row.get(c), self.digits) for c in self.columns) for row in rows
+            ]
             if lines:
                 sys.stdout.write("\n".join(lines) + "\n")
         else:

@@ -51,7 +51,16 @@ CREATE TABLE scans (
 );
 """
 _SCAN_COLUMNS = {
-    "id", "path", "time", "x", "y", "z", "yaw", "signature", "features", "feature_scale",
+    "id",
+    "path",
+    "time",
+    "x",
+    "y",
+    "z",
+    "yaw",
+    "signature",
+    "features",
+    "feature_scale",
 }
 
 
@@ -279,7 +288,8 @@ class Database:
             )
         if model.bev_config != mine.bev_config:
             diff = sorted(
-                k for k in set(model.bev_config) | set(mine.bev_config)
+                k
+                for k in set(model.bev_config) | set(mine.bev_config)
                 if model.bev_config.get(k) != mine.bev_config.get(k)
             )
             raise DatabaseError(
@@ -308,10 +318,19 @@ class Database:
         for i, p in enumerate(batch.paths):
             feats, scale = _encode_features(batch.features[i])
             x, y, z, yaw = (_none_if_nan(v) for v in batch.poses[i])
-            rows.append((
-                str(p), _none_if_nan(batch.times[i]), x, y, z, yaw,
-                batch.signatures[i].astype(_SIG_DTYPE).tobytes(), feats, scale,
-            ))
+            rows.append(
+                (
+                    str(p),
+                    _none_if_nan(batch.times[i]),
+                    x,
+                    y,
+                    z,
+                    yaw,
+                    batch.signatures[i].astype(_SIG_DTYPE).tobytes(),
+                    feats,
+                    scale,
+                )
+            )
         try:
             with self._conn:
                 self._conn.executemany(
@@ -369,7 +388,7 @@ class Database:
         ids = [int(i) for i in np.asarray(ids).reshape(-1)]
         found: dict[int, tuple] = {}
         for chunk in range(0, len(ids), 500):
-            part = sorted(set(ids[chunk:chunk + 500]))
+            part = sorted(set(ids[chunk : chunk + 500]))
             marks = ",".join("?" * len(part))
             for row in self._conn.execute(
                 f"SELECT id, path, x, y, z, yaw, features, feature_scale FROM scans "
@@ -408,9 +427,7 @@ class Database:
 
     def check(self) -> list[str]:
         """`PRAGMA integrity_check` plus the size and finiteness of every blob; problems found."""
-        problems = [
-            r[0] for r in self._conn.execute("PRAGMA integrity_check") if r[0] != "ok"
-        ]
+        problems = [r[0] for r in self._conn.execute("PRAGMA integrity_check") if r[0] != "ok"]
         nsig = self.signature_dim * _SIG_DTYPE.itemsize
         nfeat = int(np.prod(self.feature_shape)) * _FEAT_DTYPE.itemsize
         cur = self._conn.execute(
@@ -463,8 +480,14 @@ def _read_meta(path: Path, conn: sqlite3.Connection) -> dict[str, str]:
             f"database format version {version} is newer than this disco supports "
             f"({FORMAT_VERSION}); upgrade disco",
         )
-    needed = ("model_name", "fingerprint", "model_config", "bev_config", "signature_dim",
-              "feature_shape")
+    needed = (
+        "model_name",
+        "fingerprint",
+        "model_config",
+        "bev_config",
+        "signature_dim",
+        "feature_shape",
+    )
     missing = [k for k in needed if k not in meta]
     if missing:
         raise DatabaseError(path, f"corrupt database: meta lacks {', '.join(missing)}")

@@ -82,8 +82,9 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in FORMATS:
-        raise DiscoError(f"{path}: unknown loop file type {ext or '(none)'}; use "
-                         f"{', '.join(FORMATS)}")
+        raise DiscoError(
+            f"{path}: unknown loop file type {ext or '(none)'}; use {', '.join(FORMATS)}"
+        )
     lines: list[str] = []
     if ext == ".g2o":
         iu = np.triu_indices(6)
@@ -91,8 +92,14 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
             T = np.asarray(lp.pose.T)
             q = quaternion(T[:3, :3])
             info = information_matrix(lp.pose)[iu]
-            fields = ["EDGE_SE3:QUAT", str(lp.match_index), str(lp.query_index),
-                      *map(_fmt, T[:3, 3]), *map(_fmt, q), *map(_fmt, info)]
+            fields = [
+                "EDGE_SE3:QUAT",
+                str(lp.match_index),
+                str(lp.query_index),
+                *map(_fmt, T[:3, 3]),
+                *map(_fmt, q),
+                *map(_fmt, info),
+            ]
             lines.append(" ".join(fields))
     elif ext == ".tum":
         lines.append("# t_query t_match x y z qx qy qz qw  (T_match<-query)")
@@ -100,22 +107,59 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
             T = np.asarray(lp.pose.T)
             tq = lp.query_time if np.isfinite(lp.query_time) else lp.query_index
             tm = lp.match_time if np.isfinite(lp.match_time) else lp.match_index
-            lines.append(" ".join([f"{tq:.6f}", f"{tm:.6f}", *map(_fmt, T[:3, 3]),
-                                   *map(_fmt, quaternion(T[:3, :3]))]))
+            lines.append(
+                " ".join(
+                    [
+                        f"{tq:.6f}",
+                        f"{tm:.6f}",
+                        *map(_fmt, T[:3, 3]),
+                        *map(_fmt, quaternion(T[:3, :3])),
+                    ]
+                )
+            )
     try:
         if ext == ".csv":
             with open(path, "w", newline="") as fh:
                 w = csv.writer(fh)
-                w.writerow(["query_index", "match_index", "query", "match", "distance",
-                            "yaw_deg", "x", "y", "z", "qx", "qy", "qz", "qw", "fitness",
-                            "rmse", "accepted", "reason"])
+                w.writerow(
+                    [
+                        "query_index",
+                        "match_index",
+                        "query",
+                        "match",
+                        "distance",
+                        "yaw_deg",
+                        "x",
+                        "y",
+                        "z",
+                        "qx",
+                        "qy",
+                        "qz",
+                        "qw",
+                        "fitness",
+                        "rmse",
+                        "accepted",
+                        "reason",
+                    ]
+                )
                 for lp in loops:
                     T = np.asarray(lp.pose.T)
-                    w.writerow([lp.query_index, lp.match_index, lp.query, lp.match,
-                                _fmt(lp.distance), _fmt(lp.yaw_deg), *map(_fmt, T[:3, 3]),
-                                *map(_fmt, quaternion(T[:3, :3])), _fmt(lp.pose.fitness),
-                                _fmt(lp.pose.rmse), str(bool(lp.pose.accepted)).lower(),
-                                lp.pose.reason])
+                    w.writerow(
+                        [
+                            lp.query_index,
+                            lp.match_index,
+                            lp.query,
+                            lp.match,
+                            _fmt(lp.distance),
+                            _fmt(lp.yaw_deg),
+                            *map(_fmt, T[:3, 3]),
+                            *map(_fmt, quaternion(T[:3, :3])),
+                            _fmt(lp.pose.fitness),
+                            _fmt(lp.pose.rmse),
+                            str(bool(lp.pose.accepted)).lower(),
+                            lp.pose.reason,
+                        ]
+                    )
         else:
             path.write_text("".join(line + "\n" for line in lines))
     except OSError as exc:

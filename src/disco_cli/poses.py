@@ -200,8 +200,9 @@ def gt_pairs_within(
     return pairs[keep]
 
 
-def nearest_distance(query_poses: np.ndarray,
-                     map_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def nearest_distance(
+    query_poses: np.ndarray, map_poses: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """For each query pose: (distance to the nearest map pose, its index)."""
     from scipy.spatial import cKDTree
 

@@ -58,8 +58,16 @@ class PoseConfig:
     early_reject_fitness: float = 0.15
 
     def __post_init__(self) -> None:
-        positive = ("bev_cell", "bev_extent", "max_translation", "source_voxel", "target_voxel",
-                    "normal_radius", "inlier_distance", "max_rmse")
+        positive = (
+            "bev_cell",
+            "bev_extent",
+            "max_translation",
+            "source_voxel",
+            "target_voxel",
+            "normal_radius",
+            "inlier_distance",
+            "max_rmse",
+        )
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):

@@ -104,7 +104,7 @@ class SignatureIndex:
             return (rows[0], dists[0]) if single else (rows, dists)
         step = max(1, _BLOCK_ELEMS // max(n, 1))
         for s in range(0, b, step):
-            qs = q[s:s + step]
+            qs = q[s : s + step]
             dots = None
             if self._codes is None:
                 # [n, bs]: one BLAS call for the whole block of queries (a matrix-vector
@@ -119,8 +119,8 @@ class SignatureIndex:
                     r, d = self._topk_int8(q[i], lim, k, ex)
                 else:
                     r, d = self._topk(q[i], dots[:lim, j], lim, k, ex)
-                rows[i, :len(r)] = r
-                dists[i, :len(d)] = d
+                rows[i, : len(r)] = r
+                dists[i, : len(d)] = d
         return (rows[0], dists[0]) if single else (rows, dists)
 
     def _exact(self, q: np.ndarray, cand: np.ndarray) -> np.ndarray:
@@ -130,8 +130,8 @@ class SignatureIndex:
         q64 = q.astype(np.float64)
         step = max(1, _BLOCK_ELEMS // 8 // max(self.dim, 1))
         for a in range(0, len(cand), step):
-            diff = self.matrix[cand[a:a + step]].astype(np.float64) - q64
-            out[a:a + step] = np.einsum("ij,ij->i", diff, diff)
+            diff = self.matrix[cand[a : a + step]].astype(np.float64) - q64
+            out[a : a + step] = np.einsum("ij,ij->i", diff, diff)
         return out
 
     def _topk_int8(
@@ -170,8 +170,14 @@ class SignatureIndex:
         # eps*(|q| + |d|)^2 for the float32 sums. Whatever lies within twice that of the
         # k-th is re-measured exactly.
         qn = np.sqrt(q_sq)
-        tol = 2.0 * (2.0 * self.dim * _EPS32 * qn * self._max_norm
-                     + 4.0 * _EPS32 * (qn + self._max_norm) ** 2) + 1e-30
+        tol = (
+            2.0
+            * (
+                2.0 * self.dim * _EPS32 * qn * self._max_norm
+                + 4.0 * _EPS32 * (qn + self._max_norm) ** 2
+            )
+            + 1e-30
+        )
         cand = np.flatnonzero(approx <= kth + tol)
         exact = self._exact(q, cand)
         order = np.lexsort((cand, exact))[:kk]
@@ -202,7 +208,8 @@ class _Int8Codes:
         # One pass in the compiled core (double precision), rounded up: the error bound
         # must never be below the true error.
         self.codes, self.code_sq, self.code_norm, err = _core.int8_encode(
-            matrix, self.mean, self.scale, min(4, os.cpu_count() or 1))
+            matrix, self.mean, self.scale, min(4, os.cpu_count() or 1)
+        )
         self.err = err * (1 + 1e-9) + 1e-12 * (np.sqrt(sq_norms) + 1.0)
         self.g_max = int(_core.int8_query_limit(d))
 
@@ -218,8 +225,18 @@ class _Int8Codes:
         delta_norm = float(np.linalg.norm(delta)) * (1 + 1e-9) + 1e-12 * float(np.linalg.norm(w))
         ex = None if exclude is None else np.ascontiguousarray(exclude, dtype=np.uint8)
         return self._core.int8_candidates(
-            self.codes, self.code_sq, self.code_norm, self.err, g, float(u @ u), step,
-            delta_norm, int(k), int(lim), ex, int(threads),
+            self.codes,
+            self.code_sq,
+            self.code_norm,
+            self.err,
+            g,
+            float(u @ u),
+            step,
+            delta_norm,
+            int(k),
+            int(lim),
+            ex,
+            int(threads),
         )
 
 
@@ -279,16 +296,18 @@ def match_queries(
                 yaw = yaw[ok]
         if len(r) and yaw is None:
             yaw = np.asarray(model.yaw(features[i], stored.features[sel]), dtype=np.float64)
-        out.append([
-            Match(
-                rank=j + 1,
-                row=int(r[j]),
-                match_id=int(stored.ids[sel[j]]),
-                path=stored.paths[sel[j]],
-                distance=float(d[j]),
-                yaw_deg=float(yaw[j]),
-                pose=stored.poses[sel[j]],
-            )
-            for j in range(len(r))
-        ])
+        out.append(
+            [
+                Match(
+                    rank=j + 1,
+                    row=int(r[j]),
+                    match_id=int(stored.ids[sel[j]]),
+                    path=stored.paths[sel[j]],
+                    distance=float(d[j]),
+                    yaw_deg=float(yaw[j]),
+                    pose=stored.poses[sel[j]],
+                )
+                for j in range(len(r))
+            ]
+        )
     return out

@@ -43,8 +43,10 @@ def in_window(points: np.ndarray, config: Any) -> np.ndarray:
         z = xyz[:, 2]
         return (
             np.isfinite(xyz).all(axis=1)
-            & (r >= config.min_range) & (r < config.max_range)
-            & (z >= config.z_min) & (z < config.z_max)
+            & (r >= config.min_range)
+            & (r < config.max_range)
+            & (z >= config.z_min)
+            & (z < config.z_max)
         )
 
 
@@ -141,8 +143,13 @@ def bev(
     ] = None,
     scale: Annotated[
         int | None,
-        typer.Option("--scale", "-s", min=1, max=64,
-                     help="Pixels per BEV cell in the PNG; default: about 960 pixels wide."),
+        typer.Option(
+            "--scale",
+            "-s",
+            min=1,
+            max=64,
+            help="Pixels per BEV cell in the PNG; default: about 960 pixels wide.",
+        ),
     ] = None,
     polar: Annotated[
         bool,

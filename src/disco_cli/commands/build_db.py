@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from disco_cli.console import fail, handle_errors, progress, stderr, warn
 from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
+from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
 if TYPE_CHECKING:
     import numpy as np
@@ -98,41 +98,73 @@ def build_db(
         ),
     ],
     output: Annotated[
-        Path, typer.Option("--output", "-o", help="The database file to write (map.db).",
-                           rich_help_panel=PANEL_IN)
+        Path,
+        typer.Option(
+            "--output", "-o", help="The database file to write (map.db).", rich_help_panel=PANEL_IN
+        ),
     ] = Path("map.db"),
     model: Annotated[
-        str, typer.Option("--model", "-m", rich_help_panel=PANEL_IN,
-                          help="default, spectral, scancontext or a checkpoint path.")
+        str,
+        typer.Option(
+            "--model",
+            "-m",
+            rich_help_panel=PANEL_IN,
+            help="default, spectral, scancontext or a checkpoint path.",
+        ),
     ] = "default",
     poses: Annotated[
-        Optional[Path], typer.Option("--poses", help="KITTI poses (3 x 4 per line) of all scans, "
-                                     "in order; default: poses.txt beside each folder's scans.",
-                                     rich_help_panel=PANEL_IN)
+        Optional[Path],
+        typer.Option(
+            "--poses",
+            help="KITTI poses (3 x 4 per line) of all scans, "
+            "in order; default: poses.txt beside each folder's scans.",
+            rich_help_panel=PANEL_IN,
+        ),
     ] = None,
     calib: Annotated[
-        Optional[Path], typer.Option("--calib", help="KITTI calib.txt: turns camera poses into "
-                                     "LiDAR poses.", rich_help_panel=PANEL_IN)
+        Optional[Path],
+        typer.Option(
+            "--calib",
+            help="KITTI calib.txt: turns camera poses into LiDAR poses.",
+            rich_help_panel=PANEL_IN,
+        ),
     ] = None,
     times: Annotated[
-        Optional[Path], typer.Option("--times", help="Timestamps (s), one per scan; default: "
-                                     "times.txt beside each folder's scans.",
-                                     rich_help_panel=PANEL_IN)
+        Optional[Path],
+        typer.Option(
+            "--times",
+            help="Timestamps (s), one per scan; default: times.txt beside each folder's scans.",
+            rich_help_panel=PANEL_IN,
+        ),
     ] = None,
     scan_format: ScanFormatOpt = None,
     append: Annotated[
-        bool, typer.Option("--append", help="Add these scans to an existing database built from "
-                           "other scans (same model).", rich_help_panel=PANEL_IN)
+        bool,
+        typer.Option(
+            "--append",
+            help="Add these scans to an existing database built from other scans (same model).",
+            rich_help_panel=PANEL_IN,
+        ),
     ] = False,
     batch: Annotated[
-        int, typer.Option("--batch", min=1, max=4096, help="Scans per network batch and per "
-                          "transaction.", rich_help_panel=PANEL_RUN)
+        int,
+        typer.Option(
+            "--batch",
+            min=1,
+            max=4096,
+            help="Scans per network batch and per transaction.",
+            rich_help_panel=PANEL_RUN,
+        ),
     ] = 32,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     skip_bad: Annotated[
-        bool, typer.Option("--skip-bad", help="Warn about unreadable scans and go on, instead of "
-                           "stopping at the first.", rich_help_panel=PANEL_RUN)
+        bool,
+        typer.Option(
+            "--skip-bad",
+            help="Warn about unreadable scans and go on, instead of stopping at the first.",
+            rich_help_panel=PANEL_RUN,
+        ),
     ] = False,
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
@@ -161,7 +193,8 @@ def build_db(
         if not append and not stored.issubset(scans.paths):
             db.close()
             raise DatabaseError(
-                output, "exists and holds other scans; pass --append to add to it, "
+                output,
+                "exists and holds other scans; pass --append to add to it, "
                 "or choose another --output",
             )
         already = sum(1 for p in scans.paths if p in stored)
@@ -174,8 +207,13 @@ def build_db(
 
     written, bad = 0, []
     start = time.perf_counter()
-    loaded = load_stream((scans.paths[i] for i in todo), net.bev_config, workers=workers,
-                         prefetch=max(2 * batch, 4 * workers), scan_format=fmt)
+    loaded = load_stream(
+        (scans.paths[i] for i in todo),
+        net.bev_config,
+        workers=workers,
+        prefetch=max(2 * batch, 4 * workers),
+        scan_format=fmt,
+    )
     try:
         with progress() as bar:
             task = bar.add_task("build-db", total=len(todo), rate="")
@@ -195,8 +233,13 @@ def build_db(
                         times=scans.times[rows],
                     )
                     if db is None:
-                        db = Database.create(output, info, part, disco_version=__version__,
-                                             extra_meta={"model_source": source})
+                        db = Database.create(
+                            output,
+                            info,
+                            part,
+                            disco_version=__version__,
+                            extra_meta={"model_source": source},
+                        )
                     else:
                         db.append(part)
                     written += len(rows)

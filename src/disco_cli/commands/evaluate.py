@@ -360,7 +360,13 @@ def evaluate_loops(
 
     queries = np.flatnonzero(limit > 0)
     matches = match_queries(
-        SignatureIndex(sigs), np.arange(n), _Memory(), model, sigs[queries], feats[queries], 1,
+        SignatureIndex(sigs),
+        np.arange(n),
+        _Memory(),
+        model,
+        sigs[queries],
+        feats[queries],
+        1,
         limit=limit[queries],
     )
     xy = T[:, :2, 3]

@@ -19,23 +19,42 @@ COLUMNS = ["query_seq", "query", "match_seq", "match", "distance_m", "yaw_deg"]
 
 @handle_errors
 def gt_loops(
-    seqs: Annotated[list[Path], typer.Argument(help="KITTI-style folders, each with poses.txt.",
-                                               exists=True, file_okay=False)],
-    radius: Annotated[float, typer.Option("--radius", min=0.0,
-                                          help="Revisit radius (m).")] = 3.0,
-    exclude_frames: Annotated[int, typer.Option(
-        "--exclude-frames", min=1, help="Within one sequence: pair frames at least this far apart.")
+    seqs: Annotated[
+        list[Path],
+        typer.Argument(
+            help="KITTI-style folders, each with poses.txt.", exists=True, file_okay=False
+        ),
+    ],
+    radius: Annotated[float, typer.Option("--radius", min=0.0, help="Revisit radius (m).")] = 3.0,
+    exclude_frames: Annotated[
+        int,
+        typer.Option(
+            "--exclude-frames",
+            min=1,
+            help="Within one sequence: pair frames at least this far apart.",
+        ),
     ] = 50,
-    calib: Annotated[bool, typer.Option(
-        "--calib/--no-calib", help="Use a calib.txt beside poses.txt (KITTI camera poses).")
+    calib: Annotated[
+        bool,
+        typer.Option(
+            "--calib/--no-calib", help="Use a calib.txt beside poses.txt (KITTI camera poses)."
+        ),
     ] = True,
-    fmt: Annotated[Optional[OutputFormat], typer.Option(
-        "--format", help="table, tsv or jsonl (default: table on a terminal, else tsv).")
+    fmt: Annotated[
+        Optional[OutputFormat],
+        typer.Option(
+            "--format", help="table, tsv or jsonl (default: table on a terminal, else tsv)."
+        ),
     ] = None,
 ) -> None:
     """List true revisit pairs (ground truth) within or between sequences."""
-    from disco_cli.poses import gt_pairs, gt_pairs_within, pair_distances, read_kitti_poses
-    from disco_cli.poses import relative_yaw_deg
+    from disco_cli.poses import (
+        gt_pairs,
+        gt_pairs_within,
+        pair_distances,
+        read_kitti_poses,
+        relative_yaw_deg,
+    )
 
     if not seqs:
         raise fail("give at least one sequence folder")
@@ -51,16 +70,23 @@ def gt_loops(
     if len(seqs) == 1:
         jobs = [(0, 0, gt_pairs_within(poses[0], radius, exclude_frames))]
     else:
-        jobs = [(q, m, gt_pairs(poses[q], poses[m], radius))
-                for q in range(len(seqs)) for m in range(q)]
+        jobs = [
+            (q, m, gt_pairs(poses[q], poses[m], radius)) for q in range(len(seqs)) for m in range(q)
+        ]
     for q, m, pairs in jobs:
         if len(pairs) == 0:
             continue
         dist = pair_distances(poses[q], poses[m], pairs)
         yaw = relative_yaw_deg(poses[m][pairs[:, 1]], poses[q][pairs[:, 0]])
         rows = [
-            {"query_seq": str(seqs[q]), "query": int(i), "match_seq": str(seqs[m]),
-             "match": int(j), "distance_m": float(d), "yaw_deg": float(y)}
+            {
+                "query_seq": str(seqs[q]),
+                "query": int(i),
+                "match_seq": str(seqs[m]),
+                "match": int(j),
+                "distance_m": float(d),
+                "yaw_deg": float(y),
+            }
             for (i, j), d, y in zip(pairs, dist, yaw)
         ]
         writer.write(rows, title=f"{seqs[q]} -> {seqs[m]}: {len(rows)} revisit pairs")

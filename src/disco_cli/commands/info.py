@@ -22,12 +22,18 @@ def _size(n: int) -> str:
 def info(
     db_path: Annotated[Path, typer.Argument(help="The map database.", show_default=False)],
     check: Annotated[
-        bool, typer.Option("--check", help="Also run SQLite's integrity check and check the size "
-                           "and values of every stored signature and feature block.")
+        bool,
+        typer.Option(
+            "--check",
+            help="Also run SQLite's integrity check and check the size "
+            "and values of every stored signature and feature block.",
+        ),
     ] = False,
     fmt: Annotated[
-        Optional[OutputFormat], typer.Option("--format", help="table, tsv or jsonl; default: a "
-                                             "table on a terminal, TSV in a pipe.")
+        Optional[OutputFormat],
+        typer.Option(
+            "--format", help="table, tsv or jsonl; default: a table on a terminal, TSV in a pipe."
+        ),
     ] = None,
 ) -> None:
     """Show a map database's scans, model, configuration and size."""

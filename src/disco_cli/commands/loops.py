@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from disco_cli.console import OutputFormat, fail, handle_errors, progress, stderr, warn
 from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
+from disco_cli.console import OutputFormat, fail, handle_errors, progress, stderr, warn
 
 if TYPE_CHECKING:
     import numpy as np
@@ -43,8 +43,9 @@ class SequenceRows:
         from disco_cli.database import MatchRows
 
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        return MatchRows(ids, [self.paths[i] for i in ids], np.full((len(ids), 4), np.nan),
-                         self.features[ids])
+        return MatchRows(
+            ids, [self.paths[i] for i in ids], np.full((len(ids), 4), np.nan), self.features[ids]
+        )
 
 
 class _Points:
@@ -74,61 +75,109 @@ class _Points:
 @handle_errors
 def loops(
     sequence: Annotated[
-        Path, typer.Argument(help="The sequence: a folder of scans (KITTI-style DIR/velodyne/ "
-                             "or a folder of scan files).", show_default=False)
+        Path,
+        typer.Argument(
+            help="The sequence: a folder of scans (KITTI-style DIR/velodyne/ "
+            "or a folder of scan files).",
+            show_default=False,
+        ),
     ],
     exclude_frames: Annotated[
-        Optional[int], typer.Option("--exclude-frames", min=1, help="Search only scans at least "
-                                    "this many frames before the query. [default: 50]")
+        Optional[int],
+        typer.Option(
+            "--exclude-frames",
+            min=1,
+            help="Search only scans at least this many frames before the query. [default: 50]",
+        ),
     ] = None,
     exclude_seconds: Annotated[
-        Optional[float], typer.Option("--exclude-seconds", min=0.0, help="Search only scans at "
-                                      "least this many seconds before the query (times.txt).")
+        Optional[float],
+        typer.Option(
+            "--exclude-seconds",
+            min=0.0,
+            help="Search only scans at least this many seconds before the query (times.txt).",
+        ),
     ] = None,
     threshold: Annotated[
-        Optional[float], typer.Option("--threshold", "-t", min=0.0, help="Report pairs with a "
-                                      "signature distance at most this; default: all.")
+        Optional[float],
+        typer.Option(
+            "--threshold",
+            "-t",
+            min=0.0,
+            help="Report pairs with a signature distance at most this; default: all.",
+        ),
     ] = None,
     topk: Annotated[
         int, typer.Option("--topk", "-k", min=1, max=1000, help="Candidates per query scan.")
     ] = 1,
     model: Annotated[
-        str, typer.Option("--model", "-m", help="default, spectral, scancontext or a checkpoint "
-                          "path.")
+        str,
+        typer.Option("--model", "-m", help="default, spectral, scancontext or a checkpoint path."),
     ] = "default",
     fmt: Annotated[
-        Optional[OutputFormat], typer.Option("--format", help="table, tsv or jsonl; default: a "
-                                             "table on a terminal, TSV in a pipe.",
-                                             rich_help_panel=PANEL_OUT)
+        Optional[OutputFormat],
+        typer.Option(
+            "--format",
+            help="table, tsv or jsonl; default: a table on a terminal, TSV in a pipe.",
+            rich_help_panel=PANEL_OUT,
+        ),
     ] = None,
     verify: Annotated[
-        bool, typer.Option("--verify", help="Estimate each pair's relative pose (phase "
-                           "correlation + ICP) and keep only the accepted ones.",
-                           rich_help_panel=PANEL_POSE)
+        bool,
+        typer.Option(
+            "--verify",
+            help="Estimate each pair's relative pose (phase "
+            "correlation + ICP) and keep only the accepted ones.",
+            rich_help_panel=PANEL_POSE,
+        ),
     ] = False,
     verbose: Annotated[
-        bool, typer.Option("--verbose", "-v", help="Estimate each pair's relative pose and show "
-                           "it (dx, dy, dz, fitness, rmse, accepted, reason), rejected pairs "
-                           "included unless --verify.", rich_help_panel=PANEL_POSE)
+        bool,
+        typer.Option(
+            "--verbose",
+            "-v",
+            help="Estimate each pair's relative pose and show "
+            "it (dx, dy, dz, fitness, rmse, accepted, reason), rejected pairs "
+            "included unless --verify.",
+            rich_help_panel=PANEL_POSE,
+        ),
     ] = False,
     output: Annotated[
-        Optional[Path], typer.Option("--output", "-o", help="Also write the loops with their "
-                                     "relative poses: .g2o (EDGE_SE3:QUAT, accepted loops "
-                                     "only), .tum or .csv.", rich_help_panel=PANEL_OUT)
+        Optional[Path],
+        typer.Option(
+            "--output",
+            "-o",
+            help="Also write the loops with their "
+            "relative poses: .g2o (EDGE_SE3:QUAT, accepted loops "
+            "only), .tum or .csv.",
+            rich_help_panel=PANEL_OUT,
+        ),
     ] = None,
     times: Annotated[
-        Optional[Path], typer.Option("--times", help="Timestamps (s), one per scan; default: "
-                                     "times.txt beside the scans.", rich_help_panel=PANEL_RUN)
+        Optional[Path],
+        typer.Option(
+            "--times",
+            help="Timestamps (s), one per scan; default: times.txt beside the scans.",
+            rich_help_panel=PANEL_RUN,
+        ),
     ] = None,
     db_path: Annotated[
-        Optional[Path], typer.Option("--db", "-d", help="Reuse the signatures of a database built "
-                                     "from this sequence (same model); scans not in it are "
-                                     "embedded.", rich_help_panel=PANEL_RUN)
+        Optional[Path],
+        typer.Option(
+            "--db",
+            "-d",
+            help="Reuse the signatures of a database built "
+            "from this sequence (same model); scans not in it are "
+            "embedded.",
+            rich_help_panel=PANEL_RUN,
+        ),
     ] = None,
     scan_format: ScanFormatOpt = None,
     batch: Annotated[
-        int, typer.Option("--batch", min=1, max=4096, help="Scans per network batch.",
-                          rich_help_panel=PANEL_RUN)
+        int,
+        typer.Option(
+            "--batch", min=1, max=4096, help="Scans per network batch.", rich_help_panel=PANEL_RUN
+        ),
     ] = 32,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
@@ -192,8 +241,13 @@ def loops(
 
     todo = [i for i in range(n) if not known[i]]
     if todo:
-        loaded = load_stream((paths[i] for i in todo), net.bev_config, workers=workers,
-                             prefetch=max(2 * batch, 4 * workers), scan_format=fmt_name)
+        loaded = load_stream(
+            (paths[i] for i in todo),
+            net.bev_config,
+            workers=workers,
+            prefetch=max(2 * batch, 4 * workers),
+            scan_format=fmt_name,
+        )
         try:
             with progress(transient=True) as bar:
                 task = bar.add_task("embedding", total=len(todo), rate="")
@@ -218,8 +272,9 @@ def loops(
         if np.any(np.diff(stamps) < 0):
             warn(f"{sequence}: timestamps are not increasing; frames are taken in file order")
         # Scans at most t_i - S, and never the query itself or a later scan.
-        limit = np.minimum(np.searchsorted(stamps, stamps - exclude_seconds, side="right"),
-                           np.arange(n))
+        limit = np.minimum(
+            np.searchsorted(stamps, stamps - exclude_seconds, side="right"), np.arange(n)
+        )
     else:
         gap = 50 if exclude_frames is None else exclude_frames
         limit = np.maximum(np.arange(n) - gap + 1, 0)
@@ -236,37 +291,67 @@ def loops(
         block = block[limit[block] > 0]
         if len(block) == 0:
             continue
-        found = match_queries(index, frame_ids, store, net, sigs[block], feats[block], topk,
-                              limit=limit[block], max_distance=threshold)
+        found = match_queries(
+            index,
+            frame_ids,
+            store,
+            net,
+            sigs[block],
+            feats[block],
+            topk,
+            limit=limit[block],
+            max_distance=threshold,
+        )
         out = []
         for i, matches in zip(block, found):
             for m in matches:
-                row = {"query_index": int(i), "query": paths[i], "match_index": m.match_id,
-                       "match": m.path, "distance": m.distance, "yaw_deg": m.yaw_deg}
+                row = {
+                    "query_index": int(i),
+                    "query": paths[i],
+                    "match_index": m.match_id,
+                    "match": m.path,
+                    "distance": m.distance,
+                    "yaw_deg": m.yaw_deg,
+                }
                 if with_pose:
                     from disco_cli.loop_export import Loop
                     from disco_cli.relative_pose import estimate_relative_pose
 
-                    rp = estimate_relative_pose(points.get(int(i)), points.get(m.match_id),
-                                                m.yaw_deg)
+                    rp = estimate_relative_pose(
+                        points.get(int(i)), points.get(m.match_id), m.yaw_deg
+                    )
                     if verify and not rp.accepted:
                         continue
                     if verbose:
-                        row.update(dx=rp.dx, dy=rp.dy, dz=rp.dz, fitness=rp.fitness,
-                                   rmse=rp.rmse, accepted=rp.accepted, reason=rp.reason)
+                        row.update(
+                            dx=rp.dx,
+                            dy=rp.dy,
+                            dz=rp.dz,
+                            fitness=rp.fitness,
+                            rmse=rp.rmse,
+                            accepted=rp.accepted,
+                            reason=rp.reason,
+                        )
                     t = all_times if all_times is not None else None
-                    found_loops.append(Loop(
-                        int(i), m.match_id, paths[i], m.path, m.distance, m.yaw_deg, rp,
-                        float(t[i]) if t is not None else float("nan"),
-                        float(t[m.match_id]) if t is not None else float("nan"),
-                    ))
+                    found_loops.append(
+                        Loop(
+                            int(i),
+                            m.match_id,
+                            paths[i],
+                            m.path,
+                            m.distance,
+                            m.yaw_deg,
+                            rp,
+                            float(t[i]) if t is not None else float("nan"),
+                            float(t[m.match_id]) if t is not None else float("nan"),
+                        )
+                    )
                 out.append(row)
         if out:
             writer.write(out)
     if output is not None:
         from disco_cli.loop_export import write_loops
 
-        keep = [lp for lp in found_loops
-                if lp.pose.accepted or output.suffix.lower() != ".g2o"]
+        keep = [lp for lp in found_loops if lp.pose.accepted or output.suffix.lower() != ".g2o"]
         write_loops(output, keep)
         stderr.print(f"{output}: {len(keep)} loops written")

@@ -21,7 +21,10 @@ ScanFormatOpt = Annotated[
 WorkersOpt = Annotated[
     int,
     typer.Option(
-        "--workers", min=1, max=64, help="Threads reading and voxelizing scans.",
+        "--workers",
+        min=1,
+        max=64,
+        help="Threads reading and voxelizing scans.",
         rich_help_panel=PANEL_RUN,
     ),
 ]

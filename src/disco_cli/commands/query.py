@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
-from disco_cli.console import OutputFormat, error, fail, handle_errors
 from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
+from disco_cli.console import OutputFormat, error, fail, handle_errors
 
 if TYPE_CHECKING:
     from disco_cli.database import Database
@@ -49,8 +49,10 @@ def open_for_model(db_path: Path, model: str | None, device: str) -> tuple[Datab
 def query(
     scans: Annotated[
         list[str],
-        typer.Argument(help="Scan files, or - to read scan paths from stdin (one per line).",
-                       show_default=False),
+        typer.Argument(
+            help="Scan files, or - to read scan paths from stdin (one per line).",
+            show_default=False,
+        ),
     ],
     db_path: Annotated[
         Path, typer.Option("--db", "-d", help="The map database (from disco build-db).")
@@ -59,43 +61,75 @@ def query(
         int, typer.Option("--topk", "-k", min=1, max=10000, help="Matches per query.")
     ] = 10,
     fmt: Annotated[
-        Optional[OutputFormat], typer.Option("--format", help="table, tsv or jsonl; default: a "
-                                             "table on a terminal, TSV in a pipe.",
-                                             rich_help_panel=PANEL_OUT)
+        Optional[OutputFormat],
+        typer.Option(
+            "--format",
+            help="table, tsv or jsonl; default: a table on a terminal, TSV in a pipe.",
+            rich_help_panel=PANEL_OUT,
+        ),
     ] = None,
     exclude_radius: Annotated[
-        Optional[float], typer.Option("--exclude-radius", min=0.0, help="Drop matches whose "
-                                      "stored pose is within this many metres (x, y) of the "
-                                      "query's pose (needs --query-poses).",
-                                      rich_help_panel=PANEL_FILTER)
+        Optional[float],
+        typer.Option(
+            "--exclude-radius",
+            min=0.0,
+            help="Drop matches whose "
+            "stored pose is within this many metres (x, y) of the "
+            "query's pose (needs --query-poses).",
+            rich_help_panel=PANEL_FILTER,
+        ),
     ] = None,
     query_poses: Annotated[
-        Optional[Path], typer.Option("--query-poses", help="KITTI poses of the query scans: row i "
-                                     "for the i-th scan, or by frame number in the file name.",
-                                     rich_help_panel=PANEL_FILTER)
+        Optional[Path],
+        typer.Option(
+            "--query-poses",
+            help="KITTI poses of the query scans: row i "
+            "for the i-th scan, or by frame number in the file name.",
+            rich_help_panel=PANEL_FILTER,
+        ),
     ] = None,
     calib: Annotated[
-        Optional[Path], typer.Option("--calib", help="KITTI calib.txt for --query-poses.",
-                                     rich_help_panel=PANEL_FILTER)
+        Optional[Path],
+        typer.Option(
+            "--calib", help="KITTI calib.txt for --query-poses.", rich_help_panel=PANEL_FILTER
+        ),
     ] = None,
     max_distance: Annotated[
-        Optional[float], typer.Option("--max-distance", min=0.0, help="Drop matches with a "
-                                      "signature distance above this.",
-                                      rich_help_panel=PANEL_FILTER)
+        Optional[float],
+        typer.Option(
+            "--max-distance",
+            min=0.0,
+            help="Drop matches with a signature distance above this.",
+            rich_help_panel=PANEL_FILTER,
+        ),
     ] = None,
     pose: Annotated[
-        bool, typer.Option("--pose", help="Also estimate the full relative pose of each match "
-                           "(phase correlation + ICP on the points): adds dx, dy, dz, fitness, "
-                           "accepted.", rich_help_panel=PANEL_POSE)
+        bool,
+        typer.Option(
+            "--pose",
+            help="Also estimate the full relative pose of each match "
+            "(phase correlation + ICP on the points): adds dx, dy, dz, fitness, "
+            "accepted.",
+            rich_help_panel=PANEL_POSE,
+        ),
     ] = False,
     verify: Annotated[
-        bool, typer.Option("--verify", help="Keep only matches whose relative pose is accepted "
-                           "(implies --pose).", rich_help_panel=PANEL_POSE)
+        bool,
+        typer.Option(
+            "--verify",
+            help="Keep only matches whose relative pose is accepted (implies --pose).",
+            rich_help_panel=PANEL_POSE,
+        ),
     ] = False,
     model: Annotated[
-        Optional[str], typer.Option("--model", "-m", help="The model; default: the one that "
-                                    "built the database (needed for checkpoint paths).",
-                                    rich_help_panel=PANEL_RUN)
+        Optional[str],
+        typer.Option(
+            "--model",
+            "-m",
+            help="The model; default: the one that "
+            "built the database (needed for checkpoint paths).",
+            rich_help_panel=PANEL_RUN,
+        ),
     ] = None,
     scan_format: ScanFormatOpt = None,
     workers: WorkersOpt = 1,
@@ -133,9 +167,14 @@ def query(
     writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt)
     failed = 0
     match_points = PointCache()
-    loaded = load_stream(paths(), net.bev_config, workers=workers, prefetch=2 * workers,
-                         scan_format=scan_format.value if scan_format is not None else None,
-                         keep_points=with_pose)
+    loaded = load_stream(
+        paths(),
+        net.bev_config,
+        workers=workers,
+        prefetch=2 * workers,
+        scan_format=scan_format.value if scan_format is not None else None,
+        keep_points=with_pose,
+    )
     try:
         for chunk in embed_stream(loaded, net, batch=1):
             for item in chunk.errors:
@@ -145,24 +184,44 @@ def query(
                 exclude = None
                 try:
                     if q_rows is not None:
-                        exclude = _exclusion(item.index, item.path, q_rows, n_args, db_xy,
-                                             exclude_radius, str(query_poses))
+                        exclude = _exclusion(
+                            item.index,
+                            item.path,
+                            q_rows,
+                            n_args,
+                            db_xy,
+                            exclude_radius,
+                            str(query_poses),
+                        )
                 except PoseFileError as exc:
                     error(str(exc))
                     failed += 1
                     continue
                 try:
                     matches = match_queries(
-                        index, ids, db, net, chunk.signatures[j:j + 1], chunk.features[j:j + 1],
-                        topk, exclude=exclude, max_distance=max_distance,
+                        index,
+                        ids,
+                        db,
+                        net,
+                        chunk.signatures[j : j + 1],
+                        chunk.features[j : j + 1],
+                        topk,
+                        exclude=exclude,
+                        max_distance=max_distance,
                     )[0]
                 except DiscoError as exc:
                     error(str(exc))
                     failed += 1
                     continue
                 rows = [
-                    {"query": item.path, "rank": m.rank, "match": m.path,
-                     "match_id": m.match_id, "distance": m.distance, "yaw_deg": m.yaw_deg}
+                    {
+                        "query": item.path,
+                        "rank": m.rank,
+                        "match": m.path,
+                        "match_id": m.match_id,
+                        "distance": m.distance,
+                        "yaw_deg": m.yaw_deg,
+                    }
                     for m in matches
                 ]
                 if with_pose:
@@ -171,14 +230,16 @@ def query(
                     kept = []
                     for row in rows:
                         try:
-                            rp = estimate_relative_pose(item.points, match_points.get(row["match"]),
-                                                        row["yaw_deg"])
+                            rp = estimate_relative_pose(
+                                item.points, match_points.get(row["match"]), row["yaw_deg"]
+                            )
                         except DiscoError as exc:
                             error(f"{row['match']}: no relative pose ({exc})")
                             failed += 1
                             continue
-                        row.update(dx=rp.dx, dy=rp.dy, dz=rp.dz, fitness=rp.fitness,
-                                   accepted=rp.accepted)
+                        row.update(
+                            dx=rp.dx, dy=rp.dy, dz=rp.dz, fitness=rp.fitness, accepted=rp.accepted
+                        )
                         if rp.accepted or not verify:
                             kept.append(row)
                     rows = kept

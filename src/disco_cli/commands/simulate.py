@@ -25,33 +25,63 @@ class SensorName(str, Enum):
 
 @handle_errors
 def simulate(
-    out: Annotated[Path, typer.Argument(help="Output folder (sessions 00, 01, ... and world.json).",
-                                        file_okay=False)],
-    sessions: Annotated[int, typer.Option("--sessions", min=1, max=99,
-                                          help="How many sessions to drive through the town.")] = 2,
-    frames: Annotated[Optional[int], typer.Option("--frames", min=1,
-                                                  help="Scans per session.")] = None,
-    length_m: Annotated[Optional[float], typer.Option(
-        "--length-m", min=1.0, help="Session length in metres (instead of --frames; default 400).")
+    out: Annotated[
+        Path,
+        typer.Argument(
+            help="Output folder (sessions 00, 01, ... and world.json).", file_okay=False
+        ),
+    ],
+    sessions: Annotated[
+        int,
+        typer.Option(
+            "--sessions", min=1, max=99, help="How many sessions to drive through the town."
+        ),
+    ] = 2,
+    frames: Annotated[
+        Optional[int], typer.Option("--frames", min=1, help="Scans per session.")
     ] = None,
-    step_m: Annotated[float, typer.Option("--step-m", min=0.05,
-                                          help="Mean distance driven between scans (m).")] = 1.0,
-    sensor: Annotated[SensorName, typer.Option("--sensor", help="Beam pattern to simulate.")
-                      ] = SensorName.hdl32,
+    length_m: Annotated[
+        Optional[float],
+        typer.Option(
+            "--length-m",
+            min=1.0,
+            help="Session length in metres (instead of --frames; default 400).",
+        ),
+    ] = None,
+    step_m: Annotated[
+        float, typer.Option("--step-m", min=0.05, help="Mean distance driven between scans (m).")
+    ] = 1.0,
+    sensor: Annotated[
+        SensorName, typer.Option("--sensor", help="Beam pattern to simulate.")
+    ] = SensorName.hdl32,
     seed: Annotated[int, typer.Option("--seed", min=0, help="World and noise seed.")] = 0,
-    azimuth_step: Annotated[Optional[float], typer.Option(
-        "--azimuth-step", help="Azimuth step in degrees (default: the sensor's own).")] = None,
-    town: Annotated[Optional[Path], typer.Option(
-        "--town", exists=True, dir_okay=False,
-        help="Town parameters: a TOML file (see docs/simulator.md) or an earlier world.json.")
+    azimuth_step: Annotated[
+        Optional[float],
+        typer.Option("--azimuth-step", help="Azimuth step in degrees (default: the sensor's own)."),
     ] = None,
-    motion_distortion: Annotated[bool, typer.Option(
-        "--motion-distortion", help="Raw scans: each ray from where the sensor was when it "
-        "fired (default: deskewed, every ray from the scan's pose).")] = False,
-    threads: Annotated[int, typer.Option("--threads", min=0,
-                                         help="Ray-casting threads (0: all cores).")] = 0,
-    force: Annotated[bool, typer.Option("--force", help="Write into a folder that has sessions.")
-                     ] = False,
+    town: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--town",
+            exists=True,
+            dir_okay=False,
+            help="Town parameters: a TOML file (see docs/simulator.md) or an earlier world.json.",
+        ),
+    ] = None,
+    motion_distortion: Annotated[
+        bool,
+        typer.Option(
+            "--motion-distortion",
+            help="Raw scans: each ray from where the sensor was when it "
+            "fired (default: deskewed, every ray from the scan's pose).",
+        ),
+    ] = False,
+    threads: Annotated[
+        int, typer.Option("--threads", min=0, help="Ray-casting threads (0: all cores).")
+    ] = 0,
+    force: Annotated[
+        bool, typer.Option("--force", help="Write into a folder that has sessions.")
+    ] = False,
 ) -> None:
     """Simulate a LiDAR driving through a procedural town, in several sessions."""
     from disco_cli.simulator import TownParams
@@ -69,10 +99,22 @@ def simulate(
         def report(done: int, _total: int) -> None:
             bar.update(task, completed=done)
 
-        meta = run(out, sessions=sessions, frames=frames, length_m=length_m, step_m=step_m,
-                   sensor=sensor.value, seed=seed, threads=threads,
-                   azimuth_step_deg=azimuth_step, motion_distortion=motion_distortion,
-                   params=params, on_scan=report)
+        meta = run(
+            out,
+            sessions=sessions,
+            frames=frames,
+            length_m=length_m,
+            step_m=step_m,
+            sensor=sensor.value,
+            seed=seed,
+            threads=threads,
+            azimuth_step_deg=azimuth_step,
+            motion_distortion=motion_distortion,
+            params=params,
+            on_scan=report,
+        )
     n = meta["sessions"][0]["frames"]
-    stderr.print(f"wrote {sessions} session(s) of {n} {sensor.value} scans to {out} "
-                 f"(town of {meta['town']['streets']} streets, seed {seed})")
+    stderr.print(
+        f"wrote {sessions} session(s) of {n} {sensor.value} scans to {out} "
+        f"(town of {meta['town']['streets']} streets, seed {seed})"
+    )

@@ -38,7 +38,9 @@ def train(
     data: Annotated[
         list[Path],
         typer.Argument(
-            exists=True, file_okay=False, show_default=False,
+            exists=True,
+            file_okay=False,
+            show_default=False,
             help="Sequence folders (velodyne/ + poses.txt), or folders of them (one world each).",
         ),
     ],
@@ -82,7 +84,8 @@ def train(
     val: Annotated[
         list[Path] | None,
         typer.Option(
-            exists=True, file_okay=False,
+            exists=True,
+            file_okay=False,
             help="Held-out sequences for the per-epoch validation (repeatable).",
         ),
     ] = None,
@@ -108,18 +111,34 @@ def train(
     command = _command_line(ctx, data, output)
     bev_config = BEVConfig()
     opts = TrainOptions(
-        epochs=epochs, steps=steps, batch=batch, negatives=negatives, lr=lr,
-        lambda_yaw=lambda_yaw, d_pos=d_pos, d_neg=d_neg, width=width, residual=residual,
-        bev_dropout=bev_dropout, hard_after=hard_after, self_supervised=self_supervised,
-        time_gap=time_gap, seed=seed, device=device,
+        epochs=epochs,
+        steps=steps,
+        batch=batch,
+        negatives=negatives,
+        lr=lr,
+        lambda_yaw=lambda_yaw,
+        d_pos=d_pos,
+        d_neg=d_neg,
+        width=width,
+        residual=residual,
+        bev_dropout=bev_dropout,
+        hard_after=hard_after,
+        self_supervised=self_supervised,
+        time_gap=time_gap,
+        seed=seed,
+        device=device,
     )
 
     def load(paths: list[Path], what: str, ss: bool):
         with progress(transient=True) as bar:
             task = bar.add_task(f"voxelizing {what}", total=None, rate="")
             result = load_training_data(
-                paths, bev_config, self_supervised=ss, spacing=0.0 if ss else spacing,
-                seed=seed, threads=threads,
+                paths,
+                bev_config,
+                self_supervised=ss,
+                spacing=0.0 if ss else spacing,
+                seed=seed,
+                threads=threads,
                 on_progress=lambda done, total: bar.update(task, completed=done, total=total),
             )
         stderr.print(f"{what}: {len(result.anchors)} scans from {len(result.sessions)} sequences")
@@ -133,15 +152,27 @@ def train(
 
         def on_step(epoch: int, step: int, total: int, losses: dict[str, float]) -> None:
             text = " ".join(f"{k} {v:.3f}" for k, v in losses.items())
-            bar.update(task, completed=step, total=total, description=f"epoch {epoch + 1}/{epochs}",
-                       rate=text)
+            bar.update(
+                task,
+                completed=step,
+                total=total,
+                description=f"epoch {epoch + 1}/{epochs}",
+                rate=text,
+            )
             if not stderr.is_terminal and (step % 25 == 0 or step == total):
                 # No bar in a log file: a line now and then shows that training moves.
                 line = f"epoch {epoch + 1}/{epochs} step {step}/{total} {text}"
                 stderr.print(line, soft_wrap=True)
 
         run_training(
-            data_set, bev_config, opts, output, command=command, resume=resume, val=val_set,
-            on_step=on_step, log=lambda line: stderr.print(line, soft_wrap=True),
+            data_set,
+            bev_config,
+            opts,
+            output,
+            command=command,
+            resume=resume,
+            val=val_set,
+            on_step=on_step,
+            log=lambda line: stderr.print(line, soft_wrap=True),
         )
     stderr.print(f"wrote {output}")

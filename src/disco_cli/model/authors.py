@@ -94,5 +94,6 @@ def model_from_authors(
         first_line = str(exc).strip().splitlines()
         detail = " ".join(first_line)[:300]
         raise ModelError(f"{path}: authors' layout does not fit: {detail}") from None
-    return DiscoModel(net, authors_bev_config(), model_config,
-                      name=name or f"{Path(path).stem}", device=device)
+    return DiscoModel(
+        net, authors_bev_config(), model_config, name=name or f"{Path(path).stem}", device=device
+    )

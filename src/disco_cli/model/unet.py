@@ -124,8 +124,15 @@ class Corr2Soft(nn.Module):
 class DiscoNet(nn.Module):
     """F_cnn plus the yaw softmax: the trainable parameters of a DiSCO model."""
 
-    def __init__(self, in_channels: int, width: int = 16, norm: bool = True,
-                 circular: bool = True, sigmoid: bool = False, residual: bool = False):
+    def __init__(
+        self,
+        in_channels: int,
+        width: int = 16,
+        norm: bool = True,
+        circular: bool = True,
+        sigmoid: bool = False,
+        residual: bool = False,
+    ):
         super().__init__()
         self.unet = UNet(in_channels, width, norm, circular, sigmoid, residual)
         self.corr2soft = Corr2Soft()

@@ -30,7 +30,13 @@ if TYPE_CHECKING:
     import numpy as np
 
 __all__ = [
-    "FORMATS", "FormatName", "ScanFormat", "guess_format", "list_scans", "natural_key", "read_scan",
+    "FORMATS",
+    "FormatName",
+    "ScanFormat",
+    "guess_format",
+    "list_scans",
+    "natural_key",
+    "read_scan",
 ]
 
 
@@ -50,11 +56,15 @@ class ScanFormat:
 # The registry: every format disco reads, in the order `--format` lists them.
 FORMATS: dict[str, ScanFormat] = {
     "kitti": ScanFormat(
-        "kitti", (".bin",), "disco_cli.readers.kitti",
+        "kitti",
+        (".bin",),
+        "disco_cli.readers.kitti",
         "KITTI / MulRan .bin: float32 x, y, z, intensity",
     ),
     "nclt": ScanFormat(
-        "nclt", (".bin",), "disco_cli.readers.nclt",
+        "nclt",
+        (".bin",),
+        "disco_cli.readers.nclt",
         "NCLT velodyne_sync .bin: uint16 x, y, z (5 mm, -100 m), uint8 intensity, laser",
     ),
     "npy": ScanFormat("npy", (".npy",), "disco_cli.readers.npy", "NumPy .npy: N x 3 or N x 4"),
@@ -93,8 +103,9 @@ def guess_format(path: str | Path) -> str:
             return fmt.name
     known = ", ".join(sorted({e for f in FORMATS.values() for e in f.extensions}))
     raise ScanReadError(
-        path, f"cannot tell the scan format from {ext or 'no extension'!r} "
-        f"(known: {known}); pass the format explicitly"
+        path,
+        f"cannot tell the scan format from {ext or 'no extension'!r} "
+        f"(known: {known}); pass the format explicitly",
     )
 
 
@@ -131,8 +142,9 @@ def list_scans(path: str | Path, format: str | None = None) -> list[Path]:
 
     A file gives itself. A folder gives `DIR/velodyne/*.bin` (or
     `DIR/velodyne_sync/*.bin`) when that exists, else its own files with a scan
-    extension (of `format` when given); hidden files are skipped. Raises `ScanReadError` when the path is
-    missing or holds no scans, or when a folder mixes formats and none was given.
+    extension (of `format` when given); hidden files are skipped. Raises `ScanReadError`
+    when the path is missing or holds no scans, or when a folder mixes formats and none
+    was given.
     """
     path = Path(path)
     fmt = _format_by_name(format, path) if format else None
@@ -161,7 +173,8 @@ def list_scans(path: str | Path, format: str | None = None) -> list[Path]:
         present = sorted({p.suffix.lower() for p in found})
         if len(present) > 1:
             raise ScanReadError(
-                path, f"the folder holds several scan formats ({', '.join(present)}); "
-                "pass the format to choose one"
+                path,
+                f"the folder holds several scan formats ({', '.join(present)}); "
+                "pass the format to choose one",
             )
     return sorted(found, key=natural_key)

@@ -61,7 +61,8 @@ def check_record_size(path: Path, size: int, record: int, layout: str) -> int:
         raise ScanReadError(path, "the file is empty (no points)")
     if size % record:
         raise ScanReadError(
-            path, f"size {size} bytes is not a multiple of the {record}-byte record "
-            f"({layout}): truncated or not this format"
+            path,
+            f"size {size} bytes is not a multiple of the {record}-byte record "
+            f"({layout}): truncated or not this format",
         )
     return size // record

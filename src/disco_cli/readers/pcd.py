@@ -129,8 +129,9 @@ def _read_binary(path: Path, body: bytes, dtype: np.dtype, n_points: int) -> np.
         raise ScanReadError(path, "the scan has no points (POINTS 0)")
     if len(body) < need:
         raise ScanReadError(
-            path, f"truncated: {n_points} points of {dtype.itemsize} bytes need {need} bytes "
-            f"of data, found {len(body)}"
+            path,
+            f"truncated: {n_points} points of {dtype.itemsize} bytes need {need} bytes "
+            f"of data, found {len(body)}",
         )
     return np.frombuffer(body, dtype=dtype, count=n_points)
 
@@ -146,8 +147,9 @@ def _read_compressed(
     need = n_points * dtype.itemsize
     if unpacked != need:
         raise ScanReadError(
-            path, f"binary_compressed data expands to {unpacked} bytes, but {n_points} points "
-            f"of {dtype.itemsize} bytes need {need}"
+            path,
+            f"binary_compressed data expands to {unpacked} bytes, but {n_points} points "
+            f"of {dtype.itemsize} bytes need {need}",
         )
     if len(body) - 8 < packed:
         raise ScanReadError(
@@ -213,9 +215,7 @@ def lzf_decompress(data: bytes, size: int) -> bytes:
     return bytes(out)
 
 
-def _read_ascii(
-    path: Path, body: bytes, dtype: np.dtype, n_points: int
-) -> dict[str, np.ndarray]:
+def _read_ascii(path: Path, body: bytes, dtype: np.dtype, n_points: int) -> dict[str, np.ndarray]:
     try:
         text = body.decode("ascii")
     except UnicodeDecodeError:
@@ -226,8 +226,9 @@ def _read_ascii(
         raise ScanReadError(path, "the scan has no points")
     if len(tokens) < n_points * per_point:
         raise ScanReadError(
-            path, f"truncated: {n_points} points of {per_point} values need "
-            f"{n_points * per_point} numbers, found {len(tokens)}"
+            path,
+            f"truncated: {n_points} points of {per_point} values need "
+            f"{n_points * per_point} numbers, found {len(tokens)}",
         )
     if len(tokens) != n_points * per_point:
         raise ScanReadError(

@@ -17,10 +17,22 @@ from disco_cli.errors import ScanReadError
 from disco_cli.readers._common import assemble, pick_intensity
 
 _TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 # The same types as `struct` codes, for walking rows that hold lists.
 _STRUCT = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I", "f4": "f", "f8": "d"}
@@ -132,8 +144,13 @@ def _parse_header(path: Path, data: bytes) -> tuple[str, list[_Element], int]:
 
 
 def _read_binary(
-    path: Path, data: bytes, pos: int, order: str,
-    elements: list[_Element], vertex: _Element, wanted: list[str],
+    path: Path,
+    data: bytes,
+    pos: int,
+    order: str,
+    elements: list[_Element],
+    vertex: _Element,
+    wanted: list[str],
 ) -> dict[str, np.ndarray]:
     for element in elements:
         if element is vertex:
@@ -144,8 +161,9 @@ def _read_binary(
         need = vertex.count * dtype.itemsize
         if len(data) - pos < need:
             raise ScanReadError(
-                path, f"truncated: {vertex.count} vertices need {need} bytes of data, "
-                f"found {len(data) - pos}"
+                path,
+                f"truncated: {vertex.count} vertices need {need} bytes of data, "
+                f"found {len(data) - pos}",
             )
         table = np.frombuffer(data, dtype=dtype, count=vertex.count, offset=pos)
         first = {}
@@ -158,8 +176,9 @@ def _read_binary(
     least = sum(_SIZE[p.count_type or p.type] for p in vertex.props)
     if vertex.count * least > len(data) - pos:
         raise ScanReadError(
-            path, f"truncated: {vertex.count} vertices need at least {vertex.count * least} "
-            f"bytes of data, found {len(data) - pos}"
+            path,
+            f"truncated: {vertex.count} vertices need at least {vertex.count * least} "
+            f"bytes of data, found {len(data) - pos}",
         )
     out = {name: np.empty(vertex.count, dtype=np.float64) for name in wanted}
     for row in range(vertex.count):

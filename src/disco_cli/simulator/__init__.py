@@ -34,8 +34,20 @@ from disco_cli.simulator.routes import (
 from disco_cli.simulator.sensors import SENSORS, Sensor, get_sensor
 from disco_cli.simulator.world import SessionWorld, Town, TownParams
 
-__all__ = ["simulate", "scan", "cast", "sweep_poses", "plan_sessions", "finish_scan", "Town",
-           "TownParams", "Sensor", "SENSORS", "get_sensor", "SimulatedSession"]
+__all__ = [
+    "simulate",
+    "scan",
+    "cast",
+    "sweep_poses",
+    "plan_sessions",
+    "finish_scan",
+    "Town",
+    "TownParams",
+    "Sensor",
+    "SENSORS",
+    "get_sensor",
+    "SimulatedSession",
+]
 
 FORMAT = "disco-simulate/1"
 
@@ -54,9 +66,14 @@ def _scan_seed(seed: int, session: int, frame: int) -> int:
     return int(np.random.SeedSequence([seed, 7, session, frame]).generate_state(1, np.uint64)[0])
 
 
-def cast(world: SessionWorld, poses: np.ndarray, sensor: Sensor, seeds: np.ndarray,
-         threads: int = 1,
-         poses_end: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def cast(
+    world: SessionWorld,
+    poses: np.ndarray,
+    sensor: Sensor,
+    seeds: np.ndarray,
+    threads: int = 1,
+    poses_end: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Raw ray casting of `B` scans: ranges `[B, R]` (0: no return), hit ids, |cos incidence|.
 
     With `poses_end`, the sensor moves from `poses` to `poses_end` during each sweep
@@ -66,11 +83,11 @@ def cast(world: SessionWorld, poses: np.ndarray, sensor: Sensor, seeds: np.ndarr
     poses = np.ascontiguousarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     seeds = np.ascontiguousarray(seeds, dtype=np.uint64).reshape(-1)
     if poses_end is None:
-        return world.caster.cast_scans(poses, sensor.directions(), sensor.max_range, seeds,
-                                       threads)
+        return world.caster.cast_scans(poses, sensor.directions(), sensor.max_range, seeds, threads)
     poses_end = np.ascontiguousarray(poses_end, dtype=np.float64).reshape(-1, 4, 4)
-    return world.caster.cast_scans(poses, sensor.directions(), sensor.max_range, seeds, threads,
-                                   poses_end, sensor.fractions())
+    return world.caster.cast_scans(
+        poses, sensor.directions(), sensor.max_range, seeds, threads, poses_end, sensor.fractions()
+    )
 
 
 def sweep_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,9 +114,17 @@ def sweep_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return blend(poses, prev, 0.5), blend(poses, nxt, 0.5)
 
 
-def finish_scan(rng: np.random.Generator, sensor: Sensor, dirs: np.ndarray, pose: np.ndarray,
-                rng_range: np.ndarray, ids: np.ndarray, cosi: np.ndarray, world: SessionWorld,
-                town: Town | None) -> np.ndarray:
+def finish_scan(
+    rng: np.random.Generator,
+    sensor: Sensor,
+    dirs: np.ndarray,
+    pose: np.ndarray,
+    rng_range: np.ndarray,
+    ids: np.ndarray,
+    cosi: np.ndarray,
+    world: SessionWorld,
+    town: Town | None,
+) -> np.ndarray:
     """Noise, dropout and intensity for one cast scan: KITTI points `[N, 4]` float32."""
     from disco_cli import _core
 
@@ -136,8 +161,14 @@ def finish_scan(rng: np.random.Generator, sensor: Sensor, dirs: np.ndarray, pose
     return points
 
 
-def scan(world: SessionWorld, pose: np.ndarray, sensor: Sensor | str = "hdl32", seed: int = 0,
-         town: Town | None = None, t: float | None = None) -> np.ndarray:
+def scan(
+    world: SessionWorld,
+    pose: np.ndarray,
+    sensor: Sensor | str = "hdl32",
+    seed: int = 0,
+    town: Town | None = None,
+    t: float | None = None,
+) -> np.ndarray:
     """One simulated scan from sensor pose `pose` (4 x 4, sensor -> world): `[N, 4]` float32.
 
     With `t`, cars and people are where they are at that time; without, none move.
@@ -148,12 +179,14 @@ def scan(world: SessionWorld, pose: np.ndarray, sensor: Sensor | str = "hdl32", 
         world = world.at(t, pose[:2, 3])
     ranges, ids, cosi = cast(world, pose, sensor, np.array([seed], np.uint64))
     rng = np.random.default_rng([seed, 11])
-    return finish_scan(rng, sensor, sensor.directions(), pose, ranges[0], ids[0], cosi[0], world,
-                       town)
+    return finish_scan(
+        rng, sensor, sensor.directions(), pose, ranges[0], ids[0], cosi[0], world, town
+    )
 
 
-def plan_sessions(town: Town, sensor: Sensor, sessions: int, frames: int, step_m: float,
-                  seed: int) -> list[SimulatedSession]:
+def plan_sessions(
+    town: Town, sensor: Sensor, sessions: int, frames: int, step_m: float, seed: int
+) -> list[SimulatedSession]:
     """Routes and sensor poses of every session (no ray casting yet).
 
     Session 00 drives a closed loop a little shorter than the session (so its last
@@ -245,9 +278,14 @@ def simulate(
             (folder / "velodyne").mkdir(parents=True, exist_ok=True)
             starts, ends = sweep_poses(plan.poses) if motion_distortion else (plan.poses, None)
 
-            def submit(i: int, world: SessionWorld = world, k: int = k,
-                       plan: SimulatedSession = plan, starts: np.ndarray = starts,
-                       ends: np.ndarray | None = ends) -> tuple[SessionWorld, Future]:
+            def submit(
+                i: int,
+                world: SessionWorld = world,
+                k: int = k,
+                plan: SimulatedSession = plan,
+                starts: np.ndarray = starts,
+                ends: np.ndarray | None = ends,
+            ) -> tuple[SessionWorld, Future]:
                 w = world.at(float(plan.times[i]), plan.poses[i, :2, 3])
                 seeds = np.array([_scan_seed(seed, k, i)], np.uint64)
                 end = None if ends is None else ends[i]
@@ -260,8 +298,9 @@ def simulate(
                     queue.append(submit(i + len(queue) + 1))
                 ranges, ids, cosi = future.result()
                 rng = np.random.default_rng([seed, 9, k, i])
-                pts = finish_scan(rng, spec, dirs, plan.poses[i], ranges[0], ids[0], cosi[0], w,
-                                  town)
+                pts = finish_scan(
+                    rng, spec, dirs, plan.poses[i], ranges[0], ids[0], cosi[0], w, town
+                )
                 pts.tofile(folder / "velodyne" / f"{i:06d}.bin")
                 done += 1
                 if on_scan is not None:
@@ -271,12 +310,25 @@ def simulate(
 
     meta = {
         "format": FORMAT,
-        "command": _command(sessions, frames, step_m, sensor, seed, azimuth_step_deg,
-                            motion_distortion, params is not None and params != TownParams()),
+        "command": _command(
+            sessions,
+            frames,
+            step_m,
+            sensor,
+            seed,
+            azimuth_step_deg,
+            motion_distortion,
+            params is not None and params != TownParams(),
+        ),
         "seed": int(seed),
         "sessions": [
-            {"name": p.name, "frames": frames, "closed_loop": p.closed,
-             "offset_right_m": round(p.offset_m, 4), "route_junctions": [int(n) for n in p.route]}
+            {
+                "name": p.name,
+                "frames": frames,
+                "closed_loop": p.closed,
+                "offset_right_m": round(p.offset_m, 4),
+                "route_junctions": [int(n) for n in p.route],
+            }
             for p in plans
         ],
         "step_m": step_m,
@@ -289,10 +341,20 @@ def simulate(
     return meta
 
 
-def _command(sessions: int, frames: int, step_m: float, sensor: str, seed: int,
-             azimuth_step_deg: float | None, motion_distortion: bool, custom_town: bool) -> str:
-    cmd = (f"disco simulate OUT --sessions {sessions} --frames {frames} --step-m {step_m:g} "
-           f"--sensor {sensor} --seed {seed}")
+def _command(
+    sessions: int,
+    frames: int,
+    step_m: float,
+    sensor: str,
+    seed: int,
+    azimuth_step_deg: float | None,
+    motion_distortion: bool,
+    custom_town: bool,
+) -> str:
+    cmd = (
+        f"disco simulate OUT --sessions {sessions} --frames {frames} --step-m {step_m:g} "
+        f"--sensor {sensor} --seed {seed}"
+    )
     if azimuth_step_deg is not None:
         cmd += f" --azimuth-step {azimuth_step_deg:g}"
     if custom_town:  # the town's parameters are in this very file

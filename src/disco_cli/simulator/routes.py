@@ -50,8 +50,9 @@ class RoadGraph:
         return float(sum(self.length(u, v) for u, v in zip(path[:-1], path[1:])))
 
 
-def loop_route(graph: RoadGraph, rng: np.random.Generator, target_m: float,
-               tries: int = 64) -> list[int]:
+def loop_route(
+    graph: RoadGraph, rng: np.random.Generator, target_m: float, tries: int = 64
+) -> list[int]:
     """A closed route (first node = last node) of at most about `target_m` metres.
 
     Of `tries` random loops, the longest that fits in `target_m` (so that a session
@@ -88,8 +89,12 @@ def _one_loop(graph: RoadGraph, rng: np.random.Generator, target_m: float) -> li
         if going_home:
             nxt = min(options, key=lambda w: (graph.length(cur, w) + home[w], w))
         else:
-            fresh = [w for w in options if (min(cur, w), max(cur, w)) not in used
-                     and length + graph.length(cur, w) + home[w] <= target_m]
+            fresh = [
+                w
+                for w in options
+                if (min(cur, w), max(cur, w)) not in used
+                and length + graph.length(cur, w) + home[w] <= target_m
+            ]
             nxt = int(rng.choice(fresh)) if fresh else int(rng.choice(options))
         used.add((min(cur, nxt), max(cur, nxt)))
         length += graph.length(cur, nxt)
@@ -107,8 +112,13 @@ def _shortest_path(graph: RoadGraph, a: int, b: int) -> list[int]:
     return path
 
 
-def extend_route(graph: RoadGraph, rng: np.random.Generator, path: list[int], target_m: float,
-                 avoid: set[tuple[int, int]]) -> list[int]:
+def extend_route(
+    graph: RoadGraph,
+    rng: np.random.Generator,
+    path: list[int],
+    target_m: float,
+    avoid: set[tuple[int, int]],
+) -> list[int]:
     """Drive on from the end of `path` (no U-turns, new streets first) to `target_m`."""
     path = list(path)
     length = graph.route_length(path)
@@ -124,8 +134,9 @@ def extend_route(graph: RoadGraph, rng: np.random.Generator, path: list[int], ta
     return path
 
 
-def revisit_route(graph: RoadGraph, rng: np.random.Generator, base: list[int], target_m: float,
-                  reverse: bool) -> list[int]:
+def revisit_route(
+    graph: RoadGraph, rng: np.random.Generator, base: list[int], target_m: float, reverse: bool
+) -> list[int]:
     """Part of the closed route `base` (about half), reversed or not, then new streets."""
     cycle = base[:-1]
     k = len(cycle)
@@ -149,11 +160,17 @@ def _smooth(points: np.ndarray, window: int, closed: bool) -> np.ndarray:
         first, last = np.repeat(points[:1], pad, 0), np.repeat(points[-1:], pad, 0)
         ext = np.concatenate([first, points, last])
     out = np.stack([np.convolve(ext[:, i], kernel, mode="same") for i in range(2)], axis=1)
-    return out[pad:pad + len(points)]
+    return out[pad : pad + len(points)]
 
 
-def lane_path(nodes: np.ndarray, path: list[int], offset: float, closed: bool,
-              spacing: float = 0.25, smooth_m: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
+def lane_path(
+    nodes: np.ndarray,
+    path: list[int],
+    offset: float,
+    closed: bool,
+    spacing: float = 0.25,
+    smooth_m: float = 12.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """A smooth driving line `offset` metres right of the centre line.
 
     Returns dense points `[M, 2]` and their arc lengths `[M]`.
@@ -188,8 +205,9 @@ def lane_path(nodes: np.ndarray, path: list[int], offset: float, closed: bool,
     return line, s
 
 
-def _wiggle(rng: np.random.Generator, x: np.ndarray, amplitude: float,
-            periods: tuple[float, float]) -> np.ndarray:
+def _wiggle(
+    rng: np.random.Generator, x: np.ndarray, amplitude: float, periods: tuple[float, float]
+) -> np.ndarray:
     """A smooth random function: a few sinusoids of random phase."""
     out = np.zeros_like(x, dtype=np.float64)
     for _ in range(3):
@@ -198,8 +216,9 @@ def _wiggle(rng: np.random.Generator, x: np.ndarray, amplitude: float,
     return amplitude * out / np.sqrt(1.5)
 
 
-def open_stations(rng: np.random.Generator, frames: int, step_m: float,
-                  phase: float) -> tuple[np.ndarray, np.ndarray]:
+def open_stations(
+    rng: np.random.Generator, frames: int, step_m: float, phase: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Arc lengths of `frames` scans about `step_m` apart (speed +-15 %), and lane drift."""
     k = np.arange(frames)
     steps = step_m * (1.0 + np.clip(_wiggle(rng, k, 0.08, (30, 150)), -0.15, 0.15))
@@ -207,8 +226,9 @@ def open_stations(rng: np.random.Generator, frames: int, step_m: float,
     return stations, _wiggle(rng, stations, 0.15, (60, 200))
 
 
-def loop_stations(rng: np.random.Generator, frames: int, step_m: float,
-                  lap_m: float) -> tuple[np.ndarray, np.ndarray]:
+def loop_stations(
+    rng: np.random.Generator, frames: int, step_m: float, lap_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Stations around a closed loop of `lap_m` metres, possibly more than one lap.
 
     The speed profile repeats every lap, so frame `n` of lap 2 would fall where frame
@@ -229,9 +249,16 @@ def loop_stations(rng: np.random.Generator, frames: int, step_m: float,
     return np.mod(stations, lap_m), lateral
 
 
-def sensor_poses(town: Town, line: np.ndarray, s: np.ndarray, closed: bool,
-                 stations: np.ndarray, lateral: np.ndarray, mount_height: float,
-                 rng: np.random.Generator) -> np.ndarray:
+def sensor_poses(
+    town: Town,
+    line: np.ndarray,
+    s: np.ndarray,
+    closed: bool,
+    stations: np.ndarray,
+    lateral: np.ndarray,
+    mount_height: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """Sensor poses `[frames, 4, 4]` at arc lengths `stations` along a driving line.
 
     `lateral` moves each pose right of the line. The car follows the ground's slope

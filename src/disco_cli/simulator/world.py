@@ -46,8 +46,10 @@ class TownParams:
     foliage: tuple[float, float] = (0.6, 1.15)  # per-session factor on crowns' hit chance
 
     def to_dict(self) -> dict:
-        return {f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v)
-                for f in fields(self)}
+        return {
+            f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v)
+            for f in fields(self)
+        }
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "town parameters") -> TownParams:
@@ -61,8 +63,11 @@ class TownParams:
         for key, value in data.items():
             want = getattr(default, key)
             if isinstance(want, tuple):
-                ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(
-                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+                ok = (
+                    isinstance(value, (list, tuple))
+                    and len(value) == 2
+                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+                )
                 value = tuple(float(v) for v in value) if ok else value
             else:
                 ok = isinstance(value, (int, float)) and not isinstance(value, bool)
@@ -104,6 +109,7 @@ class TownParams:
     def load(cls, path: str | Path) -> TownParams:
         """From a TOML file (keys at the top or under [town]) or a world.json."""
         import json
+
         import tomllib
 
         path = Path(path)
@@ -182,8 +188,12 @@ class SessionWorld:
         rows, refl, drop = self.town.mover_rows(self.movers, t, xy, keep_clear_m)
         table = np.concatenate([self.table, rows])
         caster = _core.RaycastWorld(table, *self.town.ground, self.town.params.cell_size_m)
-        return SessionWorld(caster, np.concatenate([self.reflectivity, refl]),
-                            np.concatenate([self.dropout, drop]), table)
+        return SessionWorld(
+            caster,
+            np.concatenate([self.reflectivity, refl]),
+            np.concatenate([self.dropout, drop]),
+            table,
+        )
 
 
 class Town:
@@ -206,10 +216,9 @@ class Town:
         self._changeable: list[tuple[float, _Prims]] = []  # (presence probability, things)
         self._parking: list[tuple[np.ndarray, float, float]] = []  # (x y, yaw, occupancy)
         self._occupied = _Occupancy(self.bounds(margin=p.outskirts_m + 10))
-        for k, street in enumerate(self.streets):
+        for k in range(len(self.streets)):
             for side in (1.0, -1.0):
-                self._dress_side(np.random.default_rng([self.seed, 2, k, int(side > 0)]), k,
-                                 side)
+                self._dress_side(np.random.default_rng([self.seed, 2, k, int(side > 0)]), k, side)
         for n in range(len(self.nodes)):
             self._dress_junction(np.random.default_rng([self.seed, 3, n]), n)
         self._outskirts(np.random.default_rng([self.seed, 4]))
@@ -219,10 +228,12 @@ class Town:
         p = self.params
         if p.blocks_x < 1 or p.blocks_y < 1:
             raise DiscoError("a town needs at least one block in x and in y")
-        xs = np.concatenate([[0.0], np.cumsum(rng.uniform(p.block_min_m, p.block_max_m,
-                                                          p.blocks_x))])
-        ys = np.concatenate([[0.0], np.cumsum(rng.uniform(p.block_min_m, p.block_max_m,
-                                                          p.blocks_y))])
+        xs = np.concatenate(
+            [[0.0], np.cumsum(rng.uniform(p.block_min_m, p.block_max_m, p.blocks_x))]
+        )
+        ys = np.concatenate(
+            [[0.0], np.cumsum(rng.uniform(p.block_min_m, p.block_max_m, p.blocks_y))]
+        )
         nx, ny = len(xs), len(ys)
         gx, gy = np.meshgrid(xs - xs[-1] / 2, ys - ys[-1] / 2, indexing="ij")
         nodes = np.stack([gx.ravel(), gy.ravel()], axis=1)
@@ -298,19 +309,41 @@ class Town:
         back = s.half_width + s.sidewalk  # the back of the sidewalk
         yaw = s.yaw
         # The street's character: every side draws its own.
-        style = rng.choice(["downtown", "residential", "industrial", "park", "mixed"],
-                           p=[0.25, 0.3, 0.15, 0.1, 0.2])
-        hmin, hmax = {"downtown": (12, 40), "residential": (5, 12), "industrial": (6, 14),
-                      "park": (3, 6), "mixed": (5, 22)}[style]
-        density = {"downtown": 1.0, "residential": 0.85, "industrial": 0.75, "park": 0.25,
-                   "mixed": 0.85}[style] * rng.uniform(0.8, 1.0)
-        setback = {"downtown": (0.3, 1.0), "residential": (1.0, 4.5), "industrial": (2.0, 8.0),
-                   "park": (5.0, 15.0), "mixed": (0.5, 5.0)}[style]
+        style = rng.choice(
+            ["downtown", "residential", "industrial", "park", "mixed"],
+            p=[0.25, 0.3, 0.15, 0.1, 0.2],
+        )
+        hmin, hmax = {
+            "downtown": (12, 40),
+            "residential": (5, 12),
+            "industrial": (6, 14),
+            "park": (3, 6),
+            "mixed": (5, 22),
+        }[style]
+        density = {
+            "downtown": 1.0,
+            "residential": 0.85,
+            "industrial": 0.75,
+            "park": 0.25,
+            "mixed": 0.85,
+        }[style] * rng.uniform(0.8, 1.0)
+        setback = {
+            "downtown": (0.3, 1.0),
+            "residential": (1.0, 4.5),
+            "industrial": (2.0, 8.0),
+            "park": (5.0, 15.0),
+            "mixed": (0.5, 5.0),
+        }[style]
         setback = rng.uniform(*setback)
-        frontage = rng.choice(["none", "wall", "fence", "hedge"],
-                              p=[0.3, 0.25, 0.2, 0.25] if style != "downtown" else [0.8, 0.2, 0, 0])
-        tree_gap = rng.uniform(6, 14) if rng.random() < {"park": 0.95, "residential": 0.7}.get(
-            style, 0.35) else 0.0
+        frontage = rng.choice(
+            ["none", "wall", "fence", "hedge"],
+            p=[0.3, 0.25, 0.2, 0.25] if style != "downtown" else [0.8, 0.2, 0, 0],
+        )
+        tree_gap = (
+            rng.uniform(6, 14)
+            if rng.random() < {"park": 0.95, "residential": 0.7}.get(style, 0.35)
+            else 0.0
+        )
         light_gap = rng.uniform(18, 40)
         parking = rng.uniform(0.3, 0.9) if s.half_width >= 5.0 and rng.random() < 0.7 else 0.0
         sidewalk_refl = rng.uniform(0.3, 0.45)
@@ -332,30 +365,55 @@ class Town:
                 centre = s.a + s.dir * (t + width / 2) + s.left * side * off
                 height = rng.uniform(hmin, hmax)
                 turn = rng.normal(0, 0.03) if rng.random() < 0.3 else 0.0
-                self._building(rng, b, centre, width - rng.uniform(0.5, 3), depth, yaw + turn,
-                               height, style, s.left * side)
+                self._building(
+                    rng,
+                    b,
+                    centre,
+                    width - rng.uniform(0.5, 3),
+                    depth,
+                    yaw + turn,
+                    height,
+                    style,
+                    s.left * side,
+                )
             # Yard and verge plants: bushes in front, trees where no house stands.
             yard = max(setback, 0.0) + (0.0 if self._last_built else 12.0)
             if style != "downtown" and yard > 1.5:
                 for _ in range(rng.integers(0, 4)):
-                    c = s.a + s.dir * (t + rng.uniform(0, width)) + s.left * side * (
-                        back + rng.uniform(0.8, yard))
+                    c = (
+                        s.a
+                        + s.dir * (t + rng.uniform(0, width))
+                        + s.left * side * (back + rng.uniform(0.8, yard))
+                    )
                     if self.road_clearance(c[None])[0] > 0.5:
                         if self._last_built or rng.random() < 0.6:
-                            b.ellipsoid(c, rng.uniform(0.6, 1.6), 0.4, rng.uniform(0.5, 1.2),
-                                        Material(rng.uniform(0.3, 0.45)), rng.uniform(0.6, 0.9))
+                            b.ellipsoid(
+                                c,
+                                rng.uniform(0.6, 1.6),
+                                0.4,
+                                rng.uniform(0.5, 1.2),
+                                Material(rng.uniform(0.3, 0.45)),
+                                rng.uniform(0.6, 0.9),
+                            )
                         else:
                             _tree(rng, b, c, rng.uniform(0.6, 1.3))
             self._last_built = False
             t += width
         # Frontage along the back of the sidewalk (a gap for each gate or drive).
         if frontage != "none":
-            h = {"wall": rng.uniform(1.0, 2.6), "fence": rng.uniform(1.2, 2.2),
-                 "hedge": rng.uniform(0.9, 1.8)}[frontage]
-            mat = {"wall": Material(rng.uniform(0.15, 0.5)), "fence": Material(0.35, 0.2),
-                   "hedge": Material(rng.uniform(0.3, 0.45))}[frontage]
+            h = {
+                "wall": rng.uniform(1.0, 2.6),
+                "fence": rng.uniform(1.2, 2.2),
+                "hedge": rng.uniform(0.9, 1.8),
+            }[frontage]
+            mat = {
+                "wall": Material(rng.uniform(0.15, 0.5)),
+                "fence": Material(0.35, 0.2),
+                "hedge": Material(rng.uniform(0.3, 0.45)),
+            }[frontage]
             see = {"wall": 1.0, "fence": rng.uniform(0.25, 0.6), "hedge": rng.uniform(0.6, 0.85)}[
-                frontage]
+                frontage
+            ]
             thick = {"wall": 0.3, "fence": 0.06, "hedge": 0.8}[frontage]
             t = t0
             while t < t1 - 2:
@@ -402,8 +460,18 @@ class Town:
                 t += rng.uniform(5.8, 7.0)
         self.static.extend(b.prims)
 
-    def _building(self, rng: np.random.Generator, b: _Builder, centre: np.ndarray, width: float,
-                  depth: float, yaw: float, height: float, style: str, outward: np.ndarray) -> None:
+    def _building(
+        self,
+        rng: np.random.Generator,
+        b: _Builder,
+        centre: np.ndarray,
+        width: float,
+        depth: float,
+        yaw: float,
+        height: float,
+        style: str,
+        outward: np.ndarray,
+    ) -> None:
         if not self._site_free(centre, width / 2, depth / 2, yaw):
             return
         self._occupied.mark(centre, width / 2, depth / 2, yaw)
@@ -416,17 +484,34 @@ class Town:
         # A wing behind (L-shaped footprint), a setback top floor, a roof box.
         if rng.random() < 0.45:
             ww, wd = width * rng.uniform(0.3, 0.7), depth * rng.uniform(0.5, 1.2)
-            wc = centre + outward * (depth / 2 + wd / 2 - 0.5) + along * rng.choice([-1, 1]) * (
-                width - ww) / 2
+            wc = (
+                centre
+                + outward * (depth / 2 + wd / 2 - 0.5)
+                + along * rng.choice([-1, 1]) * (width - ww) / 2
+            )
             if self._site_free(wc, ww / 2, wd / 2, yaw):
                 self._occupied.mark(wc, ww / 2, wd / 2, yaw)
                 b.box(wc, ww, wd, yaw, 0.0, height * rng.uniform(0.4, 1.3), mat)
         if height > 10 and rng.random() < 0.4:
-            b.box(centre + outward * rng.uniform(0, 2), width * 0.8, depth * 0.7, yaw, height,
-                  height + rng.uniform(3, 8), mat)
+            b.box(
+                centre + outward * rng.uniform(0, 2),
+                width * 0.8,
+                depth * 0.7,
+                yaw,
+                height,
+                height + rng.uniform(3, 8),
+                mat,
+            )
         if rng.random() < 0.3:
-            b.box(centre, rng.uniform(2, 5), rng.uniform(2, 5), yaw + rng.uniform(0, 1.5), height,
-                  height + rng.uniform(1.5, 3.5), Material(0.3))
+            b.box(
+                centre,
+                rng.uniform(2, 5),
+                rng.uniform(2, 5),
+                yaw + rng.uniform(0, 1.5),
+                height,
+                height + rng.uniform(1.5, 3.5),
+                Material(0.3),
+            )
         # Street-facing features: columns or a canopy at the ground floor.
         if style in ("downtown", "mixed") and rng.random() < 0.4:
             front = centre + outward * (-depth / 2 - 1.5)
@@ -451,8 +536,15 @@ class Town:
             c = node + r * np.array([np.cos(ang), np.sin(ang)])
             if not self._on_road(c):
                 b.cylinder(c, 0.12, 0.0, 5.5, Material(0.4))
-                b.box(c - 2 * np.array([np.cos(ang), np.sin(ang)]), 4.0, 0.3, ang + np.pi / 2,
-                      5.2, 5.6, Material(0.4))
+                b.box(
+                    c - 2 * np.array([np.cos(ang), np.sin(ang)]),
+                    4.0,
+                    0.3,
+                    ang + np.pi / 2,
+                    5.2,
+                    5.6,
+                    Material(0.4),
+                )
         self.static.extend(b.prims)
 
     def _site_free(self, c: np.ndarray, hx: float, hy: float, yaw: float) -> bool:
@@ -460,8 +552,9 @@ class Town:
         if not self._occupied.free(c, hx, hy, yaw):
             return False
         u, v = np.meshgrid(np.linspace(-hx, hx, 5), np.linspace(-hy, hy, 5), indexing="ij")
-        pts = c + np.stack([np.cos(yaw) * u - np.sin(yaw) * v, np.sin(yaw) * u + np.cos(yaw) * v],
-                           axis=-1).reshape(-1, 2)
+        pts = c + np.stack(
+            [np.cos(yaw) * u - np.sin(yaw) * v, np.sin(yaw) * u + np.cos(yaw) * v], axis=-1
+        ).reshape(-1, 2)
         return bool(self.road_clearance(pts).min() > 0.2)
 
     def _on_road(self, c: np.ndarray) -> bool:
@@ -487,8 +580,14 @@ class Town:
             elif u < 0.75:  # a clump of bushes
                 for _ in range(rng.integers(2, 6)):
                     q = c + rng.normal(0, 1.5, 2)
-                    b.ellipsoid(q, rng.uniform(0.6, 1.8), 0.3, rng.uniform(0.5, 1.3),
-                                Material(rng.uniform(0.3, 0.45)), rng.uniform(0.6, 0.9))
+                    b.ellipsoid(
+                        q,
+                        rng.uniform(0.6, 1.8),
+                        0.3,
+                        rng.uniform(0.5, 1.3),
+                        Material(rng.uniform(0.3, 0.45)),
+                        rng.uniform(0.6, 0.9),
+                    )
             elif u < 0.9:  # a low mound: the ground is not a perfect plane
                 r = rng.uniform(4, 12)
                 h = rng.uniform(0.3, 1.2)
@@ -524,8 +623,14 @@ class Town:
         a, bb, cc = self.ground
         caster = _core.RaycastWorld(table, a, bb, cc, self.params.cell_size_m)
         movers = self._movers(np.random.default_rng([self.seed, 10, int(session)]))
-        return SessionWorld(caster, np.array(prims.refl, np.float32),
-                            np.array(prims.drop, np.float32), table, movers, self)
+        return SessionWorld(
+            caster,
+            np.array(prims.refl, np.float32),
+            np.array(prims.drop, np.float32),
+            table,
+            movers,
+            self,
+        )
 
     def _movers(self, rng: np.random.Generator) -> np.ndarray:
         """This session's traffic and walkers, one row each: street, heading (+-1), start
@@ -540,20 +645,46 @@ class Town:
                 continue
             for heading in (1.0, -1.0):
                 for _ in range(rng.poisson(span * p.traffic_per_km / 1000)):
-                    rows.append([k, heading, rng.uniform(0, span), rng.uniform(6, 14),
-                                 rng.uniform(1.5, 2.1), rng.uniform(3.8, 5.2),
-                                 rng.uniform(1.7, 2.0), rng.uniform(1.4, 2.0),
-                                 rng.choice([0.08, 0.2, 0.5, 0.8]), 0, lo, span])
+                    rows.append(
+                        [
+                            k,
+                            heading,
+                            rng.uniform(0, span),
+                            rng.uniform(6, 14),
+                            rng.uniform(1.5, 2.1),
+                            rng.uniform(3.8, 5.2),
+                            rng.uniform(1.7, 2.0),
+                            rng.uniform(1.4, 2.0),
+                            rng.choice([0.08, 0.2, 0.5, 0.8]),
+                            0,
+                            lo,
+                            span,
+                        ]
+                    )
                 for _ in range(rng.poisson(span * p.pedestrians_per_km / 1000)):
                     off = s.half_width + rng.uniform(0.4, max(0.5, s.sidewalk - 0.4))
                     h = rng.uniform(1.5, 1.95)
-                    rows.append([k, rng.choice([1.0, -1.0]), rng.uniform(0, span),
-                                 rng.uniform(0.8, 1.7), heading * off, 0.5, 0.5, h, 0.35, 1, lo,
-                                 span])
+                    rows.append(
+                        [
+                            k,
+                            rng.choice([1.0, -1.0]),
+                            rng.uniform(0, span),
+                            rng.uniform(0.8, 1.7),
+                            heading * off,
+                            0.5,
+                            0.5,
+                            h,
+                            0.35,
+                            1,
+                            lo,
+                            span,
+                        ]
+                    )
         return np.array(rows, np.float64).reshape(-1, 12)
 
-    def mover_rows(self, movers: np.ndarray, t: float, xy: np.ndarray | None,
-                    keep_clear_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def mover_rows(
+        self, movers: np.ndarray, t: float, xy: np.ndarray | None, keep_clear_m: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Primitive rows of the movers at time `t` (cars: body and cabin; people: a
         cylinder); none within `keep_clear_m` of `xy`."""
         k = movers[:, 0].astype(int)
@@ -574,21 +705,47 @@ class Town:
             x, y = pos[i]
             if movers[i, 9] == 0:  # a car: body, then a narrower cabin of glass
                 body = 0.55 * height[i]
-                rows.append([BOX, x, y, g[i] + (0.25 + body) / 2, length[i] / 2, width[i] / 2,
-                             (body - 0.25) / 2, yaw[i], 1.0])
+                rows.append(
+                    [
+                        BOX,
+                        x,
+                        y,
+                        g[i] + (0.25 + body) / 2,
+                        length[i] / 2,
+                        width[i] / 2,
+                        (body - 0.25) / 2,
+                        yaw[i],
+                        1.0,
+                    ]
+                )
                 refl.append(movers[i, 8])
                 drop.append(0.03)
-                rows.append([BOX, x, y, g[i] + (body + height[i]) / 2, 0.3 * length[i],
-                             0.45 * width[i], (height[i] - body) / 2, yaw[i], 1.0])
+                rows.append(
+                    [
+                        BOX,
+                        x,
+                        y,
+                        g[i] + (body + height[i]) / 2,
+                        0.3 * length[i],
+                        0.45 * width[i],
+                        (height[i] - body) / 2,
+                        yaw[i],
+                        1.0,
+                    ]
+                )
                 refl.append(0.1)
                 drop.append(0.4)
             else:  # a person
-                rows.append([CYLINDER, x, y, g[i] + height[i] / 2, 0.25, 0.25, height[i] / 2,
-                             0.0, 1.0])
+                rows.append(
+                    [CYLINDER, x, y, g[i] + height[i] / 2, 0.25, 0.25, height[i] / 2, 0.0, 1.0]
+                )
                 refl.append(movers[i, 8])
                 drop.append(0.05)
-        return (np.array(rows, np.float64).reshape(-1, 9), np.array(refl, np.float32),
-                np.array(drop, np.float32))
+        return (
+            np.array(rows, np.float64).reshape(-1, 9),
+            np.array(refl, np.float32),
+            np.array(drop, np.float32),
+        )
 
     def ground_reflectivity(self, xy: np.ndarray) -> np.ndarray:
         """Intensity of the ground at world points `[M, 2]`: asphalt, markings, grass."""
@@ -605,11 +762,13 @@ class Town:
     def _paint_ground(self, cell: float = 0.1) -> tuple[float, float, float, np.ndarray]:
         """A 10 cm raster of the ground's reflectivity (uint8, x 255) over the town."""
         x0, y0, x1, y1 = self.bounds(margin=20.0)
-        tex = np.full((int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1),
-                      round(_GRASS * 255), np.uint8)
+        tex = np.full(
+            (int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1), round(_GRASS * 255), np.uint8
+        )
 
-        def window(cx: float, cy: float, rx: float,
-                   ry: float) -> tuple[slice, slice, np.ndarray, np.ndarray]:
+        def window(
+            cx: float, cy: float, rx: float, ry: float
+        ) -> tuple[slice, slice, np.ndarray, np.ndarray]:
             i0 = max(0, int((cx - rx - x0) / cell))
             i1 = min(tex.shape[0], int((cx + rx - x0) / cell) + 1)
             j0 = max(0, int((cy - ry - y0) / cell))
@@ -664,26 +823,46 @@ class _Builder:
         self.prims.refl.append(float(mat.reflectivity))
         self.prims.drop.append(float(mat.dropout))
 
-    def box(self, c: np.ndarray, length: float, width: float, yaw: float, z0: float, z1: float,
-            mat: Material, hit_prob: float = 1.0) -> None:
+    def box(
+        self,
+        c: np.ndarray,
+        length: float,
+        width: float,
+        yaw: float,
+        z0: float,
+        z1: float,
+        mat: Material,
+        hit_prob: float = 1.0,
+    ) -> None:
         """A box `length` along `yaw`, `width` across, from z0 to z1 above the ground."""
         g = float(self.town.ground_z(c[0], c[1]))
         lo = g + z0 - (0.3 if z0 <= 0 else 0.0)  # sink into the tilted ground: no gaps
         hi = g + z1
-        self._add([BOX, c[0], c[1], (lo + hi) / 2, length / 2, width / 2, (hi - lo) / 2, yaw,
-                   hit_prob], mat)
+        self._add(
+            [BOX, c[0], c[1], (lo + hi) / 2, length / 2, width / 2, (hi - lo) / 2, yaw, hit_prob],
+            mat,
+        )
 
     def cylinder(self, c: np.ndarray, radius: float, z0: float, z1: float, mat: Material) -> None:
         g = float(self.town.ground_z(c[0], c[1]))
         lo, hi = g + z0 - (0.3 if z0 <= 0 else 0.0), g + z1
-        self._add([CYLINDER, c[0], c[1], (lo + hi) / 2, radius, radius, (hi - lo) / 2, 0.0, 1.0],
-                  mat)
+        self._add(
+            [CYLINDER, c[0], c[1], (lo + hi) / 2, radius, radius, (hi - lo) / 2, 0.0, 1.0], mat
+        )
 
-    def ellipsoid(self, c: np.ndarray, radius: float, z_centre: float, half_height: float,
-                  mat: Material, hit_prob: float) -> None:
+    def ellipsoid(
+        self,
+        c: np.ndarray,
+        radius: float,
+        z_centre: float,
+        half_height: float,
+        mat: Material,
+        hit_prob: float,
+    ) -> None:
         g = float(self.town.ground_z(c[0], c[1]))
-        self._add([ELLIPSOID, c[0], c[1], g + z_centre, radius, radius, half_height, 0.0,
-                   hit_prob], mat)
+        self._add(
+            [ELLIPSOID, c[0], c[1], g + z_centre, radius, radius, half_height, 0.0, hit_prob], mat
+        )
 
 
 def _tree(rng: np.random.Generator, b: _Builder, c: np.ndarray, size: float) -> None:
@@ -696,8 +875,9 @@ def _tree(rng: np.random.Generator, b: _Builder, c: np.ndarray, size: float) -> 
     b.ellipsoid(c, radius, trunk_h + half_h * 0.8, half_h, Material(rng.uniform(0.4, 0.6)), prob)
     if rng.random() < 0.3:
         off = rng.normal(0, radius * 0.4, 2)
-        b.ellipsoid(c + off, radius * 0.7, trunk_h + half_h * 1.6, half_h * 0.6,
-                    Material(0.4), prob)
+        b.ellipsoid(
+            c + off, radius * 0.7, trunk_h + half_h * 1.6, half_h * 0.6, Material(0.4), prob
+        )
 
 
 def _car(rng: np.random.Generator, b: _Builder, c: np.ndarray, yaw: float) -> None:
@@ -707,13 +887,21 @@ def _car(rng: np.random.Generator, b: _Builder, c: np.ndarray, yaw: float) -> No
     b.box(c, length, width, yaw, 0.25, body_h, paint)
     cabin = length * rng.uniform(0.45, 0.65)
     shift = np.array([np.cos(yaw), np.sin(yaw)]) * rng.uniform(-0.4, 0.1)
-    b.box(c + shift, cabin, width * 0.9, yaw, body_h, body_h + rng.uniform(0.4, 0.8),
-          Material(0.1, 0.4))  # glass: many lost returns
+    b.box(
+        c + shift,
+        cabin,
+        width * 0.9,
+        yaw,
+        body_h,
+        body_h + rng.uniform(0.4, 0.8),
+        Material(0.1, 0.4),
+    )  # glass: many lost returns
     # Wheels: what a low beam sees under the body.
     for sx in (-1, 1):
         for sy in (-1, 1):
             w = c + np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]) @ np.array(
-                [sx * (length / 2 - 0.75), sy * (width / 2 - 0.15)])
+                [sx * (length / 2 - 0.75), sy * (width / 2 - 0.15)]
+            )
             b.box(w, 0.6, 0.25, yaw, 0.0, 0.6, Material(0.05))
 
 
@@ -779,14 +967,16 @@ def wall_world(distance: float, height: float = 10.0, length: float = 40.0) -> S
     """A flat ground and one wall facing the origin at x = `distance` (for tests)."""
     from disco_cli import _core
 
-    table = np.array([[BOX, distance + 0.25, 0.0, height / 2, 0.25, length / 2, height / 2, 0.0,
-                       1.0]])
+    table = np.array(
+        [[BOX, distance + 0.25, 0.0, height / 2, 0.25, length / 2, height / 2, 0.0, 1.0]]
+    )
     caster = _core.RaycastWorld(table, 0.0, 0.0, 0.0, 4.0)
     return SessionWorld(caster, np.array([0.5], np.float32), np.zeros(1, np.float32), table)
 
 
-def primitives_world(table: np.ndarray, ground: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                     cell_size: float = 4.0) -> SessionWorld:
+def primitives_world(
+    table: np.ndarray, ground: tuple[float, float, float] = (0.0, 0.0, 0.0), cell_size: float = 4.0
+) -> SessionWorld:
     """A world from an explicit primitive table `[N, 9]` (for tests and experiments)."""
     from disco_cli import _core
 
@@ -796,5 +986,14 @@ def primitives_world(table: np.ndarray, ground: tuple[float, float, float] = (0.
     return SessionWorld(caster, np.full(n, 0.5, np.float32), np.zeros(n, np.float32), table)
 
 
-__all__ = ["Town", "TownParams", "SessionWorld", "Material", "wall_world", "primitives_world",
-           "BOX", "CYLINDER", "ELLIPSOID"]
+__all__ = [
+    "Town",
+    "TownParams",
+    "SessionWorld",
+    "Material",
+    "wall_world",
+    "primitives_world",
+    "BOX",
+    "CYLINDER",
+    "ELLIPSOID",
+]

@@ -100,8 +100,14 @@ def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
     return np.asarray(keep)
 
 
-def augment_points(points: np.ndarray, rng: np.random.Generator, yaw_deg: float,
-                   max_shift: float, keep: float, noise: float) -> tuple[np.ndarray, np.ndarray]:
+def augment_points(
+    points: np.ndarray,
+    rng: np.random.Generator,
+    yaw_deg: float,
+    max_shift: float,
+    keep: float,
+    noise: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """A scan seen from a nearby pose: rotated by yaw_deg (points R(a) p), shifted, thinned, noised.
 
     Returns the points and the xy offset of the new sensor origin in the old frame.

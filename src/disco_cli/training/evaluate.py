@@ -17,8 +17,9 @@ from disco_cli.model.yaw import wrap_deg
 from disco_cli.training.data import TrainData
 
 
-def _embed(model: Any, data: TrainData, rows: np.ndarray, rolls: np.ndarray | None = None,
-           batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
+def _embed(
+    model: Any, data: TrainData, rows: np.ndarray, rolls: np.ndarray | None = None, batch: int = 64
+) -> tuple[np.ndarray, np.ndarray]:
     sigs, feats = [], []
     for s in range(0, len(rows), batch):
         b = data.float_bevs(rows[s : s + batch])
@@ -31,8 +32,13 @@ def _embed(model: Any, data: TrainData, rows: np.ndarray, rolls: np.ndarray | No
     return np.concatenate(sigs), np.concatenate(feats)
 
 
-def query_plan(data: TrainData, radius: float, self_supervised: bool,
-               max_queries: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def query_plan(
+    data: TrainData,
+    radius: float,
+    self_supervised: bool,
+    max_queries: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
     """(query rows, database rows)."""
     anchors = data.anchors
     if self_supervised:
@@ -88,8 +94,9 @@ def retrieval_metrics(
     for qi in np.flatnonzero(found):
         m = db[top[qi]]
         est = float(model.yaw(q_feat[qi], d_feat[top[qi]][None])[0])
-        true = wrap_deg(data.heading_deg[queries[qi]] - rolls[qi] * 360.0 / data.sectors
-                        - data.heading_deg[m])
+        true = wrap_deg(
+            data.heading_deg[queries[qi]] - rolls[qi] * 360.0 / data.sectors - data.heading_deg[m]
+        )
         errors.append(abs(float(wrap_deg(est - true))))
     n = int(has.sum())
     errs = np.asarray(errors)

@@ -66,8 +66,9 @@ def _roll_batch(bevs: np.ndarray, rolls: np.ndarray) -> np.ndarray:
     return np.take_along_axis(bevs, cols[:, None, None, :], axis=-1)
 
 
-def _pool_signatures(net: Any, data: TrainData, rows: np.ndarray, device: str,
-                     crop: tuple[int, int]) -> np.ndarray:
+def _pool_signatures(
+    net: Any, data: TrainData, rows: np.ndarray, device: str, crop: tuple[int, int]
+) -> np.ndarray:
     out = []
     net.eval()
     with torch.no_grad():
@@ -148,8 +149,9 @@ def train(
                 x = x * (torch.rand(x.shape, device=device) >= opts.bev_dropout)
             feats = net(x)
             sig = signatures_torch(feats, crop).view(opts.batch, per, -1)
-            l_quad = quadruplet_loss(sig[:, 0], sig[:, 1], sig[:, 2 : 2 + k], sig[:, -1],
-                                     opts.margin1, opts.margin2)
+            l_quad = quadruplet_loss(
+                sig[:, 0], sig[:, 1], sig[:, 2 : 2 + k], sig[:, -1], opts.margin1, opts.margin2
+            )
             f = feats.view(opts.batch, per, *feats.shape[1:])
             log_p = net.corr2soft(correlation_curves_torch(f[:, 0], f[:, 1]))
             # q ~ roll(p, delta): delta from the headings, plus the two augmentation rolls.
@@ -174,21 +176,36 @@ def train(
         entry.update({key: round(v / steps, 5) for key, v in sums.items()})
         model = DiscoModel(net, bev_config, model_config, name="training", device=device)
         check = val if val is not None else data
-        metrics = retrieval_metrics(model, check, opts.d_pos, opts.self_supervised and val is None,
-                                    max_queries=opts.val_queries, seed=opts.seed,
-                                    time_gap=opts.time_gap)
+        metrics = retrieval_metrics(
+            model,
+            check,
+            opts.d_pos,
+            opts.self_supervised and val is None,
+            max_queries=opts.val_queries,
+            seed=opts.seed,
+            time_gap=opts.time_gap,
+        )
         prefix = "val" if val is not None else "train"
         entry.update({f"{prefix}_{key}": v for key, v in metrics.items()})
         history.append(entry)
-        log(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                     for k, v in entry.items()))
-        save_checkpoint(out_path, {
-            "state_dict": net.state_dict(),
-            "bev_config": bev_config.to_dict(),
-            "model_config": model_config,
-            "command": command,
-            "train_state": {"epoch": epoch, "optimizer": optim.state_dict(),
-                            "options": {key: v for key, v in asdict(opts).items()}},
-            "metrics": {"history": history},
-        })
+        log(
+            " ".join(
+                f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in entry.items()
+            )
+        )
+        save_checkpoint(
+            out_path,
+            {
+                "state_dict": net.state_dict(),
+                "bev_config": bev_config.to_dict(),
+                "model_config": model_config,
+                "command": command,
+                "train_state": {
+                    "epoch": epoch,
+                    "optimizer": optim.state_dict(),
+                    "options": {key: v for key, v in asdict(opts).items()},
+                },
+                "metrics": {"history": history},
+            },
+        )
     return history
