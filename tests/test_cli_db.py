@@ -385,10 +385,14 @@ def test_tsv_has_a_header_and_the_same_columns(map_db: Path, queries: Path) -> N
     code, out, _ = run(
         "query", str(queries / "q3.bin"), "--db", str(map_db), "--topk", "2", "--format", "table"
     )
-    # A titled table with one row per match: long paths wrap inside their cells, so a
-    # row is a line whose rank cell (the second) holds a number.
+    # A table titled by its query, with one row per match: long paths wrap inside their
+    # cells, so a row is a line whose rank cell holds a number.
     assert code == 0 and out.startswith(str(queries / "q3.bin"))
-    ranks = [ln.split("│")[2].strip() for ln in out.splitlines() if ln.startswith("│")]
+    header = next(ln for ln in out.splitlines() if ln.startswith("┃"))
+    names = [c.strip() for c in header.split("┃")[1:-1]]
+    assert "query" not in names and "match" in names
+    col = names.index("rank") + 1
+    ranks = [ln.split("│")[col].strip() for ln in out.splitlines() if ln.startswith("│")]
     assert [r for r in ranks if r] == ["1", "2"]
 
 

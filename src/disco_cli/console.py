@@ -127,8 +127,11 @@ class RowWriter:
         fmt: OutputFormat | None = None,
         title: str | None = None,
         digits: int = 4,
+        table_omit: Sequence[str] = (),
     ):
         self.columns = list(columns)
+        # Columns a table leaves out because its title already says them (the query path).
+        self.table_columns = [c for c in self.columns if c not in table_omit]
         self.fmt = resolve_format(fmt)
         self.title = title
         self.digits = digits
@@ -139,14 +142,14 @@ class RowWriter:
         rows = list(rows)
         if self.fmt is OutputFormat.table:
             table = Table(title=title or self.title, title_justify="left")
-            for col in self.columns:
+            for col in self.table_columns:
                 if col in _TEXT_COLUMNS:
                     # Paths are what a person reads first: wrap them, never cut them.
                     table.add_column(col, justify="left", overflow="fold")
                 else:
                     table.add_column(col, justify="right", no_wrap=True)
             for row in rows:
-                table.add_row(*(_cell(row.get(c), self.digits) for c in self.columns))
+                table.add_row(*(_cell(row.get(c), self.digits) for c in self.table_columns))
             self._out.print(table)
         elif self.fmt is OutputFormat.tsv:
             lines = []

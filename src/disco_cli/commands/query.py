@@ -164,7 +164,8 @@ def query(
 
     n_args = None if "-" in scans else len(scans)
     with_pose = pose or verify
-    writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt)
+    # A table is titled by its query, so its rows need not repeat the path.
+    writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt, table_omit=["query"])
     failed = 0
     match_points = PointCache()
     loaded = load_stream(
