@@ -759,3 +759,34 @@ def test_real_kitti_folder_with_a_few_frames(realdata: Path, tmp_path: Path) -> 
     assert code == 0, err
     row = jsonl(out_text)[0]
     assert row["match"].endswith("000015.bin") and abs(row["yaw_deg"] - (-90.0)) <= 3.0
+
+
+def test_loops_go_on_past_a_pair_without_pose(
+    samples: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # One pair whose relative pose cannot be estimated (here forced) is named on stderr;
+    # the other loops are still printed and exported, and the exit status says it.
+    import disco_cli.relative_pose as rp_module
+    from disco_cli.errors import DiscoError
+
+    real = rp_module.estimate_relative_pose
+    calls = []
+
+    def flaky(query_points, match_points, yaw_deg, config=None):
+        calls.append(yaw_deg)
+        if len(calls) == 1:
+            raise rp_module.PoseError("query points: the scan is empty")
+        return real(query_points, match_points, yaw_deg, config)
+
+    assert issubclass(rp_module.PoseError, DiscoError)
+    monkeypatch.setattr(rp_module, "estimate_relative_pose", flaky)
+    out_file = tmp_path / "loops.g2o"
+    code, out, err = run(
+        "loops", str(samples / "00"), "--model", "spectral", "--exclude-frames", "5",
+        "--threshold", "0.5", "--verify", "--format", "jsonl", "-o", str(out_file),
+    )  # fmt: skip
+    assert code == 1
+    assert "no relative pose" in err and "the scan is empty" in err
+    rows = jsonl(out)
+    assert len(calls) >= 2 and len(rows) >= 1
+    assert len(out_file.read_text().splitlines()) == len(rows)

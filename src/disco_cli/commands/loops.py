@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 
 from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
-from disco_cli.console import OutputFormat, fail, handle_errors, progress, stderr, warn
+from disco_cli.console import OutputFormat, error, fail, handle_errors, progress, stderr, warn
+from disco_cli.errors import DiscoError
 
 if TYPE_CHECKING:
     import numpy as np
@@ -286,6 +287,7 @@ def loops(
     frame_ids = np.arange(n)
     found_loops = []
     points = _Points(paths, fmt_name)
+    pose_failures = 0
     for s in range(0, n, _BLOCK):
         block = np.arange(s, min(n, s + _BLOCK))
         block = block[limit[block] > 0]
@@ -317,9 +319,16 @@ def loops(
                     from disco_cli.loop_export import Loop
                     from disco_cli.relative_pose import estimate_relative_pose
 
-                    rp = estimate_relative_pose(
-                        points.get(int(i)), points.get(m.match_id), m.yaw_deg
-                    )
+                    try:
+                        rp = estimate_relative_pose(
+                            points.get(int(i)), points.get(m.match_id), m.yaw_deg
+                        )
+                    except DiscoError as exc:
+                        # One unusable pair (e.g. a scan with no valid points) must not
+                        # cost the loops already found: name it, go on, fail at the end.
+                        error(f"{paths[i]} -> {m.path}: no relative pose ({exc})")
+                        pose_failures += 1
+                        continue
                     if verify and not rp.accepted:
                         continue
                     if verbose:
@@ -355,3 +364,5 @@ def loops(
         keep = [lp for lp in found_loops if lp.pose.accepted or output.suffix.lower() != ".g2o"]
         write_loops(output, keep)
         stderr.print(f"{output}: {len(keep)} loops written")
+    if pose_failures:
+        raise typer.Exit(1)
