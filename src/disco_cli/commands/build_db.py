@@ -13,14 +13,13 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
+from disco_cli.commands.options import PANEL_RUN, DeviceOpt, ScanFormatOpt, WorkersOpt
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
 if TYPE_CHECKING:
     import numpy as np
 
 PANEL_IN = "Input"
-PANEL_RUN = "Running"
 
 
 @dataclass

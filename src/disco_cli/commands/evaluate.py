@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
+from disco_cli.commands.options import DeviceOpt, ScanFormatOpt
 from disco_cli.console import OutputFormat, handle_errors
 
 if TYPE_CHECKING:
@@ -115,12 +116,6 @@ CalibOpt = Annotated[
         "--calib", help="KITTI calib.txt: camera poses -> LiDAR poses.", rich_help_panel=PANEL_INPUT
     ),
 ]
-ScanFormatOpt = Annotated[
-    Optional[str],
-    typer.Option(
-        "--scan-format", help="Scan format; default: guessed.", rich_help_panel=PANEL_INPUT
-    ),
-]
 RadiusOpt = Annotated[
     float,
     typer.Option(
@@ -129,9 +124,6 @@ RadiusOpt = Annotated[
         help="True match within this many metres.",
         rich_help_panel=PANEL_PROTOCOL,
     ),
-]
-DeviceOpt = Annotated[
-    str, typer.Option("--device", help="cpu or cuda.", rich_help_panel=PANEL_PROTOCOL)
 ]
 ReportOpt = Annotated[
     Optional[Path],

@@ -8,11 +8,12 @@ distance (m) and the relative yaw (deg, the query's heading in the match's frame
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
-from disco_cli.console import OutputFormat, RowWriter, fail, handle_errors
+from disco_cli.commands.options import OutputFormatOpt
+from disco_cli.console import RowWriter, fail, handle_errors
 
 COLUMNS = ["query_seq", "query", "match_seq", "match", "distance_m", "yaw_deg"]
 
@@ -40,12 +41,7 @@ def gt_loops(
             "--calib/--no-calib", help="Use a calib.txt beside poses.txt (KITTI camera poses)."
         ),
     ] = True,
-    fmt: Annotated[
-        Optional[OutputFormat],
-        typer.Option(
-            "--format", help="table, tsv or jsonl (default: table on a terminal, else tsv)."
-        ),
-    ] = None,
+    fmt: OutputFormatOpt = None,
 ) -> None:
     """List true revisit pairs (ground truth) within or between sequences."""
     from disco_cli.poses import (

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
-from disco_cli.console import OutputFormat, handle_errors, stderr
+from disco_cli.commands.options import OutputFormatOpt
+from disco_cli.console import handle_errors, stderr
 
 
 def _size(n: int) -> str:
@@ -29,12 +30,7 @@ def info(
             "and values of every stored signature and feature block.",
         ),
     ] = False,
-    fmt: Annotated[
-        Optional[OutputFormat],
-        typer.Option(
-            "--format", help="table, tsv or jsonl; default: a table on a terminal, TSV in a pipe."
-        ),
-    ] = None,
+    fmt: OutputFormatOpt = None,
 ) -> None:
     """Show a map database's scans, model, configuration and size."""
     import json

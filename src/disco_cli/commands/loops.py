@@ -13,8 +13,15 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
-from disco_cli.console import OutputFormat, error, fail, handle_errors, progress, stderr, warn
+from disco_cli.commands.options import (
+    PANEL_OUT,
+    PANEL_RUN,
+    DeviceOpt,
+    OutputFormatOpt,
+    ScanFormatOpt,
+    WorkersOpt,
+)
+from disco_cli.console import error, fail, handle_errors, progress, stderr, warn
 from disco_cli.errors import DiscoError
 
 if TYPE_CHECKING:
@@ -24,9 +31,7 @@ if TYPE_CHECKING:
 
 COLUMNS = ["query_index", "query", "match_index", "match", "distance", "yaw_deg"]
 POSE_COLUMNS = ["dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"]
-PANEL_OUT = "Output"
 PANEL_POSE = "Relative pose"
-PANEL_RUN = "Running"
 # Queries searched per block: their results are printed together.
 _BLOCK = 64
 
@@ -115,14 +120,7 @@ def loops(
         str,
         typer.Option("--model", "-m", help="default, spectral, scancontext or a checkpoint path."),
     ] = "default",
-    fmt: Annotated[
-        Optional[OutputFormat],
-        typer.Option(
-            "--format",
-            help="table, tsv or jsonl; default: a table on a terminal, TSV in a pipe.",
-            rich_help_panel=PANEL_OUT,
-        ),
-    ] = None,
+    fmt: OutputFormatOpt = None,
     verify: Annotated[
         bool,
         typer.Option(

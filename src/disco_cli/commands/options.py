@@ -6,9 +6,20 @@ from typing import Annotated, Optional
 
 import typer
 
+from disco_cli.console import OutputFormat
 from disco_cli.readers import FormatName
 
 PANEL_RUN = "Running"
+PANEL_OUT = "Output"
+
+OutputFormatOpt = Annotated[
+    Optional[OutputFormat],
+    typer.Option(
+        "--format",
+        help="table, tsv or jsonl; default: a table on a terminal, TSV in a pipe.",
+        rich_help_panel=PANEL_OUT,
+    ),
+]
 
 ScanFormatOpt = Annotated[
     Optional[FormatName],

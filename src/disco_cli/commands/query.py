@@ -13,18 +13,22 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
-from disco_cli.commands.options import DeviceOpt, ScanFormatOpt, WorkersOpt
-from disco_cli.console import OutputFormat, error, fail, handle_errors
+from disco_cli.commands.options import (
+    PANEL_RUN,
+    DeviceOpt,
+    OutputFormatOpt,
+    ScanFormatOpt,
+    WorkersOpt,
+)
+from disco_cli.console import error, fail, handle_errors
 
 if TYPE_CHECKING:
     from disco_cli.database import Database
 
 COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
 POSE_COLUMNS = ["dx", "dy", "dz", "fitness", "accepted"]
-PANEL_OUT = "Output"
 PANEL_POSE = "Relative pose"
 PANEL_FILTER = "Filters"
-PANEL_RUN = "Running"
 
 
 def open_for_model(db_path: Path, model: str | None, device: str) -> tuple[Database, Any]:
@@ -60,14 +64,7 @@ def query(
     topk: Annotated[
         int, typer.Option("--topk", "-k", min=1, max=10000, help="Matches per query.")
     ] = 10,
-    fmt: Annotated[
-        Optional[OutputFormat],
-        typer.Option(
-            "--format",
-            help="table, tsv or jsonl; default: a table on a terminal, TSV in a pipe.",
-            rich_help_panel=PANEL_OUT,
-        ),
-    ] = None,
+    fmt: OutputFormatOpt = None,
     exclude_radius: Annotated[
         Optional[float],
         typer.Option(
