@@ -475,6 +475,54 @@ def test_scancontext_rerank_through_the_database(seq: Path, queries: Path, tmp_p
         assert [r["match_id"] for r in rows] == [int(ids[i]) for i in order]
 
 
+def test_default_model_reranks_the_nearest_signatures(
+    seq: Path, queries: Path, tmp_path: Path
+) -> None:
+    from disco_cli.bev import polar_bev
+    from disco_cli.model import load_model
+    from disco_cli.readers import read_scan
+
+    out = tmp_path / "default.db"
+    code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "default")
+    assert code == 0, err
+    model = load_model("default")
+    sig, feat = model.embed(polar_bev(read_scan(queries / "q3.bin"), model.bev_config)[None])
+    with Database.open(out) as db:
+        ids, sigs = db.signatures()
+        stored = db.rows(ids)
+    d_sig = ((sigs.astype(np.float64) - sig[0]) ** 2).sum(1)
+    near = np.argsort(d_sig, kind="stable")[:4]
+
+    def corr(a: np.ndarray, b: np.ndarray) -> float:
+        # Truth by a plain loop: best centred, normalized correlation over all rolls.
+        a, b = a - a.mean(), b - b.mean()
+        return max(
+            float((a * np.roll(b, k, axis=1)).sum() / (np.linalg.norm(a) * np.linalg.norm(b)))
+            for k in range(b.shape[1])
+        )
+
+    # Re-ranking the 4 nearest signatures by the learned images (channel 1).
+    score = np.array([corr(feat[0, 1], stored.features[i, 1]) for i in near])
+    want = near[np.argsort(-score, kind="stable")]
+    args = ["query", str(queries / "q3.bin"), "--db", str(out), "--format", "jsonl"]
+    code, text, err = run(*args, "--topk", "4", "--rerank", "4")
+    assert code == 0, err
+    rows = jsonl(text)
+    assert [r["match_id"] for r in rows] == [int(ids[i]) for i in want]
+    np.testing.assert_allclose([r["distance"] for r in rows], 1 - np.sort(score)[::-1], atol=2e-3)
+    # --rerank 0: the signature order of the paper.
+    code, text, err = run(*args, "--topk", "4", "--rerank", "0")
+    assert [r["match_id"] for r in jsonl(text)] == [int(ids[i]) for i in near]
+    # The turned scene is still found, with its yaw.
+    code, text, err = run(*args, "--topk", "1")
+    assert jsonl(text)[0]["match_id"] == 4 and abs(jsonl(text)[0]["yaw_deg"] + TURN_DEG) <= 3
+
+
+def test_rerank_with_a_model_that_cannot(map_db: Path, queries: Path) -> None:
+    code, _, err = run("query", str(queries / "q3.bin"), "--db", str(map_db), "--rerank", "5")
+    assert code == 1 and "spectral cannot re-rank" in err and len(err.strip().splitlines()) == 1
+
+
 def test_streaming_first_result_before_stdin_closes(map_db: Path, queries: Path) -> None:
     proc = subprocess.Popen(
         [_disco(), "query", "-", "--db", str(map_db), "--topk", "1", "--format", "tsv"],

@@ -272,9 +272,12 @@ def test_shipped_weights_are_small_self_describing_and_invariant():
 @pytest.mark.parametrize("name", ["spectral", "tiny"])
 def test_empty_batches_and_empty_scans(name):
     model = tiny_model() if name == "tiny" else load_model(name)
+    # The residual network keeps two images per scan (G, U), spectral one.
+    fshape = (2, R, S) if name == "tiny" else (R, S)
     sigs, feats = model.embed(np.zeros((0, H, R, S), np.float32))
-    assert sigs.shape == (0, 1024) and feats.shape == (0, R, S)
-    assert model.yaw(np.zeros((R, S), np.float32), np.zeros((0, R, S), np.float32)).shape == (0,)
+    assert sigs.shape == (0, 1024) and feats.shape == (0, *fshape)
+    empty = np.zeros((0, *fshape), np.float32)
+    assert model.yaw(np.zeros(fshape, np.float32), empty).shape == (0,)
     # An empty scan (all cells empty) gives finite numbers, not NaN from 0 / 0.
     sigs, feats = model.embed(np.zeros((2, H, R, S), np.float32))
     assert np.isfinite(sigs).all() and np.isfinite(model.yaw(feats[0], feats)).all()

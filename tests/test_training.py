@@ -137,6 +137,49 @@ def test_loading_and_mining_follow_the_poses(world):
         PairMiner(data, d_pos=0.1, d_neg=10.0)
 
 
+def test_verify_sets_start_with_the_nearest_scan_of_another_pass(world):
+    from disco_cli.bev import BEVConfig
+    from disco_cli.training.data import load_training_data
+    from disco_cli.training.mining import PairMiner
+
+    data = load_training_data([world], BEVConfig())
+    miner = PairMiner(data, d_pos=3.0, d_neg=10.0)
+    rng = np.random.default_rng(1)
+    found = 0
+    for q in miner.queries:
+        got = miner.verify_set(int(q), 3, 10.0, rng)
+        other = np.flatnonzero(data.session != data.session[q])
+        dist = np.linalg.norm(data.xy[other] - data.xy[q], axis=1)
+        if got is None:
+            assert (dist <= 10.0).sum() < 3 or dist.min() > 3.0
+            continue
+        rows, d = got
+        found += 1
+        assert len(set(rows.tolist())) == 3 and np.all(data.session[rows] != data.session[q])
+        np.testing.assert_allclose(d, np.linalg.norm(data.xy[rows] - data.xy[q], axis=1))
+        assert d[0] == pytest.approx(dist.min()) and np.all(d <= 10.0)
+    assert found > 0
+    assert miner.verify_set(int(miner.queries[0]), 50, 10.0, rng) is None
+
+
+def test_training_with_the_verify_loss_records_it_and_reranks(world, tmp_path, one_thread):
+    from disco_cli.bev import BEVConfig
+    from disco_cli.model import load_model
+    from disco_cli.training.data import load_training_data
+    from disco_cli.training.loop import TrainOptions, train
+
+    data = load_training_data([world], BEVConfig())
+    opts = TrainOptions(
+        epochs=1, steps=4, batch=4, negatives=2, width=4, lambda_verify=1.0,
+        verify_candidates=3, seed=0, val_queries=20,
+    )  # fmt: skip
+    out = tmp_path / "v.pt"
+    history = train(data, BEVConfig(), opts, out, command="test", log=lambda s: None)
+    assert history[0]["verify"] > 0 and np.isfinite(history[0]["loss"])
+    model = load_model(str(out))
+    assert model.rerank_candidates > 0
+
+
 def test_training_without_poses_needs_self_supervised(tmp_path):
     from disco_cli.bev import BEVConfig
     from disco_cli.errors import PoseFileError

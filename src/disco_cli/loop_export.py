@@ -10,7 +10,7 @@ query's frame is T p in the match's frame.
   (`relative_pose.information_matrix`: scaled by the fitness).
 - `.tum`: `t_query t_match x y z qx qy qz qw`, one loop per line, the times in
   seconds (the sequence index when no times are known), after a `#` header line.
-- `.csv`: a header and one row per loop with indices, paths, signature distance,
+- `.csv`: a header and one row per loop with indices, paths, match distance,
   place-recognition yaw, the relative pose (translation and quaternion), fitness,
   rmse, accepted and the rejection reason.
 """

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
-from disco_cli.commands.options import DeviceOpt, ScanFormatOpt
+from disco_cli.commands.options import DeviceOpt, RerankOpt, ScanFormatOpt, apply_rerank
 from disco_cli.console import OutputFormat, handle_errors
 
 if TYPE_CHECKING:
@@ -183,6 +183,7 @@ def evaluate(
         ),
     ] = 25,
     device: DeviceOpt = "cpu",
+    rerank: RerankOpt = None,
     report: ReportOpt = None,
     fmt: FormatOpt = None,
 ) -> None:
@@ -207,6 +208,7 @@ def evaluate(
     q_poses = _load_poses(poses_file, calib, len(paths), "query scans")
     with Database.open(db_path) as db:
         model = _model_for(db, model_name, device)
+        apply_rerank(model, rerank)
         db_poses, _ = db.poses()
         if not np.isfinite(db_poses[:, :2]).all():
             raise DatabaseError(db.path, "some scans have no pose; build it with --poses")
@@ -237,6 +239,7 @@ def evaluate(
         "protocol": "multi-session",
         "model": model.name,
         "fingerprint": model.fingerprint,
+        "rerank": int(getattr(model, "rerank_candidates", 0) or 0),
         "database": str(db_path),
         "queries": " ".join(map(str, queries)),
         "query_poses": str(poses_file),
@@ -301,6 +304,7 @@ def evaluate_loops(
         ),
     ] = None,
     device: DeviceOpt = "cpu",
+    rerank: RerankOpt = None,
     report: ReportOpt = None,
     fmt: FormatOpt = None,
 ) -> None:
@@ -340,6 +344,7 @@ def evaluate_loops(
         exclusion = f"{seconds:g} s"
 
     model = load_model(model_name, device=device)
+    apply_rerank(model, rerank)
     sigs, feats = embed_scans(paths, model, scan_format)
 
     class _Memory:
@@ -378,6 +383,7 @@ def evaluate_loops(
         "protocol": "loop-closure",
         "model": model.name,
         "fingerprint": model.fingerprint,
+        "rerank": int(getattr(model, "rerank_candidates", 0) or 0),
         "sequence": " ".join(map(str, sequence)),
         "poses": str(poses_file),
         "radius_m": radius,

@@ -18,8 +18,10 @@ from disco_cli.commands.options import (
     PANEL_RUN,
     DeviceOpt,
     OutputFormatOpt,
+    RerankOpt,
     ScanFormatOpt,
     WorkersOpt,
+    apply_rerank,
 )
 from disco_cli.console import error, fail, handle_errors, progress, stderr, warn
 from disco_cli.errors import DiscoError
@@ -110,7 +112,7 @@ def loops(
             "--threshold",
             "-t",
             min=0.0,
-            help="Report pairs with a signature distance at most this; default: all.",
+            help="Report pairs with a distance at most this (the `distance` column); default: all.",
         ),
     ] = None,
     topk: Annotated[
@@ -180,6 +182,7 @@ def loops(
     ] = 32,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
+    rerank: RerankOpt = None,
 ) -> None:
     """Detect loop closures along one sequence of scans."""
     import numpy as np
@@ -219,6 +222,7 @@ def loops(
         stamps = t[frame_rows(paths, len(t), str(times_file))]
 
     net = load_model(model, device=device)
+    apply_rerank(net, rerank)
     sigs: np.ndarray | None = None
     feats: np.ndarray | None = None
     known = np.zeros(n, dtype=bool)

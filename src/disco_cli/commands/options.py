@@ -42,3 +42,24 @@ WorkersOpt = Annotated[
 DeviceOpt = Annotated[
     str, typer.Option("--device", help="cpu or cuda (for the network).", rich_help_panel=PANEL_RUN)
 ]
+RerankOpt = Annotated[
+    Optional[int],
+    typer.Option(
+        "--rerank",
+        min=0,
+        help="Re-rank this many nearest signatures (0: signature order only, as in the "
+        "paper); default: the model's own (10 for DiSCO and Scan Context).",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
+
+
+def apply_rerank(model: object, rerank: int | None) -> None:
+    """Set the model's re-ranking depth when --rerank was given."""
+    if rerank is None:
+        return
+    if rerank > 0 and not hasattr(model, "rerank"):
+        from disco_cli.errors import DiscoError
+
+        raise DiscoError(f"model {getattr(model, 'name', '?')} cannot re-rank; use --rerank 0")
+    model.rerank_candidates = rerank  # type: ignore[attr-defined]

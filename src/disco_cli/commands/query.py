@@ -17,8 +17,10 @@ from disco_cli.commands.options import (
     PANEL_RUN,
     DeviceOpt,
     OutputFormatOpt,
+    RerankOpt,
     ScanFormatOpt,
     WorkersOpt,
+    apply_rerank,
 )
 from disco_cli.console import error, fail, handle_errors
 
@@ -96,7 +98,7 @@ def query(
         typer.Option(
             "--max-distance",
             min=0.0,
-            help="Drop matches with a signature distance above this.",
+            help="Drop matches with a distance above this (the `distance` column).",
             rich_help_panel=PANEL_FILTER,
         ),
     ] = None,
@@ -131,6 +133,7 @@ def query(
     scan_format: ScanFormatOpt = None,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
+    rerank: RerankOpt = None,
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
@@ -142,6 +145,7 @@ def query(
         raise fail("--exclude-radius needs --query-poses")
     check_device(device)
     db, net = open_for_model(db_path, model, device)
+    apply_rerank(net, rerank)
     ids, sigs = db.signatures()
     index = SignatureIndex(sigs)
     db_xy = None

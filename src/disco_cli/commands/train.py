@@ -64,6 +64,18 @@ def train(
     ] = 0.1,
     lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
     lambda_yaw: Annotated[float, typer.Option(help="Weight of the yaw KL loss.")] = 0.1,
+    lambda_verify: Annotated[
+        float,
+        typer.Option(
+            help="Weight of the re-ranking loss (0: the paper's loss only; docs/training.md)."
+        ),
+    ] = 0.0,
+    verify_candidates: Annotated[
+        int, typer.Option(min=2, help="Re-ranking loss: scans of another pass per query.")
+    ] = 6,
+    verify_radius: Annotated[
+        float, typer.Option(help="Re-ranking loss: those scans lie within this distance (m).")
+    ] = 10.0,
     d_pos: Annotated[float, typer.Option(help="Positives lie within this distance (m).")] = 3.0,
     d_neg: Annotated[float, typer.Option(help="Negatives lie beyond this distance (m).")] = 10.0,
     spacing: Annotated[
@@ -117,6 +129,9 @@ def train(
         negatives=negatives,
         lr=lr,
         lambda_yaw=lambda_yaw,
+        lambda_verify=lambda_verify,
+        verify_candidates=verify_candidates,
+        verify_radius=verify_radius,
         d_pos=d_pos,
         d_neg=d_neg,
         width=width,

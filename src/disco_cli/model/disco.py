@@ -12,10 +12,13 @@ import torch
 from disco_cli.errors import ModelError
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet import DiscoNet
+from disco_cli.model.verify import aligned_correlation
 from disco_cli.model.yaw import estimate_yaw
 
 # Scans per forward pass at inference: large enough to amortize, small enough for memory.
 _BATCH = 64
+# Nearest signatures re-ranked by the aligned correlation of their features (verify.py).
+RERANK_CANDIDATES = 10
 
 
 def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
@@ -50,9 +53,12 @@ def weights_hash(state_dict: dict[str, torch.Tensor], config: dict[str, Any]) ->
 
 
 class DiscoModel:
-    """Model protocol of docs/architecture.md over a DiscoNet."""
+    """Model protocol of docs/architecture.md over a DiscoNet.
 
-    rerank_candidates = 0
+    Features: a residual network keeps two images per scan, [2, R, S]: F_cnn's output G
+    (signature and yaw) and the U-Net's learned correction U (re-ranking, see verify.py);
+    other networks keep G alone, [R, S], and re-rank with it.
+    """
 
     def __init__(
         self,
@@ -68,6 +74,8 @@ class DiscoModel:
         self.model_config = dict(model_config)
         self.crop = tuple(int(c) for c in self.model_config.get("crop", DEFAULT_CROP))
         self.name = name
+        self.two_channel = bool(self.model_config.get("residual", False))
+        self.rerank_candidates = RERANK_CANDIDATES
         # The name is left out: the same weights loaded as `default` or by path are one model.
         config = {k: v for k, v in self.config_dict().items() if k != "model"}
         self.fingerprint = weights_hash(self.net.state_dict(), config)
@@ -78,6 +86,8 @@ class DiscoModel:
             "kind": "disco",
             "model_config": self.model_config,
             "bev_config": self.bev_config.to_dict(),
+            # The stored feature layout; a database built with another one must not match.
+            "features": "G,U" if self.two_channel else "G",
         }
 
     @torch.no_grad()
@@ -94,14 +104,40 @@ class DiscoModel:
         out = []
         for i in range(0, len(b), _BATCH):
             x = torch.from_numpy(b[i : i + _BATCH]).to(self.device)
-            out.append(self.net(x).float().cpu().numpy())
+            if self.two_channel:
+                u = self.net.unet.correction(x)
+                f = torch.stack([u + x.sum(dim=1), u], dim=1)
+            else:
+                f = self.net(x)
+            out.append(f.float().cpu().numpy())
         if not out:
-            return np.zeros((0,) + b.shape[2:], np.float32)
+            shape = ((2,) if self.two_channel else ()) + b.shape[2:]
+            return np.zeros((0, *shape), np.float32)
         return np.concatenate(out)
+
+    def _g(self, features: np.ndarray) -> np.ndarray:
+        """F_cnn's output G of features [..., (2,) R, S]."""
+        f = np.asarray(features)
+        return f[..., 0, :, :] if self.two_channel else f
+
+    def _u(self, features: np.ndarray) -> np.ndarray:
+        """The image that re-ranking compares: U for a residual network, else G."""
+        f = np.asarray(features)
+        return f[..., 1, :, :] if self.two_channel else f
 
     def embed(self, bevs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         feats = self.features(bevs)
-        return signatures(feats, self.crop), feats
+        return signatures(self._g(feats), self.crop), feats
 
     def yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
-        return estimate_yaw(query_features, match_features)
+        return estimate_yaw(self._g(query_features), self._g(match_features))
+
+    def rerank(
+        self, query_features: np.ndarray, candidate_features: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(distances [K] = 1 - aligned correlation, in [0, 2]; yaw_deg [K]) of candidates."""
+        cands = np.asarray(candidate_features)
+        if len(cands) == 0:
+            return np.zeros(0, np.float32), np.zeros(0, np.float32)
+        score = aligned_correlation(self._u(query_features), self._u(cands))
+        return (1.0 - score).astype(np.float32), self.yaw(query_features, cands)

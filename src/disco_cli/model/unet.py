@@ -89,7 +89,13 @@ class UNet(nn.Module):
             nn.init.zeros_(self.conv_last.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        inp = x
+        out = self.correction(x)
+        if self.residual:
+            out = out + x.sum(dim=1)
+        return out
+
+    def correction(self, x: torch.Tensor) -> torch.Tensor:
+        """The convolutional part [B, R, S]: the whole output unless `residual`."""
         c1 = self.dconv_down1(x)
         c2 = self.dconv_down2(F.max_pool2d(c1, 2))
         c3 = self.dconv_down3(F.max_pool2d(c2, 2))
@@ -102,10 +108,7 @@ class UNet(nn.Module):
         x = self.conv_last(x)
         if self.sigmoid:
             x = torch.sigmoid(x)
-        x = x[:, 0]
-        if self.residual:
-            x = x + inp.sum(dim=1)
-        return x
+        return x[:, 0]
 
 
 class Corr2Soft(nn.Module):

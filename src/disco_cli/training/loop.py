@@ -26,10 +26,11 @@ from disco_cli.errors import ModelError
 from disco_cli.model.checkpoint import read_checkpoint, save_checkpoint
 from disco_cli.model.disco import DiscoModel, build_net, default_model_config
 from disco_cli.model.signature import signatures_torch
+from disco_cli.model.verify import aligned_correlation_torch
 from disco_cli.model.yaw import correlation_curves_torch, expected_shift_torch
 from disco_cli.training.data import TrainData
 from disco_cli.training.evaluate import retrieval_metrics
-from disco_cli.training.losses import quadruplet_loss, yaw_loss
+from disco_cli.training.losses import quadruplet_loss, verify_loss, yaw_loss
 from disco_cli.training.mining import PairMiner
 
 
@@ -54,6 +55,11 @@ class TrainOptions:
     seed: int = 0
     device: str = "cpu"
     val_queries: int = 300
+    # Re-ranking loss (this project's addition, 0 = the paper's loss only): each query's
+    # U image against `verify_candidates` scans of another pass within `verify_radius` m.
+    lambda_verify: float = 0.0
+    verify_candidates: int = 6
+    verify_radius: float = 10.0
 
 
 StepCallback = Callable[[int, int, int, dict[str, float]], None]
@@ -132,6 +138,8 @@ def train(
         net.train()
         t0 = time.monotonic()
         sums = {"loss": 0.0, "quad": 0.0, "yaw": 0.0, "yaw_deg": 0.0}
+        if opts.lambda_verify > 0:
+            sums["verify"] = 0.0
         for step in range(steps):
             qs = rng.choice(miner.queries, size=opts.batch)
             rows = np.empty((opts.batch, per), dtype=np.int64)
@@ -142,12 +150,32 @@ def train(
                 rows[b, 2 : 2 + k] = negs
                 rows[b, -1] = miner.other_negative(int(q), negs, rng)
             flat = rows.ravel()
+            vsets = []
+            if opts.lambda_verify > 0 and not opts.self_supervised:
+                for b, q in enumerate(qs):
+                    found = miner.verify_set(
+                        int(q), opts.verify_candidates, opts.verify_radius, rng
+                    )
+                    if found is not None:
+                        vsets.append((b, *found))
+                if vsets:
+                    flat = np.concatenate([flat, *[v[1] for v in vsets]])
             rolls = rng.integers(0, sectors, size=len(flat))
             x = torch.from_numpy(_roll_batch(data.float_bevs(flat), rolls)).to(device)
             if opts.bev_dropout > 0:
                 # Domain randomization: drop occupied cells, as a sparser sensor would.
                 x = x * (torch.rand(x.shape, device=device) >= opts.bev_dropout)
             feats = net(x)
+            verify_feats = None
+            if vsets:
+                # The image that re-ranking compares: the U-Net's own part (DiscoModel._u).
+                u = feats - x.sum(dim=1) if opts.residual else feats
+                n_main = opts.batch * per
+                verify_feats = u[n_main:].view(len(vsets), opts.verify_candidates, *u.shape[1:])
+                verify_query = u[:n_main].view(opts.batch, per, *u.shape[1:])[
+                    [v[0] for v in vsets], 0
+                ]
+                feats = feats[:n_main]
             sig = signatures_torch(feats, crop).view(opts.batch, per, -1)
             l_quad = quadruplet_loss(
                 sig[:, 0], sig[:, 1], sig[:, 2 : 2 + k], sig[:, -1], opts.margin1, opts.margin2
@@ -155,11 +183,17 @@ def train(
             f = feats.view(opts.batch, per, *feats.shape[1:])
             log_p = net.corr2soft(correlation_curves_torch(f[:, 0], f[:, 1]))
             # q ~ roll(p, delta): delta from the headings, plus the two augmentation rolls.
-            r = rolls.reshape(opts.batch, per)
+            r = rolls[: opts.batch * per].reshape(opts.batch, per)
             head = (data.heading_deg[rows[:, 1]] - data.heading_deg[rows[:, 0]]) * sectors / 360.0
             shift = torch.as_tensor(head + r[:, 0] - r[:, 1], device=device)
             l_yaw = yaw_loss(log_p, shift)
             loss = l_quad + opts.lambda_yaw * l_yaw
+            if verify_feats is not None:
+                scores = aligned_correlation_torch(verify_query, verify_feats)
+                dists = torch.as_tensor(np.stack([v[2] for v in vsets]), device=device)
+                l_verify = verify_loss(scores, dists.float())
+                loss = loss + opts.lambda_verify * l_verify
+                sums["verify"] += float(l_verify.detach())
             with torch.no_grad():
                 # The paper's estimate, the expectation of p(delta), as a readable error.
                 diff = expected_shift_torch(log_p.exp()) - shift + sectors / 2

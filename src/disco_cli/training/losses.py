@@ -53,3 +53,17 @@ def yaw_loss(log_prob: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
     target = shift_target(shift, log_prob.shape[-1])
     entropy = -(target * torch.log(target.clamp_min(1e-12))).sum(-1)
     return (-(target * log_prob).sum(-1) - entropy).mean()
+
+
+def verify_loss(
+    scores: torch.Tensor, dists: torch.Tensor, temperature: float = 0.05, length: float = 0.5
+) -> torch.Tensor:
+    """Cross-entropy that teaches re-ranking to pick the nearest of nearby candidates.
+
+    scores: aligned correlations [B, n] of each query with n scans of another pass along
+    its street; dists: their distances (m) to the query. The target puts weight
+    exp(-(d - d_min) / length) on each candidate, so scans nearly as close as the nearest
+    are not punished as if they were far.
+    """
+    target = torch.softmax(-(dists - dists.amin(dim=1, keepdim=True)) / length, dim=1)
+    return -(target * F.log_softmax(scores / temperature, dim=1)).sum(-1).mean()

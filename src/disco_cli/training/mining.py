@@ -54,6 +54,11 @@ class PairMiner:
                         cross = js[data.session[js] != data.session[i]]
                         pos[i] = (js, cross)
         self.positives = pos
+        self._trees: dict[int, tuple[cKDTree, np.ndarray]] = {}
+        if not self_supervised:
+            for g in np.unique(data.group[data.anchors]):
+                members = data.anchors[data.group[data.anchors] == g]
+                self._trees[int(g)] = (cKDTree(data.xy[members]), members)
         self.queries = np.asarray(sorted(pos), dtype=np.int64)
         if len(self.queries) == 0:
             raise DiscoError(
@@ -109,6 +114,26 @@ class PairMiner:
                 if np.all(self.negative_mask(int(c), negs)):
                     return int(c)
         return int(self._random_negatives(i, 1, rng)[0])
+
+    def verify_set(
+        self, i: int, n: int, radius: float, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """n scans of other sessions within `radius` of anchor i: the nearest and n - 1
+        others at random, with their distances (m); None when the nearest is beyond d_pos
+        or fewer than n lie that close."""
+        d = self.data
+        tree, members = self._trees[int(d.group[i])]
+        js = members[np.asarray(tree.query_ball_point(d.xy[i], radius), dtype=np.int64)]
+        js = js[d.session[js] != d.session[i]]
+        if len(js) < n:
+            return None
+        dist = np.linalg.norm(d.xy[js] - d.xy[i], axis=1)
+        first = int(np.argmin(dist))
+        if dist[first] > self.d_pos:
+            return None
+        rest = np.delete(np.arange(len(js)), first)
+        pick = np.concatenate([[first], rng.choice(rest, size=n - 1, replace=False)])
+        return js[pick], dist[pick]
 
     def update_hard(self, signatures: np.ndarray, per_anchor: int = 10, search: int = 64) -> None:
         """Hard negatives: the anchors' nearest signatures that are true negatives.
