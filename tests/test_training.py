@@ -137,6 +137,16 @@ def test_loading_and_mining_follow_the_poses(world):
         PairMiner(data, d_pos=0.1, d_neg=10.0)
 
 
+def test_hard_negative_search_equals_a_full_sort():
+    from disco_cli.training.mining import _nearest_rows
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(300, 64)).astype(np.float32)
+    d = ((x[:, None, :].astype(np.float64) - x[None]) ** 2).sum(-1)
+    want = np.argsort(d, axis=1, kind="stable")[:, :10]
+    np.testing.assert_array_equal(_nearest_rows(x, 10, block=64), want)
+
+
 def test_verify_sets_start_with_the_nearest_scan_of_another_pass(world):
     from disco_cli.bev import BEVConfig
     from disco_cli.training.data import load_training_data
