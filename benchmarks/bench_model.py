@@ -31,7 +31,6 @@ import torch
 from disco_cli.bev import BEVConfig, polar_bev, polar_bev_batch
 from disco_cli.model import DEFAULT_WEIGHTS, load_model
 from disco_cli.model.disco import DiscoModel, build_net, default_model_config
-from disco_cli.model.yaw import estimate_yaw
 from disco_cli.readers import list_scans, read_scan
 
 REPO = Path(__file__).resolve().parent.parent
@@ -71,7 +70,7 @@ def rotate(points: np.ndarray, deg: float) -> np.ndarray:
     return out
 
 
-def yaw_accuracy(spins: int = 8) -> None:
+def yaw_accuracy(names: list[str] | None = None, spins: int = 8) -> None:
     from disco_cli.poses import read_kitti_poses, relative_yaw_deg, wrap_deg
 
     real = REPO.parent / "shared" / "realdata"
@@ -81,7 +80,8 @@ def yaw_accuracy(spins: int = 8) -> None:
         return
     poses = read_kitti_poses(seq / "poses.txt", seq / "calib.txt")
     frames = sorted(list_scans(seq / "velodyne"))
-    names = ["spectral"] + (["default"] if DEFAULT_WEIGHTS.is_file() else [])
+    if not names:
+        names = ["spectral"] + (["default"] if DEFAULT_WEIGHTS.is_file() else [])
     print(
         "\n| model | KITTI scan vs rotated self: mean / max error (deg) "
         "| KITTI i vs i+1: mean / max "
@@ -132,11 +132,14 @@ def main() -> None:
     ap.add_argument(
         "--accuracy", action="store_true", help="yaw accuracy on the real scans instead"
     )
+    ap.add_argument(
+        "--models", nargs="*", help="--accuracy: model names or checkpoints (spectral, default)"
+    )
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.accuracy:
-        yaw_accuracy()
+        yaw_accuracy(args.models)
         return
     scan_path = KITTI if KITTI.is_file() else list_scans(SAMPLES)[0]
     points = read_scan(scan_path)
@@ -178,13 +181,18 @@ def main() -> None:
     model = models.get("default", models["spectral"])
     _, feats = model.embed(bevs[:11])
     q, cands = feats[0], feats[1:]
-    fast = median_ms(lambda: estimate_yaw(q, cands), max(args.repeat, 20))[0]
-    slow = median_ms(lambda: exhaustive_yaw(q, cands), 3, warmup=1)[0]
+    fast = median_ms(lambda: model.yaw(q, cands), max(args.repeat, 20))[0]
+    # The baseline works on G, F_cnn's output (channel 0 of the two-image features).
+    g_q, g_c = (q[0], cands[:, 0]) if q.ndim == 3 else (q, cands)
+    slow = median_ms(lambda: exhaustive_yaw(g_q, g_c), 3, warmup=1)[0]
     print(
         f"\nyaw, 10 candidates ({next(k for k, v in models.items() if v is model)} features): "
         f"phase correlation {fast:.3f} ms, exhaustive shift search {slow:.1f} ms "
         f"({slow / fast:.0f}x)"
     )
+    if getattr(model, "rerank_candidates", 0):
+        rerank = median_ms(lambda: model.rerank(q, cands), max(args.repeat, 20))[0]
+        print(f"re-ranking 10 candidates, yaw included: {rerank:.3f} ms")
 
 
 if __name__ == "__main__":
