@@ -315,6 +315,17 @@ def test_train_command_writes_a_loadable_checkpoint_and_resumes(world, tmp_path,
     assert len(torch.load(out, weights_only=True)["metrics"]["history"]) == 2
 
 
+def test_verify_loss_is_refused_without_poses(world, tmp_path):
+    from typer.testing import CliRunner
+
+    from disco_cli.cli import app
+
+    args = ["train", str(world), "-o", str(tmp_path / "m.pt"), "--self-supervised"]
+    res = CliRunner().invoke(app, [*args, "--lambda-verify", "0.5"])
+    assert res.exit_code == 1 and "--lambda-verify needs poses" in res.stderr
+    assert not (tmp_path / "m.pt").exists()
+
+
 def test_train_command_reports_missing_poses_in_one_line(tmp_path):
     from typer.testing import CliRunner
 

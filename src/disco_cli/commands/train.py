@@ -118,6 +118,8 @@ def train(
     from disco_cli.training.loop import train as run_training
 
     check_device(device)
+    if self_supervised and lambda_verify > 0:
+        raise fail("--lambda-verify needs poses (other passes of a place); not --self-supervised")
     if output.exists() and not resume:
         raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
     command = _command_line(ctx, data, output)
