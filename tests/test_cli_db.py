@@ -591,37 +591,15 @@ def test_loops_finds_the_revisit(tmp_path: Path) -> None:
     others = [r["distance"] for r in rows[:-1]]
     assert last["distance"] < min(others)
     cut = (last["distance"] + min(others)) / 2
-    code, out, _ = run(
-        "loops",
-        str(seq),
-        "--model",
-        "spectral",
-        "--exclude-seconds",
-        "0.25",
-        "--threshold",
-        str(cut),
-        "--format",
-        "jsonl",
-    )
+    args = ["loops", str(seq), "--model", "spectral", "--exclude-seconds", "0.25"]
+    args += ["--threshold", str(cut), "--format", "jsonl"]
+    code, out, _ = run(*args)
     rows = jsonl(out)
     assert [(r["query_index"], r["match_index"]) for r in rows] == [(6, 1)]
     # The same answer from a database of the sequence.
     db = tmp_path / "loop.db"
     assert run("build-db", str(seq), "-o", str(db), "--model", "spectral")[0] == 0
-    code, out2, _ = run(
-        "loops",
-        str(seq),
-        "--model",
-        "spectral",
-        "--exclude-seconds",
-        "0.25",
-        "--threshold",
-        str(cut),
-        "--format",
-        "jsonl",
-        "--db",
-        str(db),
-    )
+    code, out2, _ = run(*args, "--db", str(db))
     assert jsonl(out2) == rows
 
 

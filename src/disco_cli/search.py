@@ -253,6 +253,11 @@ class Match:
     pose: np.ndarray  # x, y, z, yaw (rad) of the match, NaN where unknown
 
 
+def rerank_depth(model: Any) -> int:
+    """How many nearest signatures the model re-ranks (0: none)."""
+    return int(getattr(model, "rerank_candidates", 0) or 0)
+
+
 def match_queries(
     index: SignatureIndex,
     ids: np.ndarray,
@@ -266,9 +271,9 @@ def match_queries(
     max_distance: float | None = None,
 ) -> list[list[Match]]:
     """Top-k matches of each query with their yaw: signature search, then the model's
-    `rerank` hook when it asks for one (Scan Context), then yaw from the stored features
-    of the top rows only. `db` is a `Database` (anything with `rows(ids)`)."""
-    rerank_n = int(getattr(model, "rerank_candidates", 0) or 0)
+    `rerank` hook when it asks for one (DiSCO, Scan Context), then yaw from the stored
+    features of the top rows only. `db` is a `Database` (anything with `rows(ids)`)."""
+    rerank_n = rerank_depth(model)
     wide = max(k, rerank_n) if rerank_n > 0 else k
     rows, dists = index.search(signatures, wide, limit=limit, exclude=exclude)
     out: list[list[Match]] = []

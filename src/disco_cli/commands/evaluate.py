@@ -199,7 +199,7 @@ def evaluate(
         wrap_deg,
     )
     from disco_cli.poses import xy_yaw
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.search import SignatureIndex, match_queries, rerank_depth
 
     paths = _scan_paths(queries, scan_format)
     poses_file = _auto_file(queries, query_poses, "poses.txt")
@@ -239,7 +239,7 @@ def evaluate(
         "protocol": "multi-session",
         "model": model.name,
         "fingerprint": model.fingerprint,
-        "rerank": int(getattr(model, "rerank_candidates", 0) or 0),
+        "rerank": rerank_depth(model),
         "database": str(db_path),
         "queries": " ".join(map(str, queries)),
         "query_poses": str(poses_file),
@@ -316,7 +316,7 @@ def evaluate_loops(
     from disco_cli.evaluation.metrics import loop_evaluation, within_radius
     from disco_cli.model import load_model
     from disco_cli.poses import read_times, relative_yaw_deg
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.search import SignatureIndex, match_queries, rerank_depth
 
     if exclude_seconds is not None and exclude_frames is not None:
         raise DiscoError("give --exclude-seconds or --exclude-frames, not both")
@@ -383,7 +383,7 @@ def evaluate_loops(
         "protocol": "loop-closure",
         "model": model.name,
         "fingerprint": model.fingerprint,
-        "rerank": int(getattr(model, "rerank_candidates", 0) or 0),
+        "rerank": rerank_depth(model),
         "sequence": " ".join(map(str, sequence)),
         "poses": str(poses_file),
         "radius_m": radius,

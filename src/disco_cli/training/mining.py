@@ -37,6 +37,8 @@ class PairMiner:
         self.pool = data.anchors  # negatives are drawn from original scans only
         self.hard: dict[int, np.ndarray] = {}
         pos: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # Per world: a k-d tree of its scans' positions (positives here, verify_set later).
+        self._trees: dict[int, tuple[cKDTree, np.ndarray]] = {}
         if self_supervised:
             for i in data.anchors:
                 copies = np.flatnonzero((data.source == i) & (np.arange(len(data)) != i))
@@ -46,6 +48,7 @@ class PairMiner:
             for g in np.unique(data.group[data.anchors]):
                 members = data.anchors[data.group[data.anchors] == g]
                 tree = cKDTree(data.xy[members])
+                self._trees[int(g)] = (tree, members)
                 for k, near in enumerate(tree.query_ball_point(data.xy[members], d_pos)):
                     i = int(members[k])
                     js = members[np.asarray(near, dtype=np.int64)]
@@ -54,11 +57,6 @@ class PairMiner:
                         cross = js[data.session[js] != data.session[i]]
                         pos[i] = (js, cross)
         self.positives = pos
-        self._trees: dict[int, tuple[cKDTree, np.ndarray]] = {}
-        if not self_supervised:
-            for g in np.unique(data.group[data.anchors]):
-                members = data.anchors[data.group[data.anchors] == g]
-                self._trees[int(g)] = (cKDTree(data.xy[members]), members)
         self.queries = np.asarray(sorted(pos), dtype=np.int64)
         if len(self.queries) == 0:
             raise DiscoError(
