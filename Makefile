@@ -25,6 +25,7 @@ install-test: $(PY)
 # Developers: rebuild the extension into .venv as an editable install
 # (Python changes take effect at once; rerun after C++ changes).
 dev: $(PY)
+	$(PIP_INSTALL) 'scikit-build-core>=0.10' 'pybind11>=2.12' 'cmeel-eigen>=3.4'
 	flock /tmp/disco-build.lock $(PIP_INSTALL) --no-build-isolation \
 	  -Cbuild-dir=build/dev -e '.[test]'
 

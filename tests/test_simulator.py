@@ -4,6 +4,7 @@ see-through crowns, determinism, sessions with reverse revisits, and the two com
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -430,8 +431,16 @@ def test_sample_is_small_and_complete(samples):
     assert len(gt_pairs_within(a, 3.0, exclude_frames=5)) > 0
 
 
-def test_sample_regenerates_byte_for_byte(samples, tmp_path):
-    # The command recorded in the sample's README and world.json rewrites it exactly.
+def _numbers(text: str) -> np.ndarray:
+    return np.array([float(t) for t in re.findall(r"-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?", text)])
+
+
+def test_sample_regenerates(samples, tmp_path):
+    # The command recorded in the sample's README and world.json rewrites it. The scenes
+    # must be the same; the last bit of a float may not be: NumPy's and libm's sine and
+    # cosine round differently on CPUs with and without AVX-512, so points may move by
+    # far less than a micrometre. Stated tolerance: every coordinate within 1e-4 m
+    # (intensity within 1e-4), and at most 1 value in 10,000 not bit-identical.
     meta = json.loads((samples / "world.json").read_text())
     readme = (samples / "README.md").read_text()
     args = meta["command"].split()[3:]  # after "disco simulate OUT"
@@ -445,8 +454,23 @@ def test_sample_regenerates_byte_for_byte(samples, tmp_path):
         p.relative_to(tmp_path / "again") for p in (tmp_path / "again").rglob("*") if p.is_file()
     )
     assert committed == again
+    differing = total = 0
     for rel in committed:
-        assert (samples / rel).read_bytes() == (tmp_path / "again" / rel).read_bytes(), rel
+        a_bytes, b_bytes = (samples / rel).read_bytes(), (tmp_path / "again" / rel).read_bytes()
+        if rel.suffix == ".bin":
+            a = np.frombuffer(a_bytes, np.float32).reshape(-1, 4)
+            b = np.frombuffer(b_bytes, np.float32).reshape(-1, 4)
+            assert a.shape == b.shape, rel
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-4, err_msg=str(rel))
+            differing += int(np.count_nonzero(a != b))
+            total += a.size
+        elif a_bytes != b_bytes:
+            # Text (poses, times, world.json): the same numbers, to 1e-6 relative.
+            a_num, b_num = _numbers(a_bytes.decode()), _numbers(b_bytes.decode())
+            assert a_num.shape == b_num.shape, rel
+            np.testing.assert_allclose(b_num, a_num, rtol=1e-6, atol=1e-9, err_msg=str(rel))
+    assert total > 0
+    assert differing <= total // 10_000, (differing, total)
 
 
 def test_the_car_follows_the_slope():
