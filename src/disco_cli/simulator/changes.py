@@ -254,7 +254,6 @@ class Changes(Scenery):
         """Every object any session may show, and which of them session 00 has."""
         if self._pool_cache is not None:
             return self._pool_cache
-        first = len(self.objects)
         prims = Prims()
         prims.extend(self.static)
         rng = np.random.default_rng([self.seed, 20])
@@ -292,8 +291,7 @@ class Changes(Scenery):
         table = np.array(prims.rows, np.float64).reshape(-1, 9)
         obj = np.array(prims.obj, np.int64)
         n = len(self.objects)
-        present0 = np.ones(n, bool)
-        present0[:first] = True  # objects of the static town
+        present0 = np.ones(n, bool)  # the static town's objects are there
         for o, here in present.items():
             present0[o] = here
         self._pool_cache = _Pool(
@@ -360,14 +358,11 @@ class Changes(Scenery):
             here = ids[pool.present0[ids]]
             for o in here[u[here, 0] < rate]:
                 out[int(o)] = names[min(int(np.searchsorted(cum, u[o, 1])), len(names) - 1)]
-            # As many new ones as go, where the class has places for them.
+            # About as many new ones as go, where the class has room for them (a car
+            # in an empty spot, a hedge where none stood, a construction site).
             latent = ids[~pool.present0[ids]]
             gone_share = sum(w for a, w in ACTIONS[cls] if a in GONE)
-            if len(latent) and cls != "cars":
-                q = min(1.0, rate * gone_share * len(here) / len(latent))
-                for o in latent[u[latent, 0] < q]:
-                    out[int(o)] = "new"
-            elif len(latent):  # a car parks in an empty spot
+            if len(latent):
                 q = min(1.0, rate * gone_share * len(here) / len(latent))
                 for o in latent[u[latent, 0] < q]:
                     out[int(o)] = "new"
@@ -442,7 +437,9 @@ class Changes(Scenery):
                 continue
             for heading in (1.0, -1.0):
                 for _ in range(rng.poisson(span * per_km / 1000)):
-                    right = s.half_width - rng.uniform(0.6, 1.2)
+                    # Near the kerb, or outside the parked cars where there may be some.
+                    kerb = s.half_width - (2.6 if s.half_width >= 5.0 else 0.6)
+                    right = kerb - rng.uniform(0.0, 0.4)
                     h = rng.uniform(1.6, 1.9)
                     rows.append(
                         [
