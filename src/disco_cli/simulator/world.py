@@ -2,7 +2,7 @@
 
 `Town` puts together its parts, each in a module named for what it does:
 `layout` (street network, ground), `scenery` (what stands along the streets),
-`changes` (what differs between sessions, and what moves within one); the
+`changes` (what differs between sessions), `movers` (what moves within one); the
 primitives and objects are in `objects`, the parameters in `params`.
 
 Everything is made of three primitives that the C++ ray caster knows (boxes
