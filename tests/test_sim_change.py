@@ -201,6 +201,10 @@ def test_each_style_has_what_it_claims():
     styles = ("grid", "suburban", "industrial", "park", "parking")
     towns = {s: Town(5, TownParams(**SMALL, style=s)) for s in styles}
     streets_km = {s: sum(st.length for st in t.streets) / 1000 for s, t in towns.items()}
+    for style, town in towns.items():  # each makes a street scene a sensor sees
+        pose = plan_sessions(town, get_sensor("vlp16"), 1, 4, 5.0, 5)[0].poses[2]
+        pts = scan(town.session_world(0), pose, "vlp16", seed=1, town=town)
+        assert len(pts) > 10_000 and (pts[:, 2] > -1.0).mean() > 0.05, style
 
     def footprints(style: str) -> np.ndarray:  # of each building's largest box, m2
         return np.array(
