@@ -13,7 +13,14 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from disco_cli.commands.options import PANEL_RUN, DeviceOpt, ScanFormatOpt, WorkersOpt
+from disco_cli.commands.options import (
+    PANEL_RUN,
+    DeviceOpt,
+    ScanFormatOpt,
+    WorkersOpt,
+    model_option,
+    output_option,
+)
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
 if TYPE_CHECKING:
@@ -97,19 +104,10 @@ def build_db(
         ),
     ],
     output: Annotated[
-        Path,
-        typer.Option(
-            "--output", "-o", help="The database file to write (map.db).", rich_help_panel=PANEL_IN
-        ),
+        Path, output_option("The database file to write (map.db).", panel=PANEL_IN)
     ] = Path("map.db"),
     model: Annotated[
-        str,
-        typer.Option(
-            "--model",
-            "-m",
-            rich_help_panel=PANEL_IN,
-            help="default, spectral, scancontext or a checkpoint path.",
-        ),
+        str, model_option("default, spectral, scancontext or a checkpoint path.", panel=PANEL_IN)
     ] = "default",
     poses: Annotated[
         Optional[Path],

@@ -22,6 +22,10 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     WorkersOpt,
     apply_rerank,
+    db_option,
+    model_option,
+    output_option,
+    topk_option,
 )
 from disco_cli.console import error, fail, handle_errors, progress, stderr, warn
 from disco_cli.errors import DiscoError
@@ -115,12 +119,9 @@ def loops(
             help="Report pairs with a distance at most this (the `distance` column); default: all.",
         ),
     ] = None,
-    topk: Annotated[
-        int, typer.Option("--topk", "-k", min=1, max=1000, help="Candidates per query scan.")
-    ] = 1,
+    topk: Annotated[int, topk_option("Candidates per query scan.", max=1000)] = 1,
     model: Annotated[
-        str,
-        typer.Option("--model", "-m", help="default, spectral, scancontext or a checkpoint path."),
+        str, model_option("default, spectral, scancontext or a checkpoint path.", panel=None)
     ] = "default",
     fmt: OutputFormatOpt = None,
     verify: Annotated[
@@ -145,13 +146,10 @@ def loops(
     ] = False,
     output: Annotated[
         Optional[Path],
-        typer.Option(
-            "--output",
-            "-o",
-            help="Also write the loops with their "
-            "relative poses: .g2o (EDGE_SE3:QUAT, accepted loops "
-            "only), .tum or .csv.",
-            rich_help_panel=PANEL_OUT,
+        output_option(
+            "Also write the loops with their relative poses: .g2o (EDGE_SE3:QUAT, accepted "
+            "loops only), .tum or .csv.",
+            panel=PANEL_OUT,
         ),
     ] = None,
     times: Annotated[
@@ -164,13 +162,10 @@ def loops(
     ] = None,
     db_path: Annotated[
         Optional[Path],
-        typer.Option(
-            "--db",
-            "-d",
-            help="Reuse the signatures of a database built "
-            "from this sequence (same model); scans not in it are "
-            "embedded.",
-            rich_help_panel=PANEL_RUN,
+        db_option(
+            "Reuse the signatures of a database built from this sequence (same model); "
+            "scans not in it are embedded.",
+            panel=PANEL_RUN,
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,

@@ -21,6 +21,9 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     WorkersOpt,
     apply_rerank,
+    db_option,
+    model_option,
+    topk_option,
 )
 from disco_cli.console import error, fail, handle_errors
 
@@ -60,12 +63,10 @@ def query(
             show_default=False,
         ),
     ],
-    db_path: Annotated[
-        Path, typer.Option("--db", "-d", help="The map database (from disco build-db).")
-    ] = Path("map.db"),
-    topk: Annotated[
-        int, typer.Option("--topk", "-k", min=1, max=10000, help="Matches per query.")
-    ] = 10,
+    db_path: Annotated[Path, db_option("The map database (from disco build-db).")] = Path(
+        "map.db"
+    ),
+    topk: Annotated[int, topk_option("Matches per query.")] = 10,
     fmt: OutputFormatOpt = None,
     exclude_radius: Annotated[
         Optional[float],
@@ -122,12 +123,8 @@ def query(
     ] = False,
     model: Annotated[
         Optional[str],
-        typer.Option(
-            "--model",
-            "-m",
-            help="The model; default: the one that "
-            "built the database (needed for checkpoint paths).",
-            rich_help_panel=PANEL_RUN,
+        model_option(
+            "The model; default: the one that built the database (needed for checkpoint paths)."
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
