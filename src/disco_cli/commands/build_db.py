@@ -243,6 +243,17 @@ def build_db(
                 done = written + len(bad)
                 rate = written / max(time.perf_counter() - start, 1e-9)
                 bar.update(task, completed=done, rate=f"{rate:.1f} scans/s")
+    except KeyboardInterrupt:
+        # Every committed batch is safe (one transaction each); say so, and how to go on.
+        if db is None:
+            stderr.print(f"interrupted: nothing written; {output} was not created")
+        else:
+            stderr.print(
+                f"interrupted: {output} holds {already + written} of the {len(scans.paths)} "
+                "scans given, safely stored; run the same command again to resume",
+                soft_wrap=True,
+            )
+        raise typer.Exit(130) from None
     finally:
         loaded.close()
         if db is not None:

@@ -285,6 +285,7 @@ def loops(
     found_loops = []
     points = _Points(paths, fmt_name)
     pose_failures = 0
+    reported = 0
     for s in range(0, n, _BLOCK):
         block = np.arange(s, min(n, s + _BLOCK))
         block = block[limit[block] > 0]
@@ -355,6 +356,10 @@ def loops(
                 out.append(row)
         if out:
             writer.write(out)
+            reported += len(out)
+    if reported == 0:
+        writer.write([])  # the header (an empty table), so that "no loop" reads as an answer
+    stderr.print(f"{sequence}: {reported} loop candidates among {n} scans", soft_wrap=True)
     if output is not None:
         from disco_cli.loop_export import write_loops
 

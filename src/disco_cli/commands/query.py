@@ -59,7 +59,8 @@ def query(
     scans: Annotated[
         list[str],
         typer.Argument(
-            help="Scan files, or - to read scan paths from stdin (one per line).",
+            help="Scan files, folders of scans (as for build-db), or - to read scan paths "
+            "from stdin (one per line).",
             show_default=False,
         ),
     ],
@@ -153,14 +154,18 @@ def query(
         db_xy = db.poses()[0][:, :2]
         q_rows = pose_rows(read_kitti_poses(query_poses, calib))
 
+    fmt_name = scan_format.value if scan_format is not None else None
+    # A folder is expanded like build-db's (DIR/velodyne/ or a folder of scans).
+    given = [s for a in scans for s in ([a] if a == "-" else _expand(a, fmt_name))]
+
     def paths():
-        for s in scans:
+        for s in given:
             if s == "-":
                 yield from stdin_paths()
             else:
                 yield s
 
-    n_args = None if "-" in scans else len(scans)
+    n_args = None if "-" in given else len(given)
     with_pose = pose or verify
     # A table is titled by its query, so its rows need not repeat the path.
     writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt, table_omit=["query"])
@@ -171,7 +176,7 @@ def query(
         net.bev_config,
         workers=workers,
         prefetch=2 * workers,
-        scan_format=scan_format.value if scan_format is not None else None,
+        scan_format=fmt_name,
         keep_points=with_pose,
     )
     try:
@@ -249,6 +254,15 @@ def query(
         db.close()
     if failed:
         raise typer.Exit(1)
+
+
+def _expand(arg: str, scan_format: str | None) -> list[str]:
+    """The scans of a folder, in order; a file (or anything else) as given."""
+    if not Path(arg).is_dir():
+        return [arg]
+    from disco_cli.readers import list_scans
+
+    return [str(p) for p in list_scans(arg, scan_format)]
 
 
 class PointCache:
