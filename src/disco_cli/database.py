@@ -5,8 +5,11 @@ Layout (format version 1):
 - `meta(key, value)`: `format_version`, `disco_version`, `model_name`, `fingerprint`,
   `model_config` and `bev_config` (JSON), `signature_dim`, `feature_shape` (JSON),
   `feature_dtype`.
-- `scans(id, path, time, x, y, z, yaw, signature, features, feature_scale)`: one row
-  per scan, `id` in insertion order (1, 2, ...), `path` as the user gave it (unique),
+- `scans(id, path, time, x, y, z, yaw, signature, features, feature_scale, rel_path)`:
+  one row per scan, `id` in insertion order (1, 2, ...), `path` absolute (unique; a
+  database written before disco stored absolute paths holds them as the user gave
+  them), `rel_path` the same scan relative to the database's folder (NULL when there
+  is no such path, and absent from databases written before it existed),
   time and pose NULL when unknown, `signature` float32 little-endian, `features`
   float16 little-endian divided by `feature_scale` (the largest magnitude, so that
   float16 neither overflows nor loses small features).
@@ -38,7 +41,7 @@ import numpy as np
 
 from disco_cli.errors import DatabaseError
 
-__all__ = ["FORMAT_VERSION", "Database", "ModelInfo", "ScanBatch", "MatchRows"]
+__all__ = ["FORMAT_VERSION", "Database", "ModelInfo", "ScanBatch", "MatchRows", "stored_paths"]
 
 FORMAT_VERSION = 1
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -57,7 +60,8 @@ CREATE TABLE scans (
     x REAL, y REAL, z REAL, yaw REAL,
     signature BLOB NOT NULL,
     features BLOB NOT NULL,
-    feature_scale REAL NOT NULL
+    feature_scale REAL NOT NULL,
+    rel_path TEXT
 );
 """
 _SCAN_COLUMNS = {
@@ -115,9 +119,14 @@ class ScanBatch:
     features: np.ndarray
     poses: np.ndarray | None = None
     times: np.ndarray | None = None
+    rel_paths: list[str | None] | None = None  # relative to the database's folder
 
     def __post_init__(self) -> None:
         b = len(self.paths)
+        if self.rel_paths is None:
+            self.rel_paths = [None] * b
+        if len(self.rel_paths) != b:
+            raise ValueError(f"rel_paths must have {b} entries, got {len(self.rel_paths)}")
         self.signatures = np.asarray(self.signatures, dtype=np.float32)
         self.features = np.asarray(self.features, dtype=np.float32)
         if self.signatures.ndim != 2 or len(self.signatures) != b:
@@ -192,6 +201,12 @@ class Database:
         )
         self.signature_dim = int(meta["signature_dim"])
         self.feature_shape = tuple(int(v) for v in json.loads(meta["feature_shape"]))
+        try:
+            columns = {r[1] for r in conn.execute("PRAGMA table_info(scans)")}
+        except sqlite3.DatabaseError as exc:
+            raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
+        # Databases written before relative paths were stored lack the column.
+        self._has_rel = "rel_path" in columns
 
     # -- opening --------------------------------------------------------------
 
@@ -349,26 +364,26 @@ class Database:
         for i, p in enumerate(batch.paths):
             feats, scale = _encode_features(batch.features[i])
             x, y, z, yaw = (_none_if_nan(v) for v in batch.poses[i])
-            rows.append(
-                (
-                    str(p),
-                    _none_if_nan(batch.times[i]),
-                    x,
-                    y,
-                    z,
-                    yaw,
-                    batch.signatures[i].astype(_SIG_DTYPE).tobytes(),
-                    feats,
-                    scale,
-                )
+            row = (
+                str(p),
+                _none_if_nan(batch.times[i]),
+                x,
+                y,
+                z,
+                yaw,
+                batch.signatures[i].astype(_SIG_DTYPE).tobytes(),
+                feats,
+                scale,
             )
+            rel = batch.rel_paths[i]  # type: ignore[index]
+            rows.append(row + (rel,) if self._has_rel else row)
+        columns = "path, time, x, y, z, yaw, signature, features, feature_scale"
+        if self._has_rel:
+            columns += ", rel_path"
+        marks = ", ".join("?" * len(rows[0]))
         try:
             with self._conn:
-                self._conn.executemany(
-                    "INSERT INTO scans (path, time, x, y, z, yaw, signature, features, "
-                    "feature_scale) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    rows,
-                )
+                self._conn.executemany(f"INSERT INTO scans ({columns}) VALUES ({marks})", rows)
         except sqlite3.IntegrityError as exc:
             raise DatabaseError(self.path, f"cannot append: {exc}") from None
         except sqlite3.Error as exc:
@@ -384,6 +399,36 @@ class Database:
     def paths(self) -> list[str]:
         """Every stored path, in id order."""
         return [r[0] for r in self._conn.execute("SELECT path FROM scans ORDER BY id")]
+
+    @_sql_errors
+    def locate(self, stored: str, scan_root: str | Path | None = None) -> Path | None:
+        """Where the stored scan `stored` (a `path` of this database) is now, or None.
+
+        In order: the stored path itself when it exists (absolute; an old database's
+        relative path counts from the current directory, as it always did); then its
+        path relative to the database's current folder (a map folder moved or mounted
+        elsewhere as a whole); then under `scan_root`: the stored path with its leading
+        folders dropped one at a time, the longest that exists there
+        (`/data/kitti/00/velodyne/000005.bin` is found as
+        `SCAN_ROOT/00/velodyne/000005.bin`).
+        """
+        rel = None
+        if self._has_rel:
+            row = self._conn.execute("SELECT rel_path FROM scans WHERE path = ?", (stored,))
+            found = row.fetchone()
+            rel = found[0] if found else None
+        return _locate(stored, rel, self.path, scan_root)
+
+    @_sql_errors
+    def locations(self, scan_root: str | Path | None = None) -> list[str]:
+        """Every stored scan's location now (`locate`), in id order, as absolute paths;
+        a scan found nowhere keeps its stored path (made absolute)."""
+        column = "rel_path" if self._has_rel else "NULL"
+        out = []
+        for stored, rel in self._conn.execute(f"SELECT path, {column} FROM scans ORDER BY id"):
+            where = _locate(stored, rel, self.path, scan_root)
+            out.append(str(where) if where is not None else os.path.abspath(stored))
+        return out
 
     @_sql_errors
     def has_poses(self) -> bool:
@@ -490,6 +535,41 @@ class Database:
             if not (isinstance(scale, float) and np.isfinite(scale) and scale > 0):
                 problems.append(f"scan {rid} ({path}): bad feature scale {scale!r}")
         return problems
+
+
+def _locate(
+    stored: str, rel: str | None, db_path: Path, scan_root: str | Path | None
+) -> Path | None:
+    """The resolution order of `Database.locate`."""
+    first = Path(stored)
+    if first.exists():
+        return first if first.is_absolute() else Path(os.path.abspath(first))
+    if rel:
+        beside = Path(os.path.abspath(db_path)).parent / rel
+        if beside.exists():
+            return Path(os.path.normpath(beside))
+    if scan_root is not None:
+        parts = [p for p in first.parts if p not in (first.anchor, "..", ".")]
+        for k in range(len(parts)):
+            candidate = Path(scan_root, *parts[k:])
+            if candidate.exists():
+                return Path(os.path.abspath(candidate))
+    return None
+
+
+def stored_paths(paths: Sequence[str], db_path: str | Path) -> tuple[list[str], list[str | None]]:
+    """What a database at `db_path` stores for scans given as `paths`: the absolute
+    path, and the path relative to the database's folder (None where there is none,
+    e.g. on another Windows drive)."""
+    folder = os.path.dirname(os.path.abspath(db_path))
+    absolute = [os.path.abspath(p) for p in paths]
+    rel: list[str | None] = []
+    for p in absolute:
+        try:
+            rel.append(os.path.relpath(p, folder))
+        except ValueError:
+            rel.append(None)
+    return absolute, rel
 
 
 def _check_header(path: Path) -> None:

@@ -1,11 +1,12 @@
 """`disco build-db`: embed scans into a map database, one transaction per batch.
 
 Ctrl-C or a crash keeps every finished batch; running the same command again
-resumes, skipping the scans already stored (by path as given).
+resumes, skipping the scans already stored (by absolute path).
 """
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -166,7 +167,7 @@ def build_db(
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
     from disco_cli import __version__
-    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.database import Database, ModelInfo, ScanBatch, stored_paths
     from disco_cli.errors import DatabaseError
     from disco_cli.model import MODELS, load_model
     from disco_cli.pipeline import check_device, embed_stream, load_stream
@@ -176,6 +177,16 @@ def build_db(
     scans = collect_scans(inputs, poses, times, calib, fmt)
     if not scans.paths:
         raise fail("no scans given")
+    # Stored absolute, with the path relative to the database beside it, so that the
+    # map can be read from any directory and moved as a whole (docs/database.md).
+    absolute, rel_paths = stored_paths(scans.paths, output)
+    seen: dict[str, int] = {}
+    for i, p in enumerate(absolute):
+        seen.setdefault(p, i)
+    first = list(seen.values())
+    if len(first) < len(absolute):  # two spellings of one file: keep the first
+        scans = ScanList([scans.paths[i] for i in first], scans.poses[first], scans.times[first])
+        absolute, rel_paths = [absolute[i] for i in first], [rel_paths[i] for i in first]
     net = load_model(model, device=device)
     info = ModelInfo.of(net)
     # How `disco query` finds the model again: a registry name or a checkpoint's full path.
@@ -186,16 +197,17 @@ def build_db(
     if output.exists():
         db = Database.open(output, writable=True)
         db.check_model(info)
-        stored = set(db.paths())
-        if not append and not stored.issubset(scans.paths):
+        # An older database may hold relative paths: they count from here, as before.
+        stored = {os.path.abspath(p) for p in db.paths()}
+        if not append and not stored.issubset(absolute):
             db.close()
             raise DatabaseError(
                 output,
                 "exists and holds other scans; pass --append to add to it, "
                 "or choose another --output",
             )
-        already = sum(1 for p in scans.paths if p in stored)
-    todo = [i for i, p in enumerate(scans.paths) if db is None or p not in stored]
+        already = sum(1 for p in absolute if p in stored)
+    todo = [i for i, p in enumerate(absolute) if db is None or p not in stored]
     if not todo:
         stderr.print(f"{output}: all {len(scans.paths)} scans are in it already")
         if db is not None:
@@ -223,7 +235,8 @@ def build_db(
                 if chunk.items:
                     rows = [todo[it.index] for it in chunk.items]
                     part = ScanBatch(
-                        paths=[scans.paths[r] for r in rows],
+                        paths=[absolute[r] for r in rows],
+                        rel_paths=[rel_paths[r] for r in rows],
                         signatures=chunk.signatures,
                         features=chunk.features,
                         poses=scans.poses[rows],

@@ -7,6 +7,7 @@ threshold are printed as loop candidates, with the yaw between them.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
@@ -20,6 +21,7 @@ from disco_cli.commands.options import (
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    ScanRootOpt,
     WorkersOpt,
     apply_rerank,
     db_option,
@@ -169,6 +171,7 @@ def loops(
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    scan_root: ScanRootOpt = None,
     batch: Annotated[
         int,
         typer.Option(
@@ -225,9 +228,13 @@ def loops(
         with Database.open(db_path) as db:
             db.check_model(ModelInfo.of(net))
             ids, stored = db.signatures()
-            where = {p: k for k, p in enumerate(db.paths())}
-            rows_in_db = [where.get(p, -1) for p in paths]
+            # Matched by where the stored scans are now, so that it works from any
+            # directory and for a map that moved (Database.locate).
+            where = {p: k for k, p in enumerate(db.locations(scan_root))}
+            rows_in_db = [where.get(os.path.abspath(p), -1) for p in paths]
             have = [i for i, r in enumerate(rows_in_db) if r >= 0]
+            if not have:
+                warn(f"{db_path}: holds none of these scans; embedding them all")
             if have:
                 sigs = np.zeros((n, stored.shape[1]), np.float32)
                 feats = np.zeros((n, *db.feature_shape), np.float32)

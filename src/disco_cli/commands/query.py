@@ -8,6 +8,7 @@ status is 1 at the end.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Optional
 
@@ -19,13 +20,14 @@ from disco_cli.commands.options import (
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    ScanRootOpt,
     WorkersOpt,
     apply_rerank,
     db_option,
     model_option,
     topk_option,
 )
-from disco_cli.console import error, fail, handle_errors
+from disco_cli.console import error, fail, handle_errors, warn
 
 if TYPE_CHECKING:
     from disco_cli.database import Database
@@ -129,6 +131,7 @@ def query(
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    scan_root: ScanRootOpt = None,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
@@ -170,7 +173,7 @@ def query(
     # A table is titled by its query, so its rows need not repeat the path.
     writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt, table_omit=["query"])
     failed = 0
-    match_points = PointCache()
+    match_points = PointCache(db, scan_root)
     loaded = load_stream(
         paths(),
         net.bev_config,
@@ -221,7 +224,7 @@ def query(
                     {
                         "query": item.path,
                         "rank": m.rank,
-                        "match": m.path,
+                        "match": match_points.shown(m.path),
                         "match_id": m.match_id,
                         "distance": m.distance,
                         "yaw_deg": m.yaw_deg,
@@ -232,11 +235,16 @@ def query(
                     from disco_cli.relative_pose import estimate_relative_pose
 
                     kept = []
-                    for row in rows:
+                    for row, m in zip(rows, matches):
+                        points = match_points.get(m.path)
+                        if points is None:
+                            # The place is known, the pose is not: keep the row (not
+                            # with --verify, which keeps only accepted poses).
+                            if not verify:
+                                kept.append({**row, **dict.fromkeys(POSE_COLUMNS)})
+                            continue
                         try:
-                            rp = estimate_relative_pose(
-                                item.points, match_points.get(row["match"]), row["yaw_deg"]
-                            )
+                            rp = estimate_relative_pose(item.points, points, row["yaw_deg"])
                         except DiscoError as exc:
                             error(f"{row['match']}: no relative pose ({exc})")
                             failed += 1
@@ -266,21 +274,54 @@ def _expand(arg: str, scan_format: str | None) -> list[str]:
 
 
 class PointCache:
-    """The points of the last few match scans read (a query's matches often repeat)."""
+    """The points of the last few match scans read (a query's matches often repeat).
 
-    def __init__(self, size: int = 32):
+    A stored scan is looked for where `Database.locate` says; one that cannot be found
+    or read gives None and one warning (per scan), so that its row is still printed.
+    """
+
+    def __init__(self, db: Database, scan_root: Path | None = None, size: int = 32):
         from collections import OrderedDict
 
+        self.db = db
+        self.scan_root = scan_root
         self.size = size
         self._cache: OrderedDict = OrderedDict()
+        self._missing: set[str] = set()
+        self._shown: dict[str, str] = {}
+
+    def shown(self, stored: str) -> str:
+        """A stored scan's path as printed: where it is now (else as stored), relative to
+        the current directory when it lies under it, else absolute; so a printed path
+        opens from where the command ran, and a map built here prints as it was typed."""
+        if stored not in self._shown:
+            where = self.db.locate(stored, self.scan_root)
+            full = os.path.abspath(where if where is not None else stored)
+            rel = os.path.relpath(full)
+            self._shown[stored] = full if rel.startswith(os.pardir) else rel
+            if len(self._shown) > 4096:
+                self._shown.clear()
+        return self._shown[stored]
 
     def get(self, path: str) -> Any:
+        from disco_cli.errors import ScanReadError
         from disco_cli.readers import read_scan
 
         if path in self._cache:
             self._cache.move_to_end(path)
             return self._cache[path]
-        points = read_scan(path)
+        if path in self._missing:
+            return None
+        where = self.db.locate(path, self.scan_root)
+        try:
+            if where is None:
+                raise ScanReadError(path, "not found (nor beside the database)")
+            points = read_scan(where)
+        except ScanReadError as exc:
+            self._missing.add(path)
+            hint = "" if self.scan_root else "; --scan-root DIR says where the map's scans are"
+            warn(f"{exc}: no relative pose for this match{hint}")
+            return None
         self._cache[path] = points
         if len(self._cache) > self.size:
             self._cache.popitem(last=False)
