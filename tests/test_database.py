@@ -249,3 +249,14 @@ def test_a_stray_sqlite_error_is_one_line() -> None:
     with pytest.raises(typer.Exit) as exit_:
         command()
     assert exit_.value.exit_code == 1
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
+def test_a_damaged_signature_stops_the_search_with_its_scan(tmp_path: Path, value: float) -> None:
+    path = _made(tmp_path, n=5)
+    sig = np.ones(512, np.float32)
+    sig[7] = value  # 1e30 is finite, but its square overflows float32
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE scans SET signature = ? WHERE id = 4", (sig.tobytes(),))
+    with Database.open(path) as db, pytest.raises(DatabaseError, match="scan 4: signature"):
+        db.signatures()

@@ -64,7 +64,10 @@ def _run(args: list[str]) -> tuple[int, str]:
     res = CliRunner().invoke(app, args)
     # A traceback would be an exception other than the exit the command line raises.
     if res.exception is not None and not isinstance(res.exception, SystemExit):
-        raise AssertionError(f"{args}: {type(res.exception).__name__}: {res.exception}")
+        import traceback
+
+        where = "".join(traceback.format_exception(*res.exc_info)[-6:])
+        raise AssertionError(f"{args}: {type(res.exception).__name__}: {res.exception}\n{where}")
     assert "Traceback" not in res.output, res.output
     return res.exit_code, res.stderr
 

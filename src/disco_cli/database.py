@@ -455,7 +455,20 @@ class Database:
                 ids[i] = rid
                 sigs[i] = np.frombuffer(blob, dtype=_SIG_DTYPE)
                 i += 1
-        return ids[:i], sigs[:i]
+        ids, sigs = ids[:i], sigs[:i]
+        # SQLite keeps no checksum of a blob: a damaged signature (NaN, or so large that
+        # its squared norm overflows float32) would derail the search, so it stops here.
+        with np.errstate(over="ignore", invalid="ignore"):
+            norms = np.einsum("ij,ij->i", sigs, sigs, dtype=np.float64)
+        bad = ~(np.isfinite(norms) & (norms < np.finfo(np.float32).max))
+        if bad.any():
+            rid = int(ids[np.argmax(bad)])
+            raise DatabaseError(
+                self.path,
+                f"scan {rid}: signature is not finite or out of range (damaged?); "
+                "disco info --check lists every problem",
+            )
+        return ids, sigs
 
     @_sql_errors
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
