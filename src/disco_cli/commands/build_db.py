@@ -258,11 +258,19 @@ def build_db(
                 bar.update(task, completed=done, rate=f"{rate:.1f} scans/s")
     except KeyboardInterrupt:
         # Every committed batch is safe (one transaction each); say so, and how to go on.
-        if db is None:
-            stderr.print(f"interrupted: nothing written; {output} was not created")
+        held = already + written
+        if db is None and output.exists():
+            # Interrupted while the new file, its first batch committed, was being opened.
+            try:
+                with Database.open(output, verify=False) as fresh:
+                    held = len(fresh)
+            except DatabaseError:
+                pass
+        if db is None and not output.exists():
+            stderr.print(f"interrupted: nothing written; {output} was not created", soft_wrap=True)
         else:
             stderr.print(
-                f"interrupted: {output} holds {already + written} of the {len(scans.paths)} "
+                f"interrupted: {output} holds {held} of the {len(scans.paths)} "
                 "scans given, safely stored; run the same command again to resume",
                 soft_wrap=True,
             )

@@ -15,7 +15,6 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 import typer
 
 from disco_cli.commands.options import (
-    PANEL_RUN,
     DeviceOpt,
     OutputFormatOpt,
     RerankOpt,
