@@ -1,11 +1,12 @@
 """`disco build-db`: embed scans into a map database, one transaction per batch.
 
 Ctrl-C or a crash keeps every finished batch; running the same command again
-resumes, skipping the scans already stored (by path as given).
+resumes, skipping the scans already stored (by absolute path).
 """
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,7 +14,14 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from disco_cli.commands.options import PANEL_RUN, DeviceOpt, ScanFormatOpt, WorkersOpt
+from disco_cli.commands.options import (
+    PANEL_RUN,
+    DeviceOpt,
+    ScanFormatOpt,
+    WorkersOpt,
+    model_option,
+    output_option,
+)
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
 if TYPE_CHECKING:
@@ -97,19 +105,10 @@ def build_db(
         ),
     ],
     output: Annotated[
-        Path,
-        typer.Option(
-            "--output", "-o", help="The database file to write (map.db).", rich_help_panel=PANEL_IN
-        ),
+        Path, output_option("The database file to write (map.db).", panel=PANEL_IN)
     ] = Path("map.db"),
     model: Annotated[
-        str,
-        typer.Option(
-            "--model",
-            "-m",
-            rich_help_panel=PANEL_IN,
-            help="default, spectral, scancontext or a checkpoint path.",
-        ),
+        str, model_option("default, spectral, scancontext or a checkpoint path.", panel=PANEL_IN)
     ] = "default",
     poses: Annotated[
         Optional[Path],
@@ -168,7 +167,7 @@ def build_db(
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
     from disco_cli import __version__
-    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.database import Database, ModelInfo, ScanBatch, stored_paths
     from disco_cli.errors import DatabaseError
     from disco_cli.model import MODELS, load_model
     from disco_cli.pipeline import check_device, embed_stream, load_stream
@@ -178,6 +177,16 @@ def build_db(
     scans = collect_scans(inputs, poses, times, calib, fmt)
     if not scans.paths:
         raise fail("no scans given")
+    # Stored absolute, with the path relative to the database beside it, so that the
+    # map can be read from any directory and moved as a whole (docs/database.md).
+    absolute, rel_paths = stored_paths(scans.paths, output)
+    seen: dict[str, int] = {}
+    for i, p in enumerate(absolute):
+        seen.setdefault(p, i)
+    first = list(seen.values())
+    if len(first) < len(absolute):  # two spellings of one file: keep the first
+        scans = ScanList([scans.paths[i] for i in first], scans.poses[first], scans.times[first])
+        absolute, rel_paths = [absolute[i] for i in first], [rel_paths[i] for i in first]
     net = load_model(model, device=device)
     info = ModelInfo.of(net)
     # How `disco query` finds the model again: a registry name or a checkpoint's full path.
@@ -188,16 +197,17 @@ def build_db(
     if output.exists():
         db = Database.open(output, writable=True)
         db.check_model(info)
-        stored = set(db.paths())
-        if not append and not stored.issubset(scans.paths):
+        # An older database may hold relative paths: they count from here, as before.
+        stored = {os.path.abspath(p) for p in db.paths()}
+        if not append and not stored.issubset(absolute):
             db.close()
             raise DatabaseError(
                 output,
                 "exists and holds other scans; pass --append to add to it, "
                 "or choose another --output",
             )
-        already = sum(1 for p in scans.paths if p in stored)
-    todo = [i for i, p in enumerate(scans.paths) if db is None or p not in stored]
+        already = sum(1 for p in absolute if p in stored)
+    todo = [i for i, p in enumerate(absolute) if db is None or p not in stored]
     if not todo:
         stderr.print(f"{output}: all {len(scans.paths)} scans are in it already")
         if db is not None:
@@ -225,7 +235,8 @@ def build_db(
                 if chunk.items:
                     rows = [todo[it.index] for it in chunk.items]
                     part = ScanBatch(
-                        paths=[scans.paths[r] for r in rows],
+                        paths=[absolute[r] for r in rows],
+                        rel_paths=[rel_paths[r] for r in rows],
                         signatures=chunk.signatures,
                         features=chunk.features,
                         poses=scans.poses[rows],
@@ -245,6 +256,25 @@ def build_db(
                 done = written + len(bad)
                 rate = written / max(time.perf_counter() - start, 1e-9)
                 bar.update(task, completed=done, rate=f"{rate:.1f} scans/s")
+    except KeyboardInterrupt:
+        # Every committed batch is safe (one transaction each); say so, and how to go on.
+        held = already + written
+        if db is None and output.exists():
+            # Interrupted while the new file, its first batch committed, was being opened.
+            try:
+                with Database.open(output, verify=False) as fresh:
+                    held = len(fresh)
+            except DatabaseError:
+                pass
+        if db is None and not output.exists():
+            stderr.print(f"interrupted: nothing written; {output} was not created", soft_wrap=True)
+        else:
+            stderr.print(
+                f"interrupted: {output} holds {held} of the {len(scans.paths)} "
+                "scans given, safely stored; run the same command again to resume",
+                soft_wrap=True,
+            )
+        raise typer.Exit(130) from None
     finally:
         loaded.close()
         if db is not None:

@@ -13,7 +13,15 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
-from disco_cli.commands.options import DeviceOpt, RerankOpt, ScanFormatOpt, apply_rerank
+from disco_cli.commands.options import (
+    DeviceOpt,
+    RerankOpt,
+    ScanFormatOpt,
+    apply_rerank,
+    db_option,
+    model_option,
+    topk_option,
+)
 from disco_cli.console import OutputFormat, handle_errors
 
 if TYPE_CHECKING:
@@ -152,10 +160,7 @@ def evaluate(
         ),
     ],
     db_path: Annotated[
-        Path,
-        typer.Option(
-            "--db", help="Map database of another session, with poses.", rich_help_panel=PANEL_INPUT
-        ),
+        Path, db_option("Map database of another session, with poses.", panel=PANEL_INPUT)
     ],
     query_poses: Annotated[
         Optional[Path],
@@ -169,18 +174,14 @@ def evaluate(
     scan_format: ScanFormatOpt = None,
     model_name: Annotated[
         Optional[str],
-        typer.Option(
-            "--model",
-            help="Model name or checkpoint; default: the one that built the database.",
-            rich_help_panel=PANEL_PROTOCOL,
+        model_option(
+            "Model name or checkpoint; default: the one that built the database.",
+            panel=PANEL_PROTOCOL,
         ),
     ] = None,
     radius: RadiusOpt = 3.0,
     topk: Annotated[
-        int,
-        typer.Option(
-            "--topk", min=1, help="Recall@1..N up to this N.", rich_help_panel=PANEL_PROTOCOL
-        ),
+        int, topk_option("Recall@1..N up to this N.", panel=PANEL_PROTOCOL)
     ] = 25,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
@@ -278,11 +279,7 @@ def evaluate_loops(
     scan_format: ScanFormatOpt = None,
     model_name: Annotated[
         str,
-        typer.Option(
-            "--model",
-            help="default, spectral, scancontext or a checkpoint path.",
-            rich_help_panel=PANEL_PROTOCOL,
-        ),
+        model_option("default, spectral, scancontext or a checkpoint path.", panel=PANEL_PROTOCOL),
     ] = "default",
     radius: RadiusOpt = 3.0,
     exclude_seconds: Annotated[

@@ -7,6 +7,7 @@ threshold are printed as loop candidates, with the yaw between them.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
@@ -20,8 +21,13 @@ from disco_cli.commands.options import (
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    ScanRootOpt,
     WorkersOpt,
     apply_rerank,
+    db_option,
+    model_option,
+    output_option,
+    topk_option,
 )
 from disco_cli.console import error, fail, handle_errors, progress, stderr, warn
 from disco_cli.errors import DiscoError
@@ -115,12 +121,9 @@ def loops(
             help="Report pairs with a distance at most this (the `distance` column); default: all.",
         ),
     ] = None,
-    topk: Annotated[
-        int, typer.Option("--topk", "-k", min=1, max=1000, help="Candidates per query scan.")
-    ] = 1,
+    topk: Annotated[int, topk_option("Candidates per query scan.", max=1000)] = 1,
     model: Annotated[
-        str,
-        typer.Option("--model", "-m", help="default, spectral, scancontext or a checkpoint path."),
+        str, model_option("default, spectral, scancontext or a checkpoint path.", panel=None)
     ] = "default",
     fmt: OutputFormatOpt = None,
     verify: Annotated[
@@ -145,13 +148,10 @@ def loops(
     ] = False,
     output: Annotated[
         Optional[Path],
-        typer.Option(
-            "--output",
-            "-o",
-            help="Also write the loops with their "
-            "relative poses: .g2o (EDGE_SE3:QUAT, accepted loops "
-            "only), .tum or .csv.",
-            rich_help_panel=PANEL_OUT,
+        output_option(
+            "Also write the loops with their relative poses: .g2o (EDGE_SE3:QUAT, accepted "
+            "loops only), .tum or .csv.",
+            panel=PANEL_OUT,
         ),
     ] = None,
     times: Annotated[
@@ -164,16 +164,14 @@ def loops(
     ] = None,
     db_path: Annotated[
         Optional[Path],
-        typer.Option(
-            "--db",
-            "-d",
-            help="Reuse the signatures of a database built "
-            "from this sequence (same model); scans not in it are "
-            "embedded.",
-            rich_help_panel=PANEL_RUN,
+        db_option(
+            "Reuse the signatures of a database built from this sequence (same model); "
+            "scans not in it are embedded.",
+            panel=PANEL_RUN,
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    scan_root: ScanRootOpt = None,
     batch: Annotated[
         int,
         typer.Option(
@@ -230,9 +228,13 @@ def loops(
         with Database.open(db_path) as db:
             db.check_model(ModelInfo.of(net))
             ids, stored = db.signatures()
-            where = {p: k for k, p in enumerate(db.paths())}
-            rows_in_db = [where.get(p, -1) for p in paths]
+            # Matched by where the stored scans are now, so that it works from any
+            # directory and for a map that moved (Database.locate).
+            where = {p: k for k, p in enumerate(db.locations(scan_root))}
+            rows_in_db = [where.get(os.path.abspath(p), -1) for p in paths]
             have = [i for i, r in enumerate(rows_in_db) if r >= 0]
+            if not have:
+                warn(f"{db_path}: holds none of these scans; embedding them all")
             if have:
                 sigs = np.zeros((n, stored.shape[1]), np.float32)
                 feats = np.zeros((n, *db.feature_shape), np.float32)
@@ -290,6 +292,7 @@ def loops(
     found_loops = []
     points = _Points(paths, fmt_name)
     pose_failures = 0
+    reported = 0
     for s in range(0, n, _BLOCK):
         block = np.arange(s, min(n, s + _BLOCK))
         block = block[limit[block] > 0]
@@ -360,6 +363,10 @@ def loops(
                 out.append(row)
         if out:
             writer.write(out)
+            reported += len(out)
+    if reported == 0:
+        writer.write([])  # the header (an empty table), so that "no loop" reads as an answer
+    stderr.print(f"{sequence}: {reported} loop candidates among {n} scans", soft_wrap=True)
     if output is not None:
         from disco_cli.loop_export import write_loops
 

@@ -8,21 +8,25 @@ status is 1 at the end.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
 from disco_cli.commands.options import (
-    PANEL_RUN,
     DeviceOpt,
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    ScanRootOpt,
     WorkersOpt,
     apply_rerank,
+    db_option,
+    model_option,
+    topk_option,
 )
-from disco_cli.console import error, fail, handle_errors
+from disco_cli.console import error, fail, handle_errors, warn
 
 if TYPE_CHECKING:
     from disco_cli.database import Database
@@ -56,16 +60,15 @@ def query(
     scans: Annotated[
         list[str],
         typer.Argument(
-            help="Scan files, or - to read scan paths from stdin (one per line).",
+            help="Scan files, folders of scans (as for build-db), or - to read scan paths "
+            "from stdin (one per line).",
             show_default=False,
         ),
     ],
-    db_path: Annotated[
-        Path, typer.Option("--db", "-d", help="The map database (from disco build-db).")
-    ] = Path("map.db"),
-    topk: Annotated[
-        int, typer.Option("--topk", "-k", min=1, max=10000, help="Matches per query.")
-    ] = 10,
+    db_path: Annotated[Path, db_option("The map database (from disco build-db).")] = Path(
+        "map.db"
+    ),
+    topk: Annotated[int, topk_option("Matches per query.")] = 10,
     fmt: OutputFormatOpt = None,
     exclude_radius: Annotated[
         Optional[float],
@@ -122,15 +125,12 @@ def query(
     ] = False,
     model: Annotated[
         Optional[str],
-        typer.Option(
-            "--model",
-            "-m",
-            help="The model; default: the one that "
-            "built the database (needed for checkpoint paths).",
-            rich_help_panel=PANEL_RUN,
+        model_option(
+            "The model; default: the one that built the database (needed for checkpoint paths)."
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    scan_root: ScanRootOpt = None,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
@@ -156,25 +156,29 @@ def query(
         db_xy = db.poses()[0][:, :2]
         q_rows = pose_rows(read_kitti_poses(query_poses, calib))
 
+    fmt_name = scan_format.value if scan_format is not None else None
+    # A folder is expanded like build-db's (DIR/velodyne/ or a folder of scans).
+    given = [s for a in scans for s in ([a] if a == "-" else _expand(a, fmt_name))]
+
     def paths():
-        for s in scans:
+        for s in given:
             if s == "-":
                 yield from stdin_paths()
             else:
                 yield s
 
-    n_args = None if "-" in scans else len(scans)
+    n_args = None if "-" in given else len(given)
     with_pose = pose or verify
     # A table is titled by its query, so its rows need not repeat the path.
     writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt, table_omit=["query"])
     failed = 0
-    match_points = PointCache()
+    match_points = PointCache(db, scan_root)
     loaded = load_stream(
         paths(),
         net.bev_config,
         workers=workers,
         prefetch=2 * workers,
-        scan_format=scan_format.value if scan_format is not None else None,
+        scan_format=fmt_name,
         keep_points=with_pose,
     )
     try:
@@ -219,7 +223,7 @@ def query(
                     {
                         "query": item.path,
                         "rank": m.rank,
-                        "match": m.path,
+                        "match": match_points.shown(m.path),
                         "match_id": m.match_id,
                         "distance": m.distance,
                         "yaw_deg": m.yaw_deg,
@@ -230,11 +234,16 @@ def query(
                     from disco_cli.relative_pose import estimate_relative_pose
 
                     kept = []
-                    for row in rows:
+                    for row, m in zip(rows, matches):
+                        points = match_points.get(m.path)
+                        if points is None:
+                            # The place is known, the pose is not: keep the row (not
+                            # with --verify, which keeps only accepted poses).
+                            if not verify:
+                                kept.append({**row, **dict.fromkeys(POSE_COLUMNS)})
+                            continue
                         try:
-                            rp = estimate_relative_pose(
-                                item.points, match_points.get(row["match"]), row["yaw_deg"]
-                            )
+                            rp = estimate_relative_pose(item.points, points, row["yaw_deg"])
                         except DiscoError as exc:
                             error(f"{row['match']}: no relative pose ({exc})")
                             failed += 1
@@ -254,22 +263,64 @@ def query(
         raise typer.Exit(1)
 
 
-class PointCache:
-    """The points of the last few match scans read (a query's matches often repeat)."""
+def _expand(arg: str, scan_format: str | None) -> list[str]:
+    """The scans of a folder, in order; a file (or anything else) as given."""
+    if not Path(arg).is_dir():
+        return [arg]
+    from disco_cli.readers import list_scans
 
-    def __init__(self, size: int = 32):
+    return [str(p) for p in list_scans(arg, scan_format)]
+
+
+class PointCache:
+    """The points of the last few match scans read (a query's matches often repeat).
+
+    A stored scan is looked for where `Database.locate` says; one that cannot be found
+    or read gives None and one warning (per scan), so that its row is still printed.
+    """
+
+    def __init__(self, db: Database, scan_root: Path | None = None, size: int = 32):
         from collections import OrderedDict
 
+        self.db = db
+        self.scan_root = scan_root
         self.size = size
         self._cache: OrderedDict = OrderedDict()
+        self._missing: set[str] = set()
+        self._shown: dict[str, str] = {}
+
+    def shown(self, stored: str) -> str:
+        """A stored scan's path as printed: where it is now (else as stored), relative to
+        the current directory when it lies under it, else absolute; so a printed path
+        opens from where the command ran, and a map built here prints as it was typed."""
+        if stored not in self._shown:
+            where = self.db.locate(stored, self.scan_root)
+            full = os.path.abspath(where if where is not None else stored)
+            rel = os.path.relpath(full)
+            self._shown[stored] = full if rel.startswith(os.pardir) else rel
+            if len(self._shown) > 4096:
+                self._shown.clear()
+        return self._shown[stored]
 
     def get(self, path: str) -> Any:
+        from disco_cli.errors import ScanReadError
         from disco_cli.readers import read_scan
 
         if path in self._cache:
             self._cache.move_to_end(path)
             return self._cache[path]
-        points = read_scan(path)
+        if path in self._missing:
+            return None
+        where = self.db.locate(path, self.scan_root)
+        try:
+            if where is None:
+                raise ScanReadError(path, "not found (nor beside the database)")
+            points = read_scan(where)
+        except ScanReadError as exc:
+            self._missing.add(path)
+            hint = "" if self.scan_root else "; --scan-root DIR says where the map's scans are"
+            warn(f"{exc}: no relative pose for this match{hint}")
+            return None
         self._cache[path] = points
         if len(self._cache) > self.size:
             self._cache.popitem(last=False)
