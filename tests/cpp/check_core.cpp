@@ -18,6 +18,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <string>
@@ -287,19 +288,37 @@ void check_raycast() {
                 static_cast<long long>(n), reported(h));
 }
 
-int bench() {
-    // 30k random points within +-45 m, float32 N x 4 (a rough stand-in for a scan:
-    // benchmarks/bench_voxelizer.py times real ones).
-    std::vector<double> xyz = random_scan(3, 30000);
-    std::vector<float> rows(4 * 30000);
-    for (std::size_t i = 0; i < 30000; ++i) {
-        for (int k = 0; k < 3; ++k) rows[4 * i + k] = static_cast<float>(xyz[3 * i + k] * 0.5);
+// Times each kernel on 30k points: random ones within +-45 m, or the first 30k
+// of a KITTI .bin file (float32 x, y, z, intensity) given after --bench.
+int bench(const char* path, int level_only) {
+    std::vector<float> rows;
+    if (path) {
+        std::FILE* f = std::fopen(path, "rb");
+        if (!f) {
+            std::perror(path);
+            return 1;
+        }
+        rows.resize(4 * 200000);
+        rows.resize(4 * (std::fread(rows.data(), 16, 200000, f)));
+        std::fclose(f);
+        // Every 4th point: a sparser scan in the same order.
+        std::vector<float> picked;
+        for (std::size_t i = 0; i < rows.size() / 4 && picked.size() < 4 * 30000; i += 4)
+            picked.insert(picked.end(), rows.begin() + 4 * i, rows.begin() + 4 * i + 4);
+        rows = picked;
+    } else {
+        const std::vector<double> xyz = random_scan(3, 30000);
+        rows.assign(4 * 30000, 0.0f);
+        for (std::size_t i = 0; i < 30000; ++i) {
+            for (int k = 0; k < 3; ++k) rows[4 * i + k] = static_cast<float>(xyz[3 * i + k] * 0.5);
+        }
     }
     const disco::BEVConfig c;
     for (int level = disco::bev_kernel_level(); level >= 0; --level) {
+        if (level_only >= 0 && level != level_only) continue;
         disco::set_bev_kernel_level(level);
         std::vector<double> times;
-        for (int rep = 0; rep < 300; ++rep) {
+        for (int rep = 0; rep < 1000; ++rep) {
             const auto t0 = std::chrono::steady_clock::now();
             run_bev(rows, 4, c);
             times.push_back(
@@ -307,8 +326,9 @@ int bench() {
                     .count());
         }
         std::sort(times.begin(), times.end());
-        std::printf("%-8s %.4f ms (median of 300, 30k points)\n", disco::bev_kernel_name(level),
-                    times[times.size() / 2]);
+        std::printf("%-8s %zu points: median %.4f ms, min %.4f ms (1000 calls)\n",
+                    disco::bev_kernel_name(level), rows.size() / 4, times[times.size() / 2],
+                    times[0]);
     }
     return 0;
 }
@@ -316,7 +336,8 @@ int bench() {
 }  // namespace
 
 int main(int argc, char** argv) {
-    if (argc > 1 && std::strcmp(argv[1], "--bench") == 0) return bench();
+    if (argc > 1 && std::strcmp(argv[1], "--bench") == 0)
+        return bench(argc > 2 ? argv[2] : nullptr, argc > 3 ? std::atoi(argv[3]) : -1);
     std::printf("# kernels here:");
     for (int level = disco::bev_kernel_level(); level >= 0; --level)
         std::printf(" %s", disco::bev_kernel_name(level));

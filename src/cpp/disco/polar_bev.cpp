@@ -137,34 +137,27 @@ inline float fast_index(float a, float n, float margin, bool& ok) {
 // Fast path over one chunk of deinterleaved coordinates: a cell index, kDrop or
 // kExact per point. The plain kernel (level 0) and the tail of every SIMD kernel:
 // portable C++ that GCC and Clang vectorize for the baseline of any target (SSE2,
-// NEON), with the same polynomial and margins as the intrinsics kernels. `Small`:
-// the grid has < 2^24 cells, so the cell index can be formed in float (cheaper than
-// 32-bit integer products, which SSE2 lacks).
+// NEON), with the same polynomial and margins as the intrinsics kernels.
+//
+// Two passes over the chunk, each a short chain of dependent operations: in one
+// loop, the chain from a point's coordinates to its code is long enough that the
+// CPU's scheduler fills with waiting work and its units idle. The first pass
+// overwrites xs, ys, zs with the coordinates in index units (ring, sector, height).
+// `Small`: the grid has < 2^24 cells, so the cell index can be formed in float
+// (cheaper than 32-bit integer products, which SSE2 lacks).
 template <bool Small>
-void fast_codes_plain(const float* __restrict xs, const float* __restrict ys,
-                      const float* __restrict zs, int n, const Binning& bin,
-                      int32_t* __restrict codes) {
+void fast_codes_plain(float* __restrict xs, float* __restrict ys, float* __restrict zs, int n,
+                      const Binning& bin, int32_t* __restrict codes) {
     const float half_pi = static_cast<float>(kPi / 2.0);
     const float pi = static_cast<float>(kPi);
     const float two_pi = static_cast<float>(kTwoPi);
-    // Locals, so that the loop holds them in registers (codes might alias `bin`).
+    // Locals, so that the loops hold them in registers (codes might alias `bin`).
     const float ring_scale = bin.ring_scale, sector_scale = bin.sector_scale;
     const float height_scale = bin.height_scale, z_min = bin.z_min_f;
-    const float rings_f = bin.rings_f, heights_f = bin.heights_f;
-    const float sectors_f = static_cast<float>(bin.sectors);
-    const float ring_margin = bin.ring_margin, sector_margin = bin.sector_margin;
-    const float height_margin = bin.height_margin;
-    const float ring_lo = bin.ring_min - ring_margin, ring_hi = bin.ring_min + ring_margin;
-    const float ring_out = rings_f + ring_margin, height_out = heights_f + height_margin;
-    const auto rings = static_cast<uint32_t>(bin.rings);
-    const auto sectors = static_cast<uint32_t>(bin.sectors);
     for (int i = 0; i < n; ++i) {
         const float x = xs[i];
         const float y = ys[i];
         const float z = zs[i];
-        const float a_ring = std::sqrt(x * x + y * y) * ring_scale;
-        const float a_height = (z - z_min) * height_scale;
-
         // atan2 by octant: t = min/max in [0, 1], atan(t) by polynomial (Estrin, as the
         // SIMD kernels), then unfold.
         const float ax = std::fabs(x);
@@ -186,8 +179,23 @@ void fast_codes_plain(const float* __restrict xs, const float* __restrict ys,
         const float theta2 = (left ? pi : 0.0f) + (left ? -theta1 : theta1);
         const bool below = y < 0.0f;
         const float theta = (below ? two_pi : 0.0f) + (below ? -theta2 : theta2);
-        const float a_sector = theta * sector_scale;
+        xs[i] = std::sqrt(x * x + y * y) * ring_scale;
+        ys[i] = theta * sector_scale;
+        zs[i] = (z - z_min) * height_scale;
+    }
 
+    const float rings_f = bin.rings_f, heights_f = bin.heights_f;
+    const float sectors_f = static_cast<float>(bin.sectors);
+    const float ring_margin = bin.ring_margin, sector_margin = bin.sector_margin;
+    const float height_margin = bin.height_margin;
+    const float ring_lo = bin.ring_min - ring_margin, ring_hi = bin.ring_min + ring_margin;
+    const float ring_out = rings_f + ring_margin, height_out = heights_f + height_margin;
+    const auto rings = static_cast<uint32_t>(bin.rings);
+    const auto sectors = static_cast<uint32_t>(bin.sectors);
+    for (int i = 0; i < n; ++i) {
+        const float a_ring = xs[i];
+        const float a_sector = ys[i];
+        const float a_height = zs[i];
         // A drop wins over ok, so no axis needs a test against its top edge: a value
         // at n or within the margin above it is not ok, and beyond that it is dropped
         // (theta <= 2 pi up to float error, so a_sector is never beyond it).
@@ -217,10 +225,16 @@ void fast_codes_plain(const float* __restrict xs, const float* __restrict ys,
     }
 }
 
-// The tails of the SIMD kernels (< one vector of points; always a small grid).
+// The tails of the SIMD kernels: fewer than 16 points, always on a small grid.
 void fast_codes(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
                 int32_t* codes) {
-    fast_codes_plain<true>(xs, ys, zs, n, b, codes);
+    float x[16], y[16], z[16];
+    for (int i = 0; i < n; ++i) {
+        x[i] = xs[i];
+        y[i] = ys[i];
+        z[i] = zs[i];
+    }
+    fast_codes_plain<true>(x, y, z, n, b, codes);
 }
 
 #if DISCO_BEV_SSE2
