@@ -53,10 +53,14 @@ def bev_kernel() -> str:
 
 def machine_line() -> str:
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg()) if hasattr(os, "getloadavg") else "?"
+    # NumPy's own SIMD loops (arctan2, sqrt) follow the CPU too; this variable turns
+    # some off, e.g. "X86_V4 AVX512_ICL" to time NumPy as a CPU without AVX-512 runs it.
+    disabled = os.environ.get("NPY_DISABLE_CPU_FEATURES")
+    numpy_note = f" (NPY_DISABLE_CPU_FEATURES={disabled})" if disabled else ""
     return (
         f"machine: {cpu_model()} ({platform.machine()}), {os.cpu_count()} cores, "
         f"load average {load}; BEV kernel: {bev_kernel()}; Python "
-        f"{sys.version.split()[0]}, NumPy {np.__version__}"
+        f"{sys.version.split()[0]}, NumPy {np.__version__}{numpy_note}"
     )
 
 
