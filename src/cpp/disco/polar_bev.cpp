@@ -121,10 +121,11 @@ int32_t exact_cell(double x, double y, double z, const Binning& b) {
 }
 
 // One index axis of the fast path: `a` is the value in index units, n the cell count.
-// Returns trunc(a) (as float) of `a` clamped into [-1, n], and sets ok where the clamp
-// did nothing, a > 0 and a lies at least `margin` from every integer, so that trunc(a)
-// is the exact index. A NaN `a` becomes -1 and is not ok. Written with selects only (no
-// std::min, no branches) so that compilers vectorize the loop that inlines it.
+// Returns i = trunc(a clamped into [-1, n]) as float (the clamp keeps the conversion
+// defined), and sets ok where frac = a - i lies in (margin, 1 - margin): then, for
+// a < n, i is the exact index. A negative or NaN `a` is never ok; an `a` above n may
+// be, and the caller's drop test (which wins over ok) covers it. Selects only (no
+// std::min, no branches), so that compilers vectorize the loop that inlines it.
 inline float fast_index(float a, float n, float margin, bool& ok) {
     float c = a > -1.0f ? a : -1.0f;
     c = c < n ? c : n;
