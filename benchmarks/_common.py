@@ -91,6 +91,26 @@ def median_wall_cpu_ms(
     return statistics.median(wall) / 1e6, statistics.median(cpu) / 1e6
 
 
+def interleaved_medians_ms(
+    fns: dict[str, Callable[[], object]], rounds: int, block: int = 10, warmup: int = 2
+) -> dict[str, float]:
+    """Median wall-clock milliseconds of each fn over rounds x block calls. Each round
+    calls every fn `block` times in a row (warm caches after the first), one fn after
+    the other: on a shared machine they then all see the same spells of load, so
+    their ratios hold even when the absolute times drift."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    times: dict[str, list[int]] = {name: [] for name in fns}
+    for _ in range(rounds):
+        for name, fn in fns.items():
+            for _ in range(block):
+                t0 = time.perf_counter_ns()
+                fn()
+                times[name].append(time.perf_counter_ns() - t0)
+    return {name: statistics.median(t) / 1e6 for name, t in times.items()}
+
+
 def median_of_ms(seconds: list[float]) -> float:
     """Median of durations measured in seconds, in milliseconds."""
     return float(np.median(seconds)) * 1e3

@@ -13,7 +13,7 @@ import argparse
 import time
 
 import numpy as np
-from _common import REALDATA, median_ms, print_header
+from _common import REALDATA, interleaved_medians_ms, print_header
 
 from disco_cli import _core
 from disco_cli.bev import BEVConfig, polar_bev, polar_bev_batch
@@ -94,7 +94,9 @@ def load_scans(rng: np.random.Generator) -> tuple[list[np.ndarray], str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=300, help="timed calls per C++ measurement")
+    parser.add_argument(
+        "--repeats", type=int, default=300, help="timed calls on the 30k scan (a third on the full)"
+    )
     parser.add_argument("--batch", type=int, default=32, help="scans per batch call")
     args = parser.parse_args()
     print_header("bench_voxelizer")
@@ -112,34 +114,51 @@ def main() -> None:
         assert differ <= 5, f"{baseline.__name__} and C++ differ in {differ} cells"
 
     print(f"data: {source}")
+    # Rounds of 10 calls of each contender in turn (NumPy included), so all see the
+    # same load; NumPy float64 is slow, so the full scan gets a third of the rounds.
+    rounds = {"30k": max(3, args.repeats // 10), "full": max(3, args.repeats // 30)}
     print(
-        f"grid {config.shape}, mode {config.mode}; medians of {args.repeats} calls (C++), "
-        f"{max(10, args.repeats // 10)} (NumPy)"
+        f"grid {config.shape}, mode {config.mode}; medians of {10 * rounds['30k']} calls "
+        f"(30k) and {10 * rounds['full']} (full scan) of each, in rounds of 10 calls of "
+        "each in turn"
     )
     best = _core._bev_kernel_level()
     kernel_name = _core._bev_kernel_name
-    for name, pts in (("30k", small), (f"{len(full) // 1000}k HDL-64", full)):
-        numpy_ms = median_ms(
-            lambda p=pts: numpy_bev(p, config), max(10, args.repeats // 10), warmup=3
-        )
-        plain_ms = median_ms(
-            lambda p=pts: numpy_bev_float64(p, config), max(10, args.repeats // 10), warmup=3
-        )
+
+    def at_level(level: int, pts: np.ndarray, cfg: BEVConfig = config):
+        def run():
+            _core._set_bev_kernel_level(level)
+            return polar_bev(pts, cfg)
+
+        return run
+
+    for name, pts, n_rounds in (
+        ("30k", small, rounds["30k"]),
+        (f"{len(full) // 1000}k HDL-64", full, rounds["full"]),
+    ):
+        contenders = {
+            "numpy float64": lambda p=pts: numpy_bev_float64(p, config),
+            "numpy tuned": lambda p=pts: numpy_bev(p, config),
+        }
+        # Every kernel this CPU has, forced in turn, then the other modes on the best.
+        for level in range(best, -1, -1):
+            contenders[kernel_name(level)] = at_level(level, pts)
+        for mode in ("density", "max_height"):
+            contenders[mode] = at_level(best, pts, BEVConfig(mode=mode))
+        ms = interleaved_medians_ms(contenders, n_rounds, warmup=3)
+        _core._set_bev_kernel_level(best)
+        numpy_ms, plain_ms = ms["numpy tuned"], ms["numpy float64"]
         print(f"\n{name} points ({len(pts)}), float32 N x 4:")
         print(f"  NumPy float64 (plain)   {plain_ms:8.3f} ms")
         print(f"  NumPy float32 (tuned)   {numpy_ms:8.3f} ms")
-        for level in range(best, -1, -1):  # every kernel this CPU has, forced in turn
-            _core._set_bev_kernel_level(level)
-            ms = median_ms(lambda p=pts: polar_bev(p, config), args.repeats, warmup=3)
+        for level in range(best, -1, -1):
+            t = ms[kernel_name(level)]
             print(
-                f"  C++ {kernel_name(level):<20s}{ms:8.3f} ms   {numpy_ms / ms:5.1f}x tuned NumPy, "
-                f"{plain_ms / ms:5.1f}x plain"
+                f"  C++ {kernel_name(level):<20s}{t:8.3f} ms   {numpy_ms / t:5.1f}x tuned NumPy, "
+                f"{plain_ms / t:5.1f}x plain"
             )
-        _core._set_bev_kernel_level(best)
         for mode in ("density", "max_height"):
-            cfg = BEVConfig(mode=mode)
-            ms = median_ms(lambda p=pts, c=cfg: polar_bev(p, c), args.repeats, warmup=3)
-            print(f"  C++ {kernel_name(best)}, {mode:<10s}{ms:8.3f} ms")
+            print(f"  C++ {kernel_name(best)}, {mode:<10s}{ms[mode]:8.3f} ms")
 
     batch = [scans[i % len(scans)] for i in range(args.batch)]
     reps = max(5, args.repeats // 3)
