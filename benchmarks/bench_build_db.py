@@ -22,7 +22,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from _common import model_arg, print_header, synthetic_scan
 
 
