@@ -20,7 +20,17 @@ import numpy as np
 
 from disco_cli.errors import DiscoError, ScanReadError
 
-__all__ = ["Loaded", "Embedded", "load_stream", "embed_stream", "load_bev"]
+__all__ = [
+    "Loaded",
+    "Embedded",
+    "load_stream",
+    "embed_stream",
+    "load_bev",
+    "scan_bev",
+    "array_points",
+    "embed_one",
+    "embed_paths",
+]
 
 _END = object()
 
@@ -55,19 +65,72 @@ def load_bev(path: str, bev_config: Any, scan_format: str | None = None) -> np.n
 def _load_points_bev(
     path: str, bev_config: Any, scan_format: str | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    from disco_cli.bev import polar_bev
     from disco_cli.readers import read_scan
 
     points = read_scan(path, scan_format)
+    return points, scan_bev(points, bev_config, path)
+
+
+def scan_bev(points: np.ndarray, bev_config: Any, name: str) -> np.ndarray:
+    """The polar BEV of a scan's points; `ScanReadError` naming `name` when it holds no
+    point inside the BEV's range."""
+    from disco_cli.bev import polar_bev
+
     try:
         bev = polar_bev(points, bev_config)
     except DiscoError:
         raise
     except (ValueError, TypeError) as exc:
-        raise ScanReadError(path, f"cannot voxelize ({exc})") from None
+        raise ScanReadError(name, f"cannot voxelize ({exc})") from None
     if not np.any(bev):
-        raise ScanReadError(path, f"no points in range ({len(points)} points, none in the BEV)")
-    return points, bev
+        raise ScanReadError(name, f"no points in range ({len(points)} points, none in the BEV)")
+    return bev
+
+
+def array_points(points: Any, name: str) -> np.ndarray:
+    """Points handed over as an array (the library API), checked as an .npy scan file
+    would be: float32 `N x 4`, rows without finite x, y, z dropped; `ScanReadError`
+    naming `name` with the same reason an .npy file of that array gets."""
+    from disco_cli.readers.npy import from_array
+
+    if not isinstance(points, np.ndarray):
+        try:
+            points = np.asarray(points)
+        except (TypeError, ValueError) as exc:
+            raise ScanReadError(name, f"not a numeric array ({exc})") from None
+    return from_array(points, name)
+
+
+def embed_one(points: np.ndarray, model: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """`(signature [D], features [...])` of one scan's points."""
+    bev = scan_bev(points, model.bev_config, name)
+    out = _embed([Loaded(0, name, bev=bev)], model)
+    return out.signatures[0], out.features[0]
+
+
+def embed_paths(
+    paths: list[str],
+    model: Any,
+    scan_format: str | None = None,
+    batch: int = 32,
+    workers: int = 2,
+    on_progress: Any = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`(signatures [N, D], features [N, ...])` of scan files, in order; the first
+    unreadable one raises its `ScanReadError`. `on_progress(k)` after each batch of k."""
+    sigs, feats = [], []
+    loaded = load_stream(map(str, paths), model.bev_config, workers, scan_format=scan_format)
+    try:
+        for out in embed_stream(loaded, model, batch):
+            if out.errors:
+                raise out.errors[0].error  # type: ignore[misc]
+            sigs.append(out.signatures)
+            feats.append(out.features)
+            if on_progress is not None:
+                on_progress(len(out.items))
+    finally:
+        loaded.close()  # type: ignore[attr-defined]
+    return np.concatenate(sigs), np.concatenate(feats)
 
 
 def _load_one(

@@ -58,8 +58,6 @@ def apply_rerank(model: object, rerank: int | None) -> None:
     """Set the model's re-ranking depth when --rerank was given."""
     if rerank is None:
         return
-    if rerank > 0 and not hasattr(model, "rerank"):
-        from disco_cli.errors import DiscoError
+    from disco_cli.search import check_rerank
 
-        raise DiscoError(f"model {getattr(model, 'name', '?')} cannot re-rank; use --rerank 0")
-    model.rerank_candidates = rerank  # type: ignore[attr-defined]
+    model.rerank_candidates = check_rerank(model, rerank)  # type: ignore[attr-defined]
