@@ -25,6 +25,7 @@ _LAZY = {
     "read_scan": "disco_cli.readers",
     "list_scans": "disco_cli.readers",
     "load_model": "disco_cli.model",
+    "signature": "disco_cli.pipeline",
     "Map": "disco_cli.map",
     "Match": "disco_cli.localize",
     "LoopDetector": "disco_cli.loop_detector",

@@ -26,7 +26,7 @@ import numpy as np
 
 from disco_cli.errors import DiscoError
 
-__all__ = ["Match", "PointCache", "euler_deg", "refine_matches"]
+__all__ = ["Match", "PointCache", "euler_deg", "pose_columns", "refine_matches"]
 
 
 @dataclass(frozen=True, eq=False)  # eq would compare the arrays ambiguously
@@ -46,6 +46,12 @@ class Match:
     reason: str = ""  # why rejected, or why no pose could be estimated
     roll_deg: float | None = None
     pitch_deg: float | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The match as the columns of `disco query`, plus the pose columns and `T` (as
+        nested lists) when it has a pose."""
+        row = {"rank": self.rank, "match": self.name, "match_id": self.match_id}
+        return {**row, "distance": self.distance, "yaw_deg": self.yaw_deg, **pose_columns(self)}
 
     @property
     def translation(self) -> np.ndarray | None:
@@ -149,3 +155,25 @@ def refine_matches(
 def as_match(m: Any) -> Match:
     """A search result as a `Match` without a pose."""
     return Match(m.rank, m.match_id, m.path, m.distance, m.yaw_deg)
+
+
+def pose_columns(x: Any) -> dict[str, Any]:
+    """The output columns of a `Match` or `Loop` with a pose (empty without one):
+    refined yaw, roll, pitch, translation, scores, and the full 4 x 4 `T` (row-major,
+    nested lists; JSON lines carry it, tables and TSV leave it out)."""
+    if x.T is None:
+        return {}
+    T = np.asarray(x.T)
+    return {
+        "yaw_deg": x.yaw_deg,
+        "roll_deg": x.roll_deg,
+        "pitch_deg": x.pitch_deg,
+        "dx": float(T[0, 3]),
+        "dy": float(T[1, 3]),
+        "dz": float(T[2, 3]),
+        "fitness": x.fitness,
+        "rmse": x.rmse,
+        "accepted": x.accepted,
+        "reason": x.reason,
+        "T": T.tolist(),
+    }

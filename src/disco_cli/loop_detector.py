@@ -56,6 +56,15 @@ class Loop:
     query_time: float = math.nan  # seconds, NaN when unknown
     match_time: float = math.nan
 
+    def as_dict(self) -> dict[str, Any]:
+        """The loop as the columns of `disco loops`, plus the pose columns and `T` (as
+        nested lists) when it has a pose."""
+        from disco_cli.localize import pose_columns
+
+        row = {"query_index": self.query_index, "query": self.query}
+        row.update(match_index=self.match_index, match=self.match, distance=self.distance)
+        return {**row, "yaw_deg": self.yaw_deg, **pose_columns(self)}
+
 
 def _check_window(value: Any, name: str, minimum: float) -> Any:
     if value is None:

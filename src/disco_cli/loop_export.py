@@ -29,7 +29,7 @@ from disco_cli.errors import DiscoError
 if TYPE_CHECKING:
     from disco_cli.loop_detector import Loop
 
-__all__ = ["FORMATS", "quaternion", "write_loops"]
+__all__ = ["FORMATS", "check_loop_file", "quaternion", "write_loops"]
 
 FORMATS = (".g2o", ".tum", ".csv")
 
@@ -60,6 +60,12 @@ def quaternion(R: np.ndarray) -> np.ndarray:
 
 def _fmt(v: float) -> str:
     return f"{float(v) + 0.0:.9g}"
+
+
+def check_loop_file(path: str | Path) -> None:
+    """`DiscoError` unless `path` names a loop file type (checked before the work)."""
+    if Path(path).suffix.lower() not in FORMATS:
+        raise DiscoError(f"{path}: unknown loop file type; use {', '.join(FORMATS)}")
 
 
 def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:

@@ -106,6 +106,7 @@ class Map:
         self._overwrite = overwrite
         self._closed = False
         self._snapshot: tuple[np.ndarray, Any] | None = None  # ids, SignatureIndex
+        self._xy: np.ndarray | None = None  # stored x, y of the snapshot's scans
         self._points = PointCache(self._read_match, size=32)
 
     # -- opening and closing --------------------------------------------------
@@ -191,7 +192,9 @@ class Map:
         if xy.shape == (4, 4):
             xy = xy[:2, 3]
         ids, _ = self._index()
-        stored = self._db.poses()[0][: len(ids), :2]
+        if self._xy is None or len(self._xy) != len(ids):
+            self._xy = self._db.poses()[0][: len(ids), :2]
+        stored = self._xy
         d = np.hypot(stored[:, 0] - xy[0], stored[:, 1] - xy[1])
         return ids[d <= radius]  # unknown stored poses give NaN: never near
 

@@ -14,6 +14,7 @@ import threading
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,6 +31,13 @@ __all__ = [
     "array_points",
     "embed_one",
     "embed_paths",
+    "signature",
+    "ScanList",
+    "scan_paths",
+    "file_beside",
+    "sequence_times",
+    "pose_lookup",
+    "collect_scans",
 ]
 
 _END = object()
@@ -273,6 +281,63 @@ def frame_rows(paths: list[str], n_rows: int, source: str) -> np.ndarray:
     return np.asarray(rows, dtype=np.int64)
 
 
+def scan_paths(inputs: list[Any], scan_format: str | None = None) -> list[Path]:
+    """The scan files of every input (files or folders), in order; `ScanReadError` when
+    there are none."""
+    from disco_cli.readers import list_scans
+
+    paths: list[Path] = []
+    for item in inputs:
+        paths += list_scans(item, format=scan_format)
+    if not paths:
+        raise ScanReadError(", ".join(map(str, inputs)), "no scans found")
+    return paths
+
+
+def file_beside(inputs: list[Path], given: Path | None, name: str) -> Path | None:
+    """`given`, else NAME beside the scans when a single folder was given (KITTI layout)."""
+    if given is not None:
+        return given
+    if len(inputs) == 1 and inputs[0].is_dir() and (inputs[0] / name).is_file():
+        return inputs[0] / name
+    return None
+
+
+def sequence_times(folder: Any, paths: list[str], times_file: Any = None) -> np.ndarray | None:
+    """The time (s) of each scan of a sequence: from `times_file`, else `times.txt` in
+    `folder`, by row or frame number (`frame_rows`); None when there is no such file."""
+    from pathlib import Path
+
+    from disco_cli.poses import read_times
+
+    folder = Path(folder)
+    times_file = times_file or (folder / "times.txt" if folder.is_dir() else None)
+    if times_file is None or not Path(times_file).is_file():
+        return None
+    t = read_times(times_file)
+    return t[frame_rows(paths, len(t), str(times_file))]
+
+
+def pose_lookup(poses_file: Any, calib: Any, n_scans: int | None) -> Any:
+    """`pose_of(index, path) -> [4]` x, y, z, yaw of the index-th scan given: row i of a
+    KITTI pose file when it has one row per scan (`n_scans`, None when unknown, as for
+    stdin), else the row of the frame number in the scan's name."""
+    from disco_cli.errors import PoseFileError
+    from disco_cli.poses import read_kitti_poses
+
+    rows = pose_rows(read_kitti_poses(poses_file, calib))
+
+    def pose_of(index: int, path: str) -> np.ndarray:
+        if n_scans is not None and n_scans == len(rows):
+            return rows[index]
+        row = int(frame_rows([path], len(rows), str(poses_file))[0])
+        if row >= len(rows):
+            raise PoseFileError(f"{poses_file}: no pose for query {path}")
+        return rows[row]
+
+    return pose_of
+
+
 def pose_rows(T: np.ndarray) -> np.ndarray:
     """`[N, 4, 4]` poses as `[N, 4]` rows of x, y, z, yaw (radians)."""
     from disco_cli.poses import xy_yaw
@@ -290,3 +355,74 @@ def check_device(device: str) -> None:
 
         if not torch.cuda.is_available():
             raise DiscoError("--device cuda: torch sees no CUDA device here; use --device cpu")
+
+
+def signature(model: Any, points: Any, name: str = "points") -> tuple[np.ndarray, np.ndarray]:
+    """`(signature [D], features [...])` of one scan (an N x 3 or N x 4 array) under a
+    model from `load_model`, for those who keep signatures in their own storage:
+    compare signatures by Euclidean distance, and `model.yaw(features_q, features_m[None])`
+    gives the yaw between two scans."""
+    return embed_one(array_points(points, name), model, name)
+
+
+@dataclass
+class ScanList:
+    """The scans of a build in input order, with pose rows and times (NaN = unknown)."""
+
+    paths: list[str]
+    poses: np.ndarray  # [N, 4] x, y, z, yaw
+    times: np.ndarray  # [N]
+
+
+def collect_scans(
+    inputs: list[str],
+    poses_file: Path | None,
+    times_file: Path | None,
+    calib: Path | None,
+    scan_format: str | None = None,
+) -> ScanList:
+    """Expand folders, files and `-` (stdin) into one list of scans.
+
+    A folder with `poses.txt` / `times.txt` (and `calib.txt`) beside its scans brings
+    them along unless `--poses` / `--times` are given; those cover all scans in order.
+    """
+    import numpy as np
+
+    from disco_cli.poses import read_kitti_poses, read_times
+    from disco_cli.readers import list_scans
+
+    paths: list[str] = []
+    poses: list[np.ndarray] = []
+    times: list[np.ndarray] = []
+    seen: set[str] = set()
+    for item in inputs:
+        if item == "-":
+            group = list(stdin_paths())
+        else:
+            group = [str(p) for p in list_scans(item, scan_format)]
+        group = [p for p in dict.fromkeys(group) if p not in seen]
+        seen.update(group)
+        n = len(group)
+        p_rows, t_rows = np.full((n, 4), np.nan), np.full(n, np.nan)
+        folder = Path(item)
+        if item != "-" and folder.is_dir() and group:
+            if poses_file is None and (folder / "poses.txt").is_file():
+                beside = folder / "calib.txt"
+                auto_calib = calib or (beside if beside.is_file() else None)
+                T = read_kitti_poses(folder / "poses.txt", auto_calib)
+                p_rows = pose_rows(T)[frame_rows(group, len(T), str(folder / "poses.txt"))]
+            if times_file is None and (folder / "times.txt").is_file():
+                t = read_times(folder / "times.txt")
+                t_rows = t[frame_rows(group, len(t), str(folder / "times.txt"))]
+        paths += group
+        poses.append(p_rows)
+        times.append(t_rows)
+    all_poses = np.concatenate(poses) if poses else np.empty((0, 4))
+    all_times = np.concatenate(times) if times else np.empty(0)
+    if poses_file is not None:
+        T = read_kitti_poses(poses_file, calib)
+        all_poses = pose_rows(T)[frame_rows(paths, len(T), str(poses_file))]
+    if times_file is not None:
+        t = read_times(times_file)
+        all_times = t[frame_rows(paths, len(t), str(times_file))]
+    return ScanList(paths, all_poses, all_times)

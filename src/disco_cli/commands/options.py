@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
@@ -61,3 +62,36 @@ def apply_rerank(model: object, rerank: int | None) -> None:
     from disco_cli.search import check_rerank
 
     model.rerank_candidates = check_rerank(model, rerank)  # type: ignore[attr-defined]
+
+
+def opt(*flags: str, help: str, panel: str | None = None, **kw: object) -> typer.models.OptionInfo:
+    """A typer.Option declared in one line: flags, help text, help panel."""
+    return typer.Option(*flags, help=help, rich_help_panel=panel, **kw)  # type: ignore[arg-type]
+
+
+BatchOpt = Annotated[
+    int, opt("--batch", help="Scans per network batch.", panel=PANEL_RUN, min=1, max=4096)
+]
+CalibOpt = Annotated[
+    Optional[Path], opt("--calib", help="KITTI calib.txt: camera poses -> LiDAR poses.")
+]
+ModelOpt = Annotated[
+    str,
+    opt("--model", "-m", help="default, spectral, scancontext or a checkpoint path.",
+        panel=PANEL_RUN),
+]  # fmt: skip
+TimesOpt = Annotated[
+    Optional[Path],
+    opt("--times", help="Timestamps (s), one per scan; default: times.txt beside the scans.",
+        panel=PANEL_RUN),
+]  # fmt: skip
+ExcludeFramesOpt = Annotated[
+    Optional[int],
+    opt("--exclude-frames", min=1,
+        help="Search only scans at least this many frames before the query."),
+]  # fmt: skip
+ExcludeSecondsOpt = Annotated[
+    Optional[float],
+    opt("--exclude-seconds", min=0.0,
+        help="Search only scans at least this many seconds before the query (needs times)."),
+]  # fmt: skip
