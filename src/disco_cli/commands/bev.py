@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from disco_cli.commands.options import ScanFormatOpt, model_option, output_option
 from disco_cli.console import fail, handle_errors, stderr, warn
-from disco_cli.readers import FormatName
 
 if TYPE_CHECKING:
     import numpy as np
@@ -128,18 +128,12 @@ def _write(output: Path, save: Any) -> None:
 def bev(
     scan: Annotated[Path, typer.Argument(help="The scan file (.bin, .npy, .pcd, .ply).")],
     output: Annotated[
-        Path,
-        typer.Option(
-            "--output", "-o", help="Where to write: .png for a picture, .npy for the raw array."
-        ),
+        Path, output_option("Where to write: .png for a picture, .npy for the raw array.")
     ],
-    format: Annotated[
-        FormatName | None,
-        typer.Option("--format", "-f", help="Scan format; default: from the extension and folder."),
-    ] = None,
+    scan_format: ScanFormatOpt = None,
     mode: Annotated[
         BEVMode | None,
-        typer.Option("--mode", "-m", help="What each cell holds; default: the BEV config's."),
+        typer.Option("--bev-mode", help="What each cell holds; default: the BEV config's."),
     ] = None,
     scale: Annotated[
         int | None,
@@ -157,10 +151,10 @@ def bev(
     ] = False,
     model: Annotated[
         str | None,
-        typer.Option(
-            "--model",
-            help="Use this model's BEV config (a name such as spectral, or a checkpoint), "
+        model_option(
+            "Use this model's BEV config (a name such as spectral, or a checkpoint), "
             "to see what it sees; default: the built-in BEV config.",
+            panel=None,
         ),
     ] = None,
 ) -> None:
@@ -178,8 +172,8 @@ def bev(
     from disco_cli.bev import BEVConfig, polar_bev
     from disco_cli.readers import guess_format, read_scan
 
-    points = read_scan(scan, format=format)
-    fmt = format.value if format else guess_format(scan)
+    points = read_scan(scan, format=scan_format)
+    fmt = scan_format.value if scan_format else guess_format(scan)
     if model is not None:
         from disco_cli.model import load_model
 

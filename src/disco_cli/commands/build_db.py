@@ -15,10 +15,11 @@ import typer
 from disco_cli.commands.options import (
     PANEL_RUN,
     DeviceOpt,
-    ModelOpt,
     ScanFormatOpt,
     WorkersOpt,
+    model_option,
     opt,
+    output_option,
 )
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
@@ -36,9 +37,11 @@ def build_db(
         ),
     ],
     output: Annotated[
-        Path, opt("--output", "-o", help="The database file to write (map.db).", panel=PANEL_IN)
+        Path, output_option("The database file to write (map.db).", panel=PANEL_IN)
     ] = Path("map.db"),
-    model: ModelOpt = "default",
+    model: Annotated[
+        str, model_option("default, spectral, scancontext or a checkpoint path.", panel=PANEL_IN)
+    ] = "default",
     poses: Annotated[
         Optional[Path],
         opt("--poses", panel=PANEL_IN, help="KITTI poses (3 x 4 per line) of all scans, in "

@@ -22,7 +22,14 @@ from disco_cli.commands.evaluate import (
     _bar,
     _report_and_print,
 )
-from disco_cli.commands.options import DeviceOpt, RerankOpt, ScanFormatOpt, apply_rerank, opt
+from disco_cli.commands.options import (
+    DeviceOpt,
+    RerankOpt,
+    ScanFormatOpt,
+    apply_rerank,
+    model_option,
+    opt,
+)
 from disco_cli.console import handle_errors
 
 
@@ -48,8 +55,7 @@ def evaluate_loops(
     scan_format: ScanFormatOpt = None,
     model_name: Annotated[
         str,
-        opt("--model", panel=PANEL_PROTOCOL,
-            help="default, spectral, scancontext or a checkpoint path."),
+        model_option("default, spectral, scancontext or a checkpoint path.", panel=PANEL_PROTOCOL),
     ] = "default",  # fmt: skip
     radius: RadiusOpt = 3.0,
     exclude_seconds: Annotated[

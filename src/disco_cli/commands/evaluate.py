@@ -15,7 +15,16 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from disco_cli.commands.options import DeviceOpt, RerankOpt, ScanFormatOpt, apply_rerank, opt
+from disco_cli.commands.options import (
+    DeviceOpt,
+    RerankOpt,
+    ScanFormatOpt,
+    apply_rerank,
+    db_option,
+    model_option,
+    opt,
+    topk_option,
+)
 from disco_cli.console import OutputFormat, handle_errors
 
 PANEL_INPUT = "Input"
@@ -51,7 +60,8 @@ CalibOpt = Annotated[
     opt("--calib", help="KITTI calib.txt: camera poses -> LiDAR poses.", panel=PANEL_INPUT),
 ]
 RadiusOpt = Annotated[
-    float, opt("--radius", min=0.0, help="True match within this many metres.", panel=PANEL_PROTOCOL)
+    float,
+    opt("--radius", min=0.0, help="True match within this many metres.", panel=PANEL_PROTOCOL),
 ]
 ReportOpt = Annotated[
     Optional[Path],
@@ -74,7 +84,7 @@ def evaluate(
         ),
     ],
     db_path: Annotated[
-        Path, opt("--db", help="Map database of another session, with poses.", panel=PANEL_INPUT)
+        Path, db_option("Map database of another session, with poses.", panel=PANEL_INPUT)
     ],
     query_poses: Annotated[
         Optional[Path],
@@ -85,12 +95,12 @@ def evaluate(
     scan_format: ScanFormatOpt = None,
     model_name: Annotated[
         Optional[str],
-        opt("--model", panel=PANEL_PROTOCOL,
-            help="Model name or checkpoint; default: the one that built the database."),
+        model_option("Model name or checkpoint; default: the one that built the database.",
+                     panel=PANEL_PROTOCOL),
     ] = None,  # fmt: skip
     radius: RadiusOpt = 3.0,
     topk: Annotated[
-        int, opt("--topk", min=1, help="Recall@1..N up to this N.", panel=PANEL_PROTOCOL)
+        int, topk_option("Recall@1..N up to this N.", panel=PANEL_PROTOCOL)
     ] = 25,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,

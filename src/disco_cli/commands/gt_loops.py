@@ -8,11 +8,11 @@ distance (m) and the relative yaw (deg, the query's heading in the match's frame
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import typer
 
-from disco_cli.commands.options import OutputFormatOpt
+from disco_cli.commands.options import OutputFormatOpt, calib_file, calib_option
 from disco_cli.console import RowWriter, fail, handle_errors
 
 COLUMNS = ["query_seq", "query", "match_seq", "match", "distance_m", "yaw_deg"]
@@ -36,11 +36,12 @@ def gt_loops(
         ),
     ] = 50,
     calib: Annotated[
-        bool,
-        typer.Option(
-            "--calib/--no-calib", help="Use a calib.txt beside poses.txt (KITTI camera poses)."
+        Optional[Path],
+        calib_option(
+            "KITTI calib.txt for every sequence's camera poses; default: the calib.txt "
+            "beside each poses.txt; none: use the poses as they are."
         ),
-    ] = True,
+    ] = None,
     fmt: OutputFormatOpt = None,
 ) -> None:
     """List true revisit pairs (ground truth) within or between sequences."""
@@ -58,9 +59,8 @@ def gt_loops(
     for seq in seqs:
         if not (seq / "poses.txt").is_file():
             raise fail(f"{seq}: no poses.txt")
-        c = seq / "calib.txt"
-        use = c if calib and c.is_file() else None
-        poses.append(read_kitti_poses(seq / "poses.txt", calib=use))
+        poses_file = seq / "poses.txt"
+        poses.append(read_kitti_poses(poses_file, calib=calib_file(calib, poses_file)))
 
     writer = RowWriter(COLUMNS, fmt, digits=3)
     if len(seqs) == 1:

@@ -21,13 +21,16 @@ from disco_cli.commands.options import (
     DeviceOpt,
     ExcludeFramesOpt,
     ExcludeSecondsOpt,
-    ModelOpt,
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
     TimesOpt,
     WorkersOpt,
+    db_option,
+    model_option,
     opt,
+    output_option,
+    topk_option,
 )
 from disco_cli.console import error, fail, handle_errors, progress, stderr, warn
 
@@ -56,10 +59,10 @@ def loops(
         opt("--threshold", "-t", min=0.0, help="Report pairs with a distance at most this "
             "(the `distance` column); default: all."),
     ] = None,  # fmt: skip
-    topk: Annotated[
-        int, opt("--topk", "-k", min=1, max=1000, help="Candidates per query scan.")
-    ] = 1,
-    model: ModelOpt = "default",
+    topk: Annotated[int, topk_option("Candidates per query scan.", max=1000)] = 1,
+    model: Annotated[
+        str, model_option("default, spectral, scancontext or a checkpoint path.", panel=None)
+    ] = "default",
     fmt: OutputFormatOpt = None,
     verify: Annotated[
         bool,
@@ -75,14 +78,14 @@ def loops(
     ] = False,  # fmt: skip
     output: Annotated[
         Optional[Path],
-        opt("--output", "-o", panel=PANEL_OUT, help="Also write the loops with their relative "
-            "poses: .g2o (EDGE_SE3:QUAT, accepted loops only), .tum or .csv."),
+        output_option("Also write the loops with their relative poses: .g2o (EDGE_SE3:QUAT, "
+                      "accepted loops only), .tum or .csv.", panel=PANEL_OUT),
     ] = None,  # fmt: skip
     times: TimesOpt = None,
     db_path: Annotated[
         Optional[Path],
-        opt("--db", "-d", panel=PANEL_RUN, help="Reuse the signatures of a database built from "
-            "this sequence (same model); scans not in it are embedded."),
+        db_option("Reuse the signatures of a database built from this sequence (same model); "
+                  "scans not in it are embedded.", panel=PANEL_RUN),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
     batch: BatchOpt = 32,

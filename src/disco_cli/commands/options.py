@@ -1,9 +1,21 @@
-"""Options that several commands share, declared once so that they read the same everywhere."""
+"""Options that several commands share, declared once so that they read the same everywhere.
+
+The vocabulary (tests/test_cli_options.py walks every command and holds it):
+
+- `--format`: the OUTPUT format of result rows (table, tsv, jsonl); nothing else.
+- `--scan-format`: the INPUT scan format (kitti, nclt, npy, pcd, ply).
+- `-m` is `--model`, `-d` is `--db`, `-k` is `--topk`, `-o` is `--output`: a short
+  flag means one thing in every command.
+- `--calib FILE|none`: a KITTI calib.txt; `none` switches off the one beside poses.txt.
+
+Flags that every command spells the same but whose help differs per command are
+factories (`model_option(help)`) used as `Annotated[str, model_option("...")]`.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 
@@ -21,6 +33,45 @@ OutputFormatOpt = Annotated[
         rich_help_panel=PANEL_OUT,
     ),
 ]
+
+
+
+def model_option(help: str, panel: str | None = PANEL_RUN) -> Any:
+    """`--model/-m NAME|PATH`."""
+    return typer.Option("--model", "-m", help=help, rich_help_panel=panel)
+
+
+def db_option(help: str, panel: str | None = None) -> Any:
+    """`--db/-d FILE`: a map database."""
+    return typer.Option("--db", "-d", help=help, rich_help_panel=panel)
+
+
+def topk_option(help: str, max: int = 10000, panel: str | None = None) -> Any:
+    """`--topk/-k N`."""
+    return typer.Option("--topk", "-k", min=1, max=max, help=help, rich_help_panel=panel)
+
+
+def output_option(help: str, panel: str | None = None) -> Any:
+    """`--output/-o FILE`: a file the command writes (its type from the suffix)."""
+    return typer.Option("--output", "-o", help=help, rich_help_panel=panel)
+
+
+def calib_option(help: str, panel: str | None = None) -> Any:
+    """`--calib FILE|none`."""
+    return typer.Option("--calib", metavar="FILE|none", help=help, rich_help_panel=panel)
+
+
+def calib_file(given: Path | None, poses_file: Path | None) -> Path | None:
+    """The calib.txt to apply: `--calib FILE`, none for `--calib none`, else the
+    calib.txt beside the poses file when there is one."""
+    if given is not None:
+        return None if str(given).lower() == "none" else given
+    if poses_file is not None:
+        beside = Path(poses_file).parent / "calib.txt"
+        if beside.is_file():
+            return beside
+    return None
+
 
 ScanFormatOpt = Annotated[
     Optional[FormatName],
@@ -64,22 +115,14 @@ def apply_rerank(model: object, rerank: int | None) -> None:
     model.rerank_candidates = check_rerank(model, rerank)  # type: ignore[attr-defined]
 
 
-def opt(*flags: str, help: str, panel: str | None = None, **kw: object) -> typer.models.OptionInfo:
-    """A typer.Option declared in one line: flags, help text, help panel."""
-    return typer.Option(*flags, help=help, rich_help_panel=panel, **kw)  # type: ignore[arg-type]
+def opt(*flags: str, help: str, panel: str | None = None, **kw: Any) -> Any:
+    """A typer.Option declared in one call: flags, help text, help panel."""
+    return typer.Option(*flags, help=help, rich_help_panel=panel, **kw)
 
 
 BatchOpt = Annotated[
     int, opt("--batch", help="Scans per network batch.", panel=PANEL_RUN, min=1, max=4096)
 ]
-CalibOpt = Annotated[
-    Optional[Path], opt("--calib", help="KITTI calib.txt: camera poses -> LiDAR poses.")
-]
-ModelOpt = Annotated[
-    str,
-    opt("--model", "-m", help="default, spectral, scancontext or a checkpoint path.",
-        panel=PANEL_RUN),
-]  # fmt: skip
 TimesOpt = Annotated[
     Optional[Path],
     opt("--times", help="Timestamps (s), one per scan; default: times.txt beside the scans.",

@@ -21,7 +21,10 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     WorkersOpt,
     apply_rerank,
+    db_option,
+    model_option,
     opt,
+    topk_option,
 )
 from disco_cli.console import error, fail, handle_errors
 
@@ -40,10 +43,8 @@ def query(
             show_default=False,
         ),
     ],
-    db_path: Annotated[
-        Path, opt("--db", "-d", help="The map database (from disco build-db).")
-    ] = Path("map.db"),
-    topk: Annotated[int, opt("--topk", "-k", help="Matches per query.", min=1, max=10000)] = 10,
+    db_path: Annotated[Path, db_option("The map database (from disco build-db).")] = Path("map.db"),
+    topk: Annotated[int, topk_option("Matches per query.")] = 10,
     fmt: OutputFormatOpt = None,
     exclude_radius: Annotated[
         Optional[float],
@@ -78,8 +79,8 @@ def query(
     ] = False,  # fmt: skip
     model: Annotated[
         Optional[str],
-        opt("--model", "-m", panel=PANEL_RUN, help="The model; default: the one that built the "
-            "database (needed for checkpoint paths)."),
+        model_option("The model; default: the one that built the database (needed for "
+                     "checkpoint paths)."),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
     workers: WorkersOpt = 1,

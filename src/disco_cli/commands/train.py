@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from disco_cli.commands.options import output_option
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
@@ -44,9 +45,7 @@ def train(
             help="Sequence folders (velodyne/ + poses.txt), or folders of them (one world each).",
         ),
     ],
-    output: Annotated[
-        Path, typer.Option("--output", "-o", help="Checkpoint to write (after every epoch).")
-    ],
+    output: Annotated[Path, output_option("Checkpoint to write (after every epoch).")],
     epochs: Annotated[int, typer.Option(min=1, help="Epochs to train.")] = 10,
     steps: Annotated[
         int, typer.Option(min=0, help="Steps per epoch (0: one pass over the queries).")
