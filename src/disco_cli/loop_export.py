@@ -68,8 +68,9 @@ def check_loop_file(path: str | Path) -> None:
         raise DiscoError(f"{path}: unknown loop file type; use {', '.join(FORMATS)}")
 
 
-def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
-    """Write `loops` in the format named by `path`'s extension (.g2o, .tum, .csv)."""
+def write_loops(path: str | Path, loops: Sequence[Loop]) -> int:
+    """Write `loops` in the format named by `path`'s extension (.g2o, .tum, .csv);
+    `.g2o` takes only the accepted ones. Returns how many were written."""
     from disco_cli.relative_pose import information_matrix
 
     path = Path(path)
@@ -80,6 +81,7 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
         )
     lines: list[str] = []
     if ext == ".g2o":
+        loops = [lp for lp in loops if lp.accepted]  # a rejected loop is no constraint
         iu = np.triu_indices(6)
         for lp in loops:
             T = np.asarray(lp.T)
@@ -161,3 +163,4 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
             path.write_text("".join(line + "\n" for line in lines))
     except OSError as exc:
         raise DiscoError(f"{path}: cannot write ({exc.strerror or exc})") from None
+    return len(loops)

@@ -1,10 +1,8 @@
 """`disco loops`: online loop-closure detection along one sequence.
 
-Each scan is searched only against the scans at least N frames (or S seconds)
-before it, as a robot would when it reaches that scan; the pairs closer than the
-threshold are printed as loop candidates, with the yaw between them. The work is
-`LoopDetector.add_files` (disco_cli/loop_detector.py), the class a Python program
-feeds scan by scan.
+Each scan is searched only against the scans at least N frames (or S seconds) before
+it, as a robot would when it reaches that scan. The work is `LoopDetector.add_files`
+(disco_cli/loop_detector.py), the class a Python program feeds scan by scan.
 """
 
 from __future__ import annotations
@@ -38,20 +36,16 @@ COLUMNS = ["query_index", "query", "match_index", "match", "distance", "yaw_deg"
 ANGLE_COLUMNS = ["roll_deg", "pitch_deg"]  # with a pose; yaw_deg is then the refined yaw
 POSE_COLUMNS = ["dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"]
 PANEL_POSE = "Relative pose"
-# Query scans whose loops are printed together (one table each).
-_BLOCK = 64
+_BLOCK = 64  # query scans whose loops are printed together (one table each)
 
 
 @handle_errors
 def loops(
     sequence: Annotated[
         Path,
-        typer.Argument(
-            help="The sequence: a folder of scans (KITTI-style DIR/velodyne/ or a folder of "
-            "scan files).",
-            show_default=False,
-        ),
-    ],
+        typer.Argument(show_default=False, help="The sequence: a folder of scans (KITTI-style "
+                       "DIR/velodyne/ or a folder of scan files)."),
+    ],  # fmt: skip
     exclude_frames: ExcludeFramesOpt = None,  # default 50
     exclude_seconds: ExcludeSecondsOpt = None,
     threshold: Annotated[
@@ -103,20 +97,18 @@ def loops(
     from disco_cli.loop_detector import LoopDetector
     from disco_cli.loop_export import check_loop_file, write_loops
     from disco_cli.map import Map
-    from disco_cli.pipeline import check_device, sequence_times
+    from disco_cli.pipeline import sequence_times
     from disco_cli.readers import list_scans
 
     if exclude_frames is not None and exclude_seconds is not None:
         raise fail("give --exclude-frames or --exclude-seconds, not both")
-    check_device(device)
     if output is not None:
         check_loop_file(output)
     with_pose = verify or verbose or output is not None
     fmt_name = scan_format.value if scan_format is not None else None
     paths = [str(p) for p in list_scans(sequence, fmt_name)]
-    stamps = None
-    if with_pose or exclude_seconds is not None:
-        stamps = sequence_times(sequence, paths, times)
+    needs_times = with_pose or exclude_seconds is not None
+    stamps = sequence_times(sequence, paths, times) if needs_times else None
     if exclude_seconds is not None:
         if stamps is None:
             raise fail(f"{sequence}: --exclude-seconds needs times.txt beside the scans or --times")
@@ -125,17 +117,11 @@ def loops(
 
     pose_failures = []
     detector = LoopDetector(
-        model,
-        exclude_frames=None if exclude_seconds is not None else (exclude_frames or 50),
-        exclude_seconds=exclude_seconds,
-        threshold=threshold,
-        verify=verify,
-        pose=with_pose,
-        topk=topk,
-        rerank=rerank,
-        device=device,
+        model, exclude_frames=None if exclude_seconds is not None else (exclude_frames or 50),
+        exclude_seconds=exclude_seconds, threshold=threshold, verify=verify, pose=with_pose,
+        topk=topk, rerank=rerank, device=device,
         on_pose_error=lambda msg: (error(msg), pose_failures.append(msg)),
-    )
+    )  # fmt: skip
     columns = COLUMNS + (ANGLE_COLUMNS if with_pose else []) + (POSE_COLUMNS if verbose else [])
     writer = RowWriter(columns, fmt, title=f"loops in {sequence}")
     keys = columns + (["T"] if with_pose else [])
@@ -154,8 +140,6 @@ def loops(
                 writer.write(block)
                 block = []
     if output is not None:
-        keep = [lp for lp in found if lp.accepted or output.suffix.lower() != ".g2o"]
-        write_loops(output, keep)
-        stderr.print(f"{output}: {len(keep)} loops written")
+        stderr.print(f"{output}: {write_loops(output, found)} loops written")
     if pose_failures:
         raise typer.Exit(1)
