@@ -94,4 +94,4 @@ def test_the_api_modules_exist_and_commands_stay_thin() -> None:
         assert (PKG / f"{name}.py").is_file()
     for command in ("query", "loops", "build_db", "evaluate", "eval_loops"):
         lines = (PKG / "commands" / f"{command}.py").read_text().count("\n")
-        assert lines < 150, f"commands/{command}.py has {lines} lines"
+        assert lines < 200, f"commands/{command}.py has {lines} lines"

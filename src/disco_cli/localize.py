@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.errors import DiscoError
+from disco_cli.errors import DiscoError, ScanReadError
 
 __all__ = ["Match", "PointCache", "euler_deg", "pose_columns", "refine_matches"]
 
@@ -43,6 +43,7 @@ class Match:
     fitness: float | None = None  # inlier ratio of the ICP alignment
     rmse: float | None = None  # m, point-to-plane, over the inliers
     accepted: bool | None = None  # whether the pose passes the verification thresholds
+    # (None without a pose: not asked for, or the match's scan could not be read)
     reason: str = ""  # why rejected, or why no pose could be estimated
     roll_deg: float | None = None
     pitch_deg: float | None = None
@@ -123,9 +124,10 @@ def refine_matches(
     """`Match`es with the refined pose of each (search) match: phase correlation + ICP
     seeded by its place-recognition yaw (`relative_pose.estimate_relative_pose`).
 
-    A match whose pose cannot be estimated (its scan unreadable, say) keeps its
-    place-recognition fields, with `T` None and the problem in `reason`. With `verify`,
-    only accepted matches are kept (ranks unchanged).
+    A match whose pose cannot be estimated keeps its place-recognition fields, with `T`
+    None and the problem in `reason`; `accepted` is None when its scan could not be
+    read, False when the estimator failed. With `verify`, only accepted matches are
+    kept (ranks unchanged).
     """
     from disco_cli import relative_pose  # looked up at call time: tests replace it
 
@@ -139,9 +141,14 @@ def refine_matches(
             "yaw_deg": m.yaw_deg,
         }
         try:
-            rp = relative_pose.estimate_relative_pose(
-                query_points, match_points(m.path), m.yaw_deg, config
-            )
+            points = match_points(m.path)
+        except ScanReadError as exc:
+            # The place is known, the pose is not: keep the match (not when verifying).
+            if not verify:
+                out.append(Match(**base, reason=str(exc)))
+            continue
+        try:
+            rp = relative_pose.estimate_relative_pose(query_points, points, m.yaw_deg, config)
         except DiscoError as exc:
             if not verify:
                 out.append(Match(**base, accepted=False, reason=f"no relative pose ({exc})"))

@@ -237,7 +237,7 @@ class LoopDetector:
         paths: list[str],
         *,
         times: np.ndarray | None = None,
-        reuse: Any = None,
+        stored: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
         batch: int = 32,
         workers: int = 1,
         scan_format: str | None = None,
@@ -245,14 +245,14 @@ class LoopDetector:
     ) -> Iterator[list[Loop]]:
         """Feed scan files in order, yielding each one's loops as soon as it is
         embedded (in batches of `batch`, read and voxelized on `workers` threads).
-        `times`: seconds per scan. `reuse`: a `Map` built from these files with the same
-        model, whose stored signatures are used for the scans it holds. Points for
-        poses are read back from the files when needed."""
+        `times`: seconds per scan. `stored`: `Map.stored(paths)` of a map built from
+        these files with the same model, whose signatures are used for the scans it
+        holds. Points for poses are read back from the files when needed."""
         from disco_cli.readers import read_scan
 
         n = len(paths)
-        if reuse is not None:
-            known, sigs, feats = reuse.stored(paths)
+        if stored is not None:
+            known, sigs, feats = stored
         else:
             known, sigs, feats = np.zeros(n, bool), None, None
         fresh = self._embed_files([paths[i] for i in range(n) if not known[i]], batch, workers,

@@ -13,6 +13,8 @@ meanwhile see a consistent state. Frames and units of the results: `localize.py`
 
 from __future__ import annotations
 
+import os
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,6 +110,10 @@ class Map:
         self._snapshot: tuple[np.ndarray, Any] | None = None  # ids, SignatureIndex
         self._xy: np.ndarray | None = None  # stored x, y of the snapshot's scans
         self._points = PointCache(self._read_match, size=32)
+        self._missing: set[str] = set()
+        self.scan_root: str | Path | None = None
+        # Told once per stored scan that cannot be found or read (default: a warning).
+        self.on_missing_scan: Callable[[str], None] = lambda msg: warnings.warn(msg, stacklevel=4)
 
     # -- opening and closing --------------------------------------------------
 
@@ -126,9 +132,17 @@ class Map:
 
     @classmethod
     def open(
-        cls, path: str | Path, *, writable: bool = False, model: Any = None, device: str = "cpu"
+        cls,
+        path: str | Path,
+        *,
+        writable: bool = False,
+        model: Any = None,
+        device: str = "cpu",
+        scan_root: str | Path | None = None,
     ) -> Map:
-        """An existing map. `model` defaults to the one that built it; another is refused."""
+        """An existing map. `model` defaults to the one that built it; another is refused.
+        A stored scan (read for poses) is found at its stored path, else relative to the
+        map's folder, else under `scan_root` (docs/database.md)."""
         from disco_cli.pipeline import check_device
 
         check_device(device)
@@ -138,7 +152,9 @@ class Map:
         except BaseException:
             db.close()
             raise
-        return cls(Path(path), db, net, source, writable)
+        m = cls(Path(path), db, net, source, writable)
+        m.scan_root = scan_root
+        return m
 
     def close(self) -> None:
         if self._db is not None:
@@ -199,15 +215,18 @@ class Map:
         return ids[d <= radius]  # unknown stored poses give NaN: never near
 
     def stored(self, names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """`(found [N] bool, signatures [N, D], features [N, ...])` of the named scans as
-        stored (rows of names not stored are zero), for reusing a map's embeddings."""
+        """`(found [N] bool, signatures [N, D], features [N, ...])` of the scan files
+        `names` as stored (matched by where the stored scans are now; rows of scans not
+        stored are zero), for reusing a map's embeddings."""
         self._check_open()
         n = len(names)
         if self._db is None:
             return np.zeros(n, bool), np.zeros((n, 0), np.float32), np.zeros((n, 0), np.float32)
         ids, index = self._index()
-        where = {p: k for k, p in enumerate(self._db.paths()[: len(ids)])}
-        rows = np.array([where.get(p, -1) for p in names], dtype=np.int64)
+        # By where the stored scans are now, so that it works from any directory and for
+        # a map that moved (Database.locate).
+        where = {p: k for k, p in enumerate(self._db.locations(self.scan_root)[: len(ids)])}
+        rows = np.array([where.get(os.path.abspath(p), -1) for p in names], dtype=np.int64)
         found = rows >= 0
         sigs = np.zeros((n, index.dim), np.float32)
         feats = np.zeros((n, *self._db.feature_shape), np.float32)
@@ -258,20 +277,27 @@ class Map:
         on_skip: Callable[[DiscoError], None] | None = None,
     ) -> AddResult:
         """Embed scan files and add them, one transaction per batch, reading and
-        voxelizing on `workers` threads while the network runs. Scans the map holds
-        already (same name) are skipped, so running it again resumes. `poses`: `[N, 4]`
+        voxelizing on `workers` threads while the network runs. Scans are stored by
+        absolute path; those the map holds already are skipped, so running it again
+        resumes. `poses`: `[N, 4]`
         x, y, z, yaw (rad) rows, NaN where unknown. The first unreadable scan raises
         its `ScanReadError`, unless `skip_bad` (then `on_skip(error)` is told).
         `on_progress(done, written)` after each batch."""
+        from disco_cli.database import stored_paths
         from disco_cli.pipeline import embed_stream, load_stream
 
         self._check_writable()
-        stored = set(self.names())
-        todo = [i for i, p in enumerate(paths) if p not in stored]
-        result = AddResult(already=len(paths) - len(todo), bad=[])
         n = len(paths)
         poses = np.full((n, 4), np.nan) if poses is None else np.asarray(poses, np.float64)
         times = np.full(n, np.nan) if times is None else np.asarray(times, np.float64)
+        # Stored absolute, with the path relative to the map beside it, so that the map
+        # can be read from any directory and moved as a whole (docs/database.md). Two
+        # spellings of one file count once; an older map's relative paths count from here.
+        absolute, rel_paths = stored_paths(paths, self.path)
+        stored = {os.path.abspath(p) for p in self.names()}
+        first = {p: i for i, p in reversed(list(enumerate(absolute)))}
+        todo = [i for i, p in enumerate(absolute) if p not in stored and first[p] == i]
+        result = AddResult(already=sum(p in stored for p in absolute), bad=[])
         if not todo:
             return result
         loaded = load_stream(
@@ -293,7 +319,8 @@ class Map:
                     rows = [todo[it.index] for it in chunk.items]
                     self._append(
                         ScanBatch(
-                            paths=[paths[r] for r in rows],
+                            paths=[absolute[r] for r in rows],
+                            rel_paths=[rel_paths[r] for r in rows],
                             signatures=chunk.signatures,
                             features=chunk.features,
                             poses=poses[rows],
@@ -380,10 +407,35 @@ class Map:
         mask[rows[ok][ids[rows[ok]] == ex.reshape(-1)[ok]]] = True
         return mask
 
+    def locate(self, name: str) -> Path | None:
+        """Where the stored scan `name` is now (`Database.locate`), or None."""
+        self._check_open()
+        return None if self._db is None else self._db.locate(name, self.scan_root)
+
+    def shown(self, name: str) -> str:
+        """A stored scan's path as printed: where it is now (else as stored), relative to
+        the current directory when it lies under it, else absolute."""
+        where = self.locate(name)
+        full = os.path.abspath(where if where is not None else name)
+        rel = os.path.relpath(full)
+        return full if rel.startswith(os.pardir) else rel
+
     def _read_match(self, name: str) -> np.ndarray:
+        from disco_cli.errors import ScanReadError
         from disco_cli.readers import read_scan
 
-        return read_scan(name)
+        if name in self._missing:
+            raise ScanReadError(name, "not found (nor beside the database)")
+        where = self.locate(name)
+        try:
+            if where is None:
+                raise ScanReadError(name, "not found (nor beside the database)")
+            return read_scan(where)
+        except ScanReadError as exc:
+            self._missing.add(name)
+            hint = "" if self.scan_root else "; --scan-root DIR says where the map's scans are"
+            self.on_missing_scan(f"{exc}: no relative pose for this match{hint}")
+            raise
 
     def _search(
         self,

@@ -1,11 +1,13 @@
 """`disco build-db`: embed scans into a map database, one transaction per batch.
 
 Ctrl-C or a crash keeps every finished batch; running the same command again
-resumes, skipping the scans already stored (by path as given).
+resumes, skipping the scans already stored (by absolute path). The work is
+`Map.add_files` (disco_cli/map.py).
 """
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Annotated, Optional
@@ -44,36 +46,55 @@ def build_db(
     ] = "default",
     poses: Annotated[
         Optional[Path],
-        opt("--poses", panel=PANEL_IN, help="KITTI poses (3 x 4 per line) of all scans, in "
-            "order; default: poses.txt beside each folder's scans."),
+        opt(
+            "--poses",
+            panel=PANEL_IN,
+            help="KITTI poses (3 x 4 per line) of all scans, in "
+            "order; default: poses.txt beside each folder's scans.",
+        ),
     ] = None,  # fmt: skip
     calib: Annotated[
         Optional[Path],
-        opt("--calib", help="KITTI calib.txt: turns camera poses into LiDAR poses.",
-            panel=PANEL_IN),
+        opt(
+            "--calib", help="KITTI calib.txt: turns camera poses into LiDAR poses.", panel=PANEL_IN
+        ),
     ] = None,  # fmt: skip
     times: Annotated[
         Optional[Path],
-        opt("--times", panel=PANEL_IN,
-            help="Timestamps (s), one per scan; default: times.txt beside each folder's scans."),
+        opt(
+            "--times",
+            panel=PANEL_IN,
+            help="Timestamps (s), one per scan; default: times.txt beside each folder's scans.",
+        ),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
     append: Annotated[
         bool,
-        opt("--append", panel=PANEL_IN,
-            help="Add these scans to an existing database built from other scans (same model)."),
+        opt(
+            "--append",
+            panel=PANEL_IN,
+            help="Add these scans to an existing database built from other scans (same model).",
+        ),
     ] = False,  # fmt: skip
     batch: Annotated[
         int,
-        opt("--batch", min=1, max=4096, panel=PANEL_RUN,
-            help="Scans per network batch and per transaction."),
+        opt(
+            "--batch",
+            min=1,
+            max=4096,
+            panel=PANEL_RUN,
+            help="Scans per network batch and per transaction.",
+        ),
     ] = 32,  # fmt: skip
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     skip_bad: Annotated[
         bool,
-        opt("--skip-bad", panel=PANEL_RUN,
-            help="Warn about unreadable scans and go on, instead of stopping at the first."),
+        opt(
+            "--skip-bad",
+            panel=PANEL_RUN,
+            help="Warn about unreadable scans and go on, instead of stopping at the first.",
+        ),
     ] = False,  # fmt: skip
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
@@ -86,10 +107,11 @@ def build_db(
     scans = collect_scans(inputs, poses, times, calib, fmt)
     if not scans.paths:
         raise fail("no scans given")
+    absolute = {os.path.abspath(p) for p in scans.paths}
     if output.exists():
         m = Map.open(output, writable=True, model=model, device=device)
-        stored = set(m.names())
-        if not append and not stored.issubset(scans.paths):
+        stored = {os.path.abspath(p) for p in m.names()}  # an old map's relative paths too
+        if not append and not stored.issubset(absolute):
             m.close()
             raise DatabaseError(
                 output,
@@ -98,24 +120,37 @@ def build_db(
             )
     else:
         m, stored = Map.create(output, model, device=device), set()
-    if all(p in stored for p in scans.paths):
-        stderr.print(f"{output}: all {len(scans.paths)} scans are in it already")
+    if absolute <= stored:
+        stderr.print(f"{output}: all {len(absolute)} scans are in it already")
         m.close()
         return
 
-    start = time.perf_counter()
+    start, done = time.perf_counter(), [0]
     with m, progress() as bar:
-        task = bar.add_task("build-db", total=sum(p not in stored for p in scans.paths), rate="")
+        task = bar.add_task("build-db", total=len(absolute - stored), rate="")
 
-        def advance(done: int, written: int) -> None:
+        def advance(n_done: int, written: int) -> None:
+            done[0] = written
             rate = written / max(time.perf_counter() - start, 1e-9)
-            bar.update(task, completed=done, rate=f"{rate:.1f} scans/s")
+            bar.update(task, completed=n_done, rate=f"{rate:.1f} scans/s")
 
-        result = m.add_files(
-            scans.paths, poses=scans.poses, times=scans.times, batch=batch, workers=workers,
-            scan_format=fmt, skip_bad=skip_bad, on_progress=advance,
-            on_skip=lambda exc: warn(f"skipped: {exc}"),
-        )  # fmt: skip
+        try:
+            result = m.add_files(
+                scans.paths, poses=scans.poses, times=scans.times, batch=batch, workers=workers,
+                scan_format=fmt, skip_bad=skip_bad, on_progress=advance,
+                on_skip=lambda exc: warn(f"skipped: {exc}"),
+            )  # fmt: skip
+        except KeyboardInterrupt:
+            # Every committed batch is safe (one transaction each); say so, and how to go on.
+            if m.database is None:
+                stderr.print(f"interrupted: nothing written; {output} was not created")
+            else:
+                held = len(stored & absolute) + done[0]
+                stderr.print(
+                    f"interrupted: {output} holds {held} of the {len(absolute)} scans given, "
+                    "safely stored; run the same command again to resume", soft_wrap=True,
+                )  # fmt: skip
+            raise typer.Exit(130) from None
         created = m.database is not None
     elapsed = time.perf_counter() - start
     rate = result.written / max(elapsed, 1e-9)

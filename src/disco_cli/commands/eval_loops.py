@@ -49,8 +49,11 @@ def evaluate_loops(
     calib: CalibOpt = None,
     times: Annotated[
         Optional[Path],
-        opt("--times", panel=PANEL_INPUT,
-            help="Timestamps, one per scan; default: times.txt in the folder."),
+        opt(
+            "--times",
+            panel=PANEL_INPUT,
+            help="Timestamps, one per scan; default: times.txt in the folder.",
+        ),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
     model_name: Annotated[
@@ -60,13 +63,21 @@ def evaluate_loops(
     radius: RadiusOpt = 3.0,
     exclude_seconds: Annotated[
         Optional[float],
-        opt("--exclude-seconds", min=0.0, panel=PANEL_PROTOCOL,
-            help="Search only scans at least this long before (default 30; needs times)."),
+        opt(
+            "--exclude-seconds",
+            min=0.0,
+            panel=PANEL_PROTOCOL,
+            help="Search only scans at least this long before (default 30; needs times).",
+        ),
     ] = None,  # fmt: skip
     exclude_frames: Annotated[
         Optional[int],
-        opt("--exclude-frames", min=1, panel=PANEL_PROTOCOL,
-            help="Search only scans at least N frames before."),
+        opt(
+            "--exclude-frames",
+            min=1,
+            panel=PANEL_PROTOCOL,
+            help="Search only scans at least N frames before.",
+        ),
     ] = None,  # fmt: skip
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,

@@ -88,20 +88,23 @@ def evaluate(
     ],
     query_poses: Annotated[
         Optional[Path],
-        opt("--query-poses", panel=PANEL_INPUT,
-            help="KITTI poses of the queries; default: poses.txt in a single query folder."),
+        opt(
+            "--query-poses",
+            panel=PANEL_INPUT,
+            help="KITTI poses of the queries; default: poses.txt in a single query folder.",
+        ),
     ] = None,  # fmt: skip
     calib: CalibOpt = None,
     scan_format: ScanFormatOpt = None,
     model_name: Annotated[
         Optional[str],
-        model_option("Model name or checkpoint; default: the one that built the database.",
-                     panel=PANEL_PROTOCOL),
+        model_option(
+            "Model name or checkpoint; default: the one that built the database.",
+            panel=PANEL_PROTOCOL,
+        ),
     ] = None,  # fmt: skip
     radius: RadiusOpt = 3.0,
-    topk: Annotated[
-        int, topk_option("Recall@1..N up to this N.", panel=PANEL_PROTOCOL)
-    ] = 25,
+    topk: Annotated[int, topk_option("Recall@1..N up to this N.", panel=PANEL_PROTOCOL)] = 25,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
     report: ReportOpt = None,

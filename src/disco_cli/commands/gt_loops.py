@@ -13,7 +13,7 @@ from typing import Annotated, Optional
 import typer
 
 from disco_cli.commands.options import OutputFormatOpt, calib_file, calib_option
-from disco_cli.console import RowWriter, fail, handle_errors
+from disco_cli.console import RowWriter, fail, handle_errors, stderr
 
 COLUMNS = ["query_seq", "query", "match_seq", "match", "distance_m", "yaw_deg"]
 
@@ -69,9 +69,11 @@ def gt_loops(
         jobs = [
             (q, m, gt_pairs(poses[q], poses[m], radius)) for q in range(len(seqs)) for m in range(q)
         ]
+    total = 0
     for q, m, pairs in jobs:
         if len(pairs) == 0:
             continue
+        total += len(pairs)
         dist = pair_distances(poses[q], poses[m], pairs)
         yaw = relative_yaw_deg(poses[m][pairs[:, 1]], poses[q][pairs[:, 0]])
         rows = [
@@ -86,3 +88,6 @@ def gt_loops(
             for (i, j), d, y in zip(pairs, dist, yaw)
         ]
         writer.write(rows, title=f"{seqs[q]} -> {seqs[m]}: {len(rows)} revisit pairs")
+    if total == 0:
+        writer.write([])  # the header: "no revisit" is an answer too
+    stderr.print(f"{total} revisit pairs within {radius:g} m", soft_wrap=True)

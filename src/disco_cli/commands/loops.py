@@ -22,6 +22,7 @@ from disco_cli.commands.options import (
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    ScanRootOpt,
     TimesOpt,
     WorkersOpt,
     db_option,
@@ -43,15 +44,22 @@ _BLOCK = 64  # query scans whose loops are printed together (one table each)
 def loops(
     sequence: Annotated[
         Path,
-        typer.Argument(show_default=False, help="The sequence: a folder of scans (KITTI-style "
-                       "DIR/velodyne/ or a folder of scan files)."),
+        typer.Argument(
+            show_default=False,
+            help="The sequence: a folder of scans (KITTI-style "
+            "DIR/velodyne/ or a folder of scan files).",
+        ),
     ],  # fmt: skip
     exclude_frames: ExcludeFramesOpt = None,  # default 50
     exclude_seconds: ExcludeSecondsOpt = None,
     threshold: Annotated[
         Optional[float],
-        opt("--threshold", "-t", min=0.0, help="Report pairs with a distance at most this "
-            "(the `distance` column); default: all."),
+        opt(
+            "--threshold",
+            "-t",
+            min=0.0,
+            help="Report pairs with a distance at most this (the `distance` column); default: all.",
+        ),
     ] = None,  # fmt: skip
     topk: Annotated[int, topk_option("Candidates per query scan.", max=1000)] = 1,
     model: Annotated[
@@ -60,28 +68,44 @@ def loops(
     fmt: OutputFormatOpt = None,
     verify: Annotated[
         bool,
-        opt("--verify", panel=PANEL_POSE, help="Estimate each pair's relative pose (phase "
+        opt(
+            "--verify",
+            panel=PANEL_POSE,
+            help="Estimate each pair's relative pose (phase "
             "correlation + ICP) and keep only the accepted ones: yaw_deg becomes the refined "
-            "yaw, roll_deg and pitch_deg are added (JSON lines also carry the 4 x 4 T)."),
+            "yaw, roll_deg and pitch_deg are added (JSON lines also carry the 4 x 4 T).",
+        ),
     ] = False,  # fmt: skip
     verbose: Annotated[
         bool,
-        opt("--verbose", "-v", panel=PANEL_POSE, help="Estimate each pair's relative pose and "
+        opt(
+            "--verbose",
+            "-v",
+            panel=PANEL_POSE,
+            help="Estimate each pair's relative pose and "
             "show it (dx, dy, dz, fitness, rmse, accepted, reason), rejected pairs included "
-            "unless --verify."),
+            "unless --verify.",
+        ),
     ] = False,  # fmt: skip
     output: Annotated[
         Optional[Path],
-        output_option("Also write the loops with their relative poses: .g2o (EDGE_SE3:QUAT, "
-                      "accepted loops only), .tum or .csv.", panel=PANEL_OUT),
+        output_option(
+            "Also write the loops with their relative poses: .g2o (EDGE_SE3:QUAT, "
+            "accepted loops only), .tum or .csv.",
+            panel=PANEL_OUT,
+        ),
     ] = None,  # fmt: skip
     times: TimesOpt = None,
     db_path: Annotated[
         Optional[Path],
-        db_option("Reuse the signatures of a database built from this sequence (same model); "
-                  "scans not in it are embedded.", panel=PANEL_RUN),
+        db_option(
+            "Reuse the signatures of a database built from this sequence (same model); "
+            "scans not in it are embedded.",
+            panel=PANEL_RUN,
+        ),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
+    scan_root: ScanRootOpt = None,
     batch: BatchOpt = 32,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
@@ -89,8 +113,6 @@ def loops(
 ) -> None:
     """Detect loop closures along one sequence of scans (by default each scan searches the
     scans at least 50 frames before it)."""
-    from contextlib import nullcontext
-
     import numpy as np
 
     from disco_cli.console import RowWriter
@@ -105,8 +127,7 @@ def loops(
     if output is not None:
         check_loop_file(output)
     with_pose = verify or verbose or output is not None
-    fmt_name = scan_format.value if scan_format is not None else None
-    paths = [str(p) for p in list_scans(sequence, fmt_name)]
+    paths = [str(p) for p in list_scans(sequence, scan_format)]
     needs_times = with_pose or exclude_seconds is not None
     stamps = sequence_times(sequence, paths, times) if needs_times else None
     if exclude_seconds is not None:
@@ -125,13 +146,17 @@ def loops(
     columns = COLUMNS + (ANGLE_COLUMNS if with_pose else []) + (POSE_COLUMNS if verbose else [])
     writer = RowWriter(columns, fmt, title=f"loops in {sequence}")
     keys = columns + (["T"] if with_pose else [])
-    found, block = [], []
-    stored = Map.open(db_path, model=detector.model, device=device) if db_path else nullcontext()
-    with stored as reuse, progress(transient=True) as bar:
+    found, block, reuse = [], [], None
+    if db_path is not None:
+        with Map.open(db_path, model=detector.model, scan_root=scan_root) as m:
+            reuse = m.stored(paths)
+        if not reuse[0].any():
+            warn(f"{db_path}: holds none of these scans; embedding them all")
+    with progress(transient=True) as bar:
         task = bar.add_task("loops", total=len(paths), rate="")
         stream = detector.add_files(
-            paths, times=stamps, reuse=reuse, batch=batch, workers=workers,
-            scan_format=fmt_name, on_progress=lambda k: bar.advance(task, k),
+            paths, times=stamps, stored=reuse, batch=batch, workers=workers,
+            scan_format=scan_format, on_progress=lambda k: bar.advance(task, k),
         )  # fmt: skip
         for i, new in enumerate(stream):
             found += new
@@ -139,6 +164,9 @@ def loops(
             if block and ((i + 1) % _BLOCK == 0 or i + 1 == len(paths)):
                 writer.write(block)
                 block = []
+    if not found:
+        writer.write([])  # the header (an empty table), so that "no loop" reads as an answer
+    stderr.print(f"{sequence}: {len(found)} loop candidates among {len(paths)} scans")
     if output is not None:
         stderr.print(f"{output}: {write_loops(output, found)} loops written")
     if pose_failures:

@@ -81,6 +81,16 @@ ScanFormatOpt = Annotated[
         rich_help_panel=PANEL_RUN,
     ),
 ]
+ScanRootOpt = Annotated[
+    Optional[Path],
+    typer.Option(
+        "--scan-root",
+        file_okay=False,
+        help="Where the database's scans are now, when neither their stored absolute "
+        "path nor their path relative to the database finds them (a map mounted elsewhere).",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
 WorkersOpt = Annotated[
     int,
     typer.Option(

@@ -9,16 +9,16 @@ status is 1 at the end. The work is `Map.query_files` (disco_cli/map.py).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Optional
 
 import typer
 
 from disco_cli.commands.options import (
-    PANEL_RUN,
     DeviceOpt,
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    ScanRootOpt,
     WorkersOpt,
     apply_rerank,
     db_option,
@@ -26,7 +26,7 @@ from disco_cli.commands.options import (
     opt,
     topk_option,
 )
-from disco_cli.console import error, fail, handle_errors
+from disco_cli.console import error, fail, handle_errors, warn
 
 COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
 POSE_COLUMNS = ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "accepted"]
@@ -39,7 +39,8 @@ def query(
     scans: Annotated[
         list[str],
         typer.Argument(
-            help="Scan files, or - to read scan paths from stdin (one per line).",
+            help="Scan files, folders of scans (as for build-db), or - to read scan paths "
+            "from stdin (one per line).",
             show_default=False,
         ),
     ],
@@ -48,13 +49,22 @@ def query(
     fmt: OutputFormatOpt = None,
     exclude_radius: Annotated[
         Optional[float],
-        opt("--exclude-radius", min=0.0, panel=PANEL_FILTER, help="Drop matches whose stored "
-            "pose is within this many metres (x, y) of the query's pose (needs --query-poses)."),
+        opt(
+            "--exclude-radius",
+            min=0.0,
+            panel=PANEL_FILTER,
+            help="Drop matches whose stored "
+            "pose is within this many metres (x, y) of the query's pose (needs --query-poses).",
+        ),
     ] = None,  # fmt: skip
     query_poses: Annotated[
         Optional[Path],
-        opt("--query-poses", panel=PANEL_FILTER, help="KITTI poses of the query scans: row i "
-            "for the i-th scan, or by frame number in the file name."),
+        opt(
+            "--query-poses",
+            panel=PANEL_FILTER,
+            help="KITTI poses of the query scans: row i "
+            "for the i-th scan, or by frame number in the file name.",
+        ),
     ] = None,  # fmt: skip
     calib: Annotated[
         Optional[Path],
@@ -62,36 +72,49 @@ def query(
     ] = None,
     max_distance: Annotated[
         Optional[float],
-        opt("--max-distance", min=0.0, panel=PANEL_FILTER,
-            help="Drop matches with a distance above this (the `distance` column)."),
+        opt(
+            "--max-distance",
+            min=0.0,
+            panel=PANEL_FILTER,
+            help="Drop matches with a distance above this (the `distance` column).",
+        ),
     ] = None,  # fmt: skip
     pose: Annotated[
         bool,
-        opt("--pose", panel=PANEL_POSE, help="Also estimate the full relative pose of each match "
+        opt(
+            "--pose",
+            panel=PANEL_POSE,
+            help="Also estimate the full relative pose of each match "
             "(phase correlation + ICP on the points): yaw_deg becomes the refined yaw, and "
             "roll_deg, pitch_deg, dx, dy, dz, fitness, accepted are added (JSON lines also carry "
-            "the 4 x 4 T)."),
+            "the 4 x 4 T).",
+        ),
     ] = False,  # fmt: skip
     verify: Annotated[
         bool,
-        opt("--verify", panel=PANEL_POSE,
-            help="Keep only matches whose relative pose is accepted (implies --pose)."),
+        opt(
+            "--verify",
+            panel=PANEL_POSE,
+            help="Keep only matches whose relative pose is accepted (implies --pose).",
+        ),
     ] = False,  # fmt: skip
     model: Annotated[
         Optional[str],
-        model_option("The model; default: the one that built the database (needed for "
-                     "checkpoint paths)."),
+        model_option(
+            "The model; default: the one that built the database (needed for checkpoint paths)."
+        ),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
+    scan_root: ScanRootOpt = None,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
-    from disco_cli.localize import pose_columns
     from disco_cli.map import Map
     from disco_cli.pipeline import pose_lookup, stdin_paths
+    from disco_cli.readers import list_scans
 
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --query-poses")
@@ -99,24 +122,24 @@ def query(
     # A table is titled by its query, so its rows need not repeat the path.
     columns = COLUMNS + (POSE_COLUMNS if with_pose else [])
     writer = RowWriter(columns, fmt, table_omit=["query"])
-    paths = (p for s in scans for p in (stdin_paths() if s == "-" else [s]))
+    keys = columns + (["T"] if with_pose else [])  # JSON lines carry the whole T
+    fmt_name = scan_format.value if scan_format is not None else None
+    # A folder is expanded like build-db's (DIR/velodyne/ or a folder of scans).
+    given = [str(f) for a in scans for f in (list_scans(a, fmt_name) if Path(a).is_dir() else [a])]
+    paths = (p for s in given for p in (stdin_paths() if s == "-" else [s]))
     failed = 0
-    with Map.open(db_path, model=model, device=device) as m:
+    with Map.open(db_path, model=model, device=device, scan_root=scan_root) as m:
+        m.on_missing_scan = warn
         apply_rerank(m.model, rerank)
         exclude = None
         if exclude_radius is not None:
-            n_given = None if "-" in scans else len(scans)
+            n_given = None if "-" in given else len(given)
             pose_of = pose_lookup(query_poses, calib, n_given)
             exclude = lambda i, path: m.near(pose_of(i, path)[:2], exclude_radius)  # noqa: E731
         results = m.query_files(
-            paths,
-            topk=topk,
-            pose=with_pose,
-            exclude=exclude,
-            max_distance=max_distance,
-            workers=workers,
-            scan_format=scan_format.value if scan_format is not None else None,
-        )
+            paths, topk=topk, pose=with_pose, exclude=exclude, max_distance=max_distance,
+            workers=workers, scan_format=fmt_name,
+        )  # fmt: skip
         for res in results:
             if res.error is not None:
                 error(str(res.error))
@@ -124,19 +147,15 @@ def query(
                 continue
             rows = []
             for mt in res.matches:
-                if with_pose and mt.T is None:
-                    error(f"{mt.name}: {mt.reason}")
+                if with_pose and mt.T is None and mt.accepted is False:
+                    error(f"{m.shown(mt.name)}: {mt.reason}")
                     failed += 1
                     continue
                 if verify and not mt.accepted:
                     continue
-                row = {"query": res.name, "rank": mt.rank, "match": mt.name}
-                row.update(match_id=mt.match_id, distance=mt.distance, yaw_deg=mt.yaw_deg)
-                if with_pose:
-                    full = pose_columns(mt)
-                    row.update({k: full[k] for k in [*POSE_COLUMNS, "yaw_deg", "T"]})
-                rows.append(row)
+                # A match whose scan is missing keeps its row, with the pose columns empty.
+                row = {**mt.as_dict(), "query": res.name, "match": m.shown(mt.name)}
+                rows.append({k: row.get(k) for k in keys})
             writer.write(rows, title=res.name)
     if failed:
         raise typer.Exit(1)
-
