@@ -193,20 +193,14 @@ def _calibration(
     return None, None, "as stored"
 
 
-def read_poses(
+def _read_raw(
     path: str | Path,
-    poses_format: str | None = None,
-    calib: str | Path | np.ndarray | None = "auto",
-    extrinsic: np.ndarray | str | Path | None = None,
-) -> tuple[np.ndarray, np.ndarray, str, str]:
-    """A pose file's LiDAR poses: (keys [M], poses [M, 4, 4], format, frame description).
-
-    `keys` are frame numbers for kitti (0..M-1), seconds for every other format
-    (kitti360: frame index x 0.1 s). `calib`: "auto" (the format's published
-    calibration; KITTI: calib.txt beside the file when it exists), "none", a file (KITTI
-    calib.txt, KITTI-360 calibration folder) or a 4 x 4 array. `extrinsic`: a 4 x 4
-    `T_frame<-lidar` (or a file holding one) applied after the calibration.
-    """
+    poses_format: str | None,
+    calib: str | Path | np.ndarray | None,
+    extrinsic: np.ndarray | str | Path | None,
+) -> tuple[np.ndarray, np.ndarray, str, np.ndarray | None, np.ndarray | None, str]:
+    """(keys, poses as stored, format, left, right, frame): LiDAR poses are
+    `left @ P @ right`, where `right` includes the extrinsic (None: identity)."""
     path = Path(path)
     fmt = (poses_format or guess_poses_format(path)).lower()
     if fmt not in POSE_FORMATS:
@@ -238,18 +232,40 @@ def read_poses(
         frames, T = read_kitti360_poses(path)
         keys = frames * FRAME_S
     left, right, frame = _calibration(fmt, path, calib)
-    if left is not None:
-        T = left @ T
-    if right is not None:
-        T = T @ right
     if extrinsic is not None:
         E = read_extrinsic(extrinsic) if isinstance(extrinsic, (str, Path)) else extrinsic
         E = np.asarray(E, dtype=np.float64)
         if E.shape != (4, 4):
             raise PoseFileError(f"extrinsic must be 4 x 4, got {E.shape}")
-        T = T @ E
+        right = E if right is None else right @ E
         frame += ", then the given extrinsic"
-    return keys, T, fmt, frame
+    return keys, T, fmt, left, right, frame
+
+
+def _apply(T: np.ndarray, left: np.ndarray | None, right: np.ndarray | None) -> np.ndarray:
+    if left is not None:
+        T = left @ T
+    if right is not None:
+        T = T @ right
+    return T
+
+
+def read_poses(
+    path: str | Path,
+    poses_format: str | None = None,
+    calib: str | Path | np.ndarray | None = "auto",
+    extrinsic: np.ndarray | str | Path | None = None,
+) -> tuple[np.ndarray, np.ndarray, str, str]:
+    """A pose file's LiDAR poses: (keys [M], poses [M, 4, 4], format, frame description).
+
+    `keys` are frame numbers for kitti (0..M-1), seconds for every other format
+    (kitti360: frame index x 0.1 s). `calib`: "auto" (the format's published
+    calibration; KITTI: calib.txt beside the file when it exists), "none", a file (KITTI
+    calib.txt, KITTI-360 calibration folder) or a 4 x 4 array. `extrinsic`: a 4 x 4
+    `T_frame<-lidar` (or a file holding one) applied after the calibration.
+    """
+    keys, T, fmt, left, right, frame = _read_raw(path, poses_format, calib, extrinsic)
+    return keys, _apply(T, left, right), fmt, frame
 
 
 def _name_time(name: str, fmt: str) -> float | None:
@@ -329,7 +345,9 @@ def poses_for_scans(
     """
     from disco_cli.poses.interpolate import EXACT_S, default_max_gap, interpolate_poses
 
-    keys, T, fmt, frame = read_poses(poses_file, poses_format, calib, extrinsic)
+    # Interpolation happens in the pose file's own frame (the body's motion), and the
+    # calibration is applied afterwards: the LiDAR rides on the body.
+    keys, T, fmt, left, right, frame = _read_raw(poses_file, poses_format, calib, extrinsic)
     source = str(poses_file)
     by_time = isinstance(scans, np.ndarray) and scans.dtype.kind in "fiu"
     names = [] if by_time else [str(s) for s in scans]
@@ -339,7 +357,7 @@ def poses_for_scans(
     if fmt == "kitti" and times is None and not by_time:
         rows = _kitti_rows(names, len(T), source)
         ok = rows >= 0
-        out[ok] = T[rows[ok]]
+        out[ok] = _apply(T[rows[ok]], left, right)
         missing = np.flatnonzero(~ok)
         report = PoseReport(
             source, fmt, n, int(ok.sum()), int(ok.sum()), 0, len(missing),
@@ -365,7 +383,7 @@ def poses_for_scans(
     known = np.isfinite(t)
     poses, found = interpolate_poses(keys, T, np.where(known, t, 0.0), gap)
     found &= known
-    out[found] = poses[found]
+    out[found] = _apply(poses[found], left, right)
     # Exact: a pose stamp within EXACT_S of the scan's time (else interpolated).
     sorted_keys = np.sort(keys)
     tt = np.where(known, t, 0.0)
