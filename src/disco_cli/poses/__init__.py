@@ -34,6 +34,9 @@ from disco_cli.poses.revisits import gt_pairs, gt_pairs_within, nearest_distance
 from disco_cli.poses.scans import (
     POSE_FORMATS,
     PoseReport,
+    ScanPoser,
+    calib_arg,
+    find_pose_file,
     guess_poses_format,
     poses_for_scans,
     read_extrinsic,
@@ -44,7 +47,10 @@ from disco_cli.poses.scans import (
 __all__ = [
     "POSE_FORMATS",
     "PoseReport",
+    "ScanPoser",
+    "calib_arg",
     "default_max_gap",
+    "find_pose_file",
     "gt_pairs",
     "gt_pairs_within",
     "guess_poses_format",

@@ -32,6 +32,9 @@ from disco_cli.errors import PoseFileError
 __all__ = [
     "POSE_FORMATS",
     "PoseReport",
+    "ScanPoser",
+    "calib_arg",
+    "find_pose_file",
     "guess_poses_format",
     "poses_for_scans",
     "read_extrinsic",
@@ -325,6 +328,92 @@ def _kitti_rows(names: list[str], n_rows: int, source: str) -> np.ndarray:
     return rows
 
 
+class ScanPoser:
+    """A pose file read once, giving poses to lists of scans (see `poses_for_scans`)."""
+
+    def __init__(
+        self,
+        poses_file: str | Path,
+        poses_format: str | None = None,
+        calib: str | Path | np.ndarray | None = "auto",
+        extrinsic: np.ndarray | str | Path | None = None,
+        max_time_gap: float | None = None,
+    ):
+        from disco_cli.poses.interpolate import default_max_gap
+
+        self.source = str(poses_file)
+        # Interpolation happens in the pose file's own frame (the body's motion), and the
+        # calibration is applied afterwards: the LiDAR rides on the body.
+        raw = _read_raw(poses_file, poses_format, calib, extrinsic)
+        self.keys, self._T, self.format, self._left, self._right, self.frame = raw
+        self.by_frame = self.format == "kitti"
+        self.max_time_gap = (
+            None
+            if self.by_frame
+            else (default_max_gap(self.keys) if max_time_gap is None else float(max_time_gap))
+        )
+
+    def __len__(self) -> int:
+        return len(self._T)
+
+    def poses(
+        self, scans: Sequence[str | Path] | np.ndarray, times: np.ndarray | None = None
+    ) -> tuple[np.ndarray, PoseReport]:
+        """LiDAR poses `[N, 4, 4]` of the scans (NaN for none) and the report."""
+        from disco_cli.poses.interpolate import EXACT_S, interpolate_poses
+
+        keys, T, fmt, source = self.keys, self._T, self.format, self.source
+        by_time = isinstance(scans, np.ndarray) and scans.dtype.kind in "fiu"
+        names = [] if by_time else [str(s) for s in scans]
+        n = len(scans)
+        out = np.full((n, 4, 4), np.nan)
+
+        if self.by_frame and times is None and not by_time:
+            rows = _kitti_rows(names, len(T), source)
+            ok = rows >= 0
+            out[ok] = _apply(T[rows[ok]], self._left, self._right)
+            missing = np.flatnonzero(~ok)
+            report = PoseReport(
+                source, fmt, n, int(ok.sum()), int(ok.sum()), 0, len(missing),
+                tuple(names[i] for i in missing[:3]), None, self.frame,
+            )  # fmt: skip
+            return out, report
+
+        if times is not None:
+            t = np.asarray(times, dtype=np.float64).reshape(-1)
+            if len(t) != n:
+                raise PoseFileError(f"{len(t)} times for {n} scans")
+        elif by_time:
+            t = np.asarray(scans, dtype=np.float64)
+        else:
+            t = scan_times(names, fmt)
+            if n and np.isnan(t).all():
+                raise PoseFileError(
+                    f"{source}: {fmt} poses are matched by time, and the scan names "
+                    f"(e.g. {Path(names[0]).name}) hold no time; name scans by their stamp "
+                    "or give their times"
+                )
+        gap = self.max_time_gap
+        known = np.isfinite(t)
+        tt = np.where(known, t, 0.0)
+        poses, found = interpolate_poses(keys, T, tt, gap)
+        found &= known
+        out[found] = _apply(poses[found], self._left, self._right)
+        # Exact: a pose stamp within EXACT_S of the scan's time (else interpolated).
+        sorted_keys = np.sort(keys)
+        hi = np.clip(np.searchsorted(sorted_keys, tt), 0, len(keys) - 1)
+        lo = np.clip(hi - 1, 0, len(keys) - 1)
+        dist = np.minimum(np.abs(sorted_keys[hi] - tt), np.abs(sorted_keys[lo] - tt))
+        exact = found & (dist <= EXACT_S)
+        missing = np.flatnonzero(~found)
+        label = (lambda i: names[i]) if names else (lambda i: f"t={t[i]:.6f}")
+        report = PoseReport(
+            source, fmt, n, int(found.sum()), int(exact.sum()), int(found.sum() - exact.sum()),
+            len(missing), tuple(label(i) for i in missing[:3]), gap, self.frame,
+        )  # fmt: skip
+        return out, report
+
+
 def poses_for_scans(
     scans: Sequence[str | Path] | np.ndarray,
     poses_file: str | Path,
@@ -343,58 +432,33 @@ def poses_for_scans(
     may be from a scan's time to be used (exact matches always are); default three
     median periods of the pose file. Frame-numbered KITTI poses ignore times.
     """
-    from disco_cli.poses.interpolate import EXACT_S, default_max_gap, interpolate_poses
+    poser = ScanPoser(poses_file, poses_format, calib, extrinsic, max_time_gap)
+    return poser.poses(scans, times)
 
-    # Interpolation happens in the pose file's own frame (the body's motion), and the
-    # calibration is applied afterwards: the LiDAR rides on the body.
-    keys, T, fmt, left, right, frame = _read_raw(poses_file, poses_format, calib, extrinsic)
-    source = str(poses_file)
-    by_time = isinstance(scans, np.ndarray) and scans.dtype.kind in "fiu"
-    names = [] if by_time else [str(s) for s in scans]
-    n = len(scans)
-    out = np.full((n, 4, 4), np.nan)
 
-    if fmt == "kitti" and times is None and not by_time:
-        rows = _kitti_rows(names, len(T), source)
-        ok = rows >= 0
-        out[ok] = _apply(T[rows[ok]], left, right)
-        missing = np.flatnonzero(~ok)
-        report = PoseReport(
-            source, fmt, n, int(ok.sum()), int(ok.sum()), 0, len(missing),
-            tuple(names[i] for i in missing[:3]), None, frame,
-        )  # fmt: skip
-        return out, report
+# The pose files a scan folder may hold beside its scans, in the order they are looked for.
+_BESIDE = ("poses.txt", "global_pose.csv", "groundtruth_*.csv", "pointcloud_locations_20m.csv")
 
-    if times is not None:
-        t = np.asarray(times, dtype=np.float64).reshape(-1)
-        if len(t) != n:
-            raise PoseFileError(f"{len(t)} times for {n} scans")
-    elif by_time:
-        t = np.asarray(scans, dtype=np.float64)
-    else:
-        t = scan_times(names, fmt)
-        if n and np.isnan(t).all():
-            raise PoseFileError(
-                f"{source}: {fmt} poses are matched by time, and the scan names "
-                f"(e.g. {Path(names[0]).name}) hold no time; name scans by their stamp "
-                "or give their times"
-            )
-    gap = default_max_gap(keys) if max_time_gap is None else float(max_time_gap)
-    known = np.isfinite(t)
-    poses, found = interpolate_poses(keys, T, np.where(known, t, 0.0), gap)
-    found &= known
-    out[found] = _apply(poses[found], left, right)
-    # Exact: a pose stamp within EXACT_S of the scan's time (else interpolated).
-    sorted_keys = np.sort(keys)
-    tt = np.where(known, t, 0.0)
-    hi = np.clip(np.searchsorted(sorted_keys, tt), 0, len(keys) - 1)
-    lo = np.clip(hi - 1, 0, len(keys) - 1)
-    dist = np.minimum(np.abs(sorted_keys[hi] - tt), np.abs(sorted_keys[lo] - tt))
-    exact = found & (dist <= EXACT_S)
-    missing = np.flatnonzero(~found)
-    label = (lambda i: names[i]) if names else (lambda i: f"t={t[i]:.6f}")
-    report = PoseReport(
-        source, fmt, n, int(found.sum()), int(exact.sum()), int(found.sum() - exact.sum()),
-        len(missing), tuple(label(i) for i in missing[:3]), gap, frame,
-    )  # fmt: skip
-    return out, report
+
+def find_pose_file(folder: str | Path) -> Path | None:
+    """The pose file in a scan folder: `poses.txt` (KITTI, KITTI-360), `global_pose.csv`
+    (MulRan), `groundtruth_*.csv` (NCLT) or `pointcloud_locations_20m.csv` (Oxford);
+    None when there is none. `PoseFileError` when a pattern matches several files."""
+    folder = Path(folder)
+    for pattern in _BESIDE:
+        found = sorted(p for p in folder.glob(pattern) if p.is_file())
+        if len(found) > 1:
+            names = ", ".join(p.name for p in found)
+            raise PoseFileError(f"{folder}: several pose files ({names}); pass --poses")
+        if found:
+            return found[0]
+    return None
+
+
+def calib_arg(value: str | Path | None) -> str | Path:
+    """A command's `--calib` value: None -> "auto", "none" -> "none", else the path."""
+    if value is None:
+        return "auto"
+    if str(value).lower() in ("none", "auto"):
+        return str(value).lower()
+    return Path(value)
