@@ -13,7 +13,17 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
-from disco_cli.commands.options import DeviceOpt, RerankOpt, ScanFormatOpt, apply_rerank
+from disco_cli.commands.options import (
+    CalibOpt,
+    DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
+    PosesFormatOpt,
+    RerankOpt,
+    ScanFormatOpt,
+    apply_rerank,
+    pose_options,
+)
 from disco_cli.console import OutputFormat, handle_errors
 
 if TYPE_CHECKING:
@@ -36,13 +46,18 @@ def _scan_paths(inputs: list[Path], scan_format: str | None) -> list[Path]:
     return paths
 
 
-def _auto_file(inputs: list[Path], given: Path | None, name: str) -> Path | None:
-    """`given`, else NAME beside the scans when a single folder was given (KITTI layout)."""
+def _auto_file(inputs: list[Path], given: Path | None, name: str | None = None) -> Path | None:
+    """`given`, else NAME (default: the pose file, `disco_cli.poses.find_pose_file`) beside
+    the scans when a single folder was given."""
     if given is not None:
         return given
-    if len(inputs) == 1 and inputs[0].is_dir() and (inputs[0] / name).is_file():
-        return inputs[0] / name
-    return None
+    if len(inputs) != 1 or not inputs[0].is_dir():
+        return None
+    if name is None:
+        from disco_cli.poses import find_pose_file
+
+        return find_pose_file(inputs[0])
+    return inputs[0] / name if (inputs[0] / name).is_file() else None
 
 
 def embed_scans(
@@ -69,14 +84,24 @@ def embed_scans(
     return np.concatenate(sigs), np.concatenate(feats)
 
 
-def _load_poses(path: Path, calib: Path | None, count: int, what: str) -> np.ndarray:
-    from disco_cli.errors import PoseFileError
-    from disco_cli.poses import read_kitti_poses
+def _load_poses(
+    paths: list[Path], poses_file: Path, pose_opts: dict
+) -> tuple[list[Path], np.ndarray]:
+    """The scans that have a pose and their LiDAR poses (`disco_cli.poses.ScanPoser`);
+    the others are named in one warning and left out of the evaluation."""
+    import numpy as np
 
-    poses = read_kitti_poses(path, calib)
-    if len(poses) != count:
-        raise PoseFileError(f"{path}: {len(poses)} poses for {count} {what}")
-    return poses
+    from disco_cli.console import warn
+    from disco_cli.errors import PoseFileError
+    from disco_cli.poses import ScanPoser
+
+    T, report = ScanPoser(poses_file, **pose_opts).poses(paths)
+    if report.warning():
+        warn(report.warning() + " and left out of the evaluation")
+    keep = np.isfinite(T[:, 0, 3])
+    if not keep.any():
+        raise PoseFileError(f"{poses_file}: none of the {len(paths)} scans has a pose")
+    return [p for p, k in zip(paths, keep) if k], T[keep]
 
 
 def _model_for(db: Any, name: str | None, device: str) -> Any:
@@ -110,12 +135,6 @@ def _report_and_print(
 
 
 # Options shared by both commands.
-CalibOpt = Annotated[
-    Optional[Path],
-    typer.Option(
-        "--calib", help="KITTI calib.txt: camera poses -> LiDAR poses.", rich_help_panel=PANEL_INPUT
-    ),
-]
 RadiusOpt = Annotated[
     float,
     typer.Option(
@@ -161,11 +180,14 @@ def evaluate(
         Optional[Path],
         typer.Option(
             "--query-poses",
-            help="KITTI poses of the queries; default: poses.txt in a single query folder.",
+            help="Poses of the queries; default: the pose file in a single query folder.",
             rich_help_panel=PANEL_INPUT,
         ),
     ] = None,
+    poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     scan_format: ScanFormatOpt = None,
     model_name: Annotated[
         Optional[str],
@@ -202,10 +224,11 @@ def evaluate(
     from disco_cli.search import SignatureIndex, match_queries, rerank_depth
 
     paths = _scan_paths(queries, scan_format)
-    poses_file = _auto_file(queries, query_poses, "poses.txt")
+    poses_file = _auto_file(queries, query_poses)
     if poses_file is None:
         raise PoseFileError("no query poses: give --query-poses FILE (or a folder with poses.txt)")
-    q_poses = _load_poses(poses_file, calib, len(paths), "query scans")
+    opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
+    paths, q_poses = _load_poses(paths, poses_file, opts)
     with Database.open(db_path) as db:
         model = _model_for(db, model_name, device)
         apply_rerank(model, rerank)
@@ -262,11 +285,14 @@ def evaluate_loops(
         Optional[Path],
         typer.Option(
             "--poses",
-            help="KITTI poses; default: poses.txt in the folder.",
+            help="Poses; default: the pose file in the folder.",
             rich_help_panel=PANEL_INPUT,
         ),
     ] = None,
+    poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     times: Annotated[
         Optional[Path],
         typer.Option(
@@ -315,16 +341,19 @@ def evaluate_loops(
     from disco_cli.errors import DiscoError, PoseFileError
     from disco_cli.evaluation.metrics import loop_evaluation, within_radius
     from disco_cli.model import load_model
+    from disco_cli.pipeline import frame_rows
     from disco_cli.poses import read_times, relative_yaw_deg
     from disco_cli.search import SignatureIndex, match_queries, rerank_depth
 
     if exclude_seconds is not None and exclude_frames is not None:
         raise DiscoError("give --exclude-seconds or --exclude-frames, not both")
     paths = _scan_paths(sequence, scan_format)
-    poses_file = _auto_file(sequence, poses, "poses.txt")
+    poses_file = _auto_file(sequence, poses)
     if poses_file is None:
         raise PoseFileError("no poses: give --poses FILE (or a folder with poses.txt)")
-    T = _load_poses(poses_file, calib, len(paths), "scans")
+    all_paths = paths
+    opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
+    paths, T = _load_poses(paths, poses_file, opts)
     n = len(paths)
     if exclude_frames is not None:
         # Scan i searches scans 0 .. i - N.
@@ -336,8 +365,10 @@ def evaluate_loops(
         if times_file is None:
             raise PoseFileError("no times: give --times FILE or use --exclude-frames N")
         t = read_times(times_file)
-        if len(t) != n:
-            raise PoseFileError(f"{times_file}: {len(t)} times for {n} scans")
+        # One row per scan, or by frame number (the KITTI rule), for the scans with a pose.
+        t = t[frame_rows(list(map(str, all_paths)), len(t), str(times_file))]
+        kept = set(paths)
+        t = t[[p in kept for p in all_paths]]
         if np.any(np.diff(t) < 0):
             raise PoseFileError(f"{times_file}: times go backwards")
         limit = np.searchsorted(t, t - seconds, side="right")
