@@ -19,6 +19,7 @@ from disco_cli.commands.options import (
     ExtrinsicOpt,
     MaxTimeGapOpt,
     PosesFormatOpt,
+    ProtocolOpt,
     RerankOpt,
     ScanFormatOpt,
     apply_rerank,
@@ -134,6 +135,26 @@ def _report_and_print(
     print_metrics(ev.metrics, fmt, title=f"{run.get('protocol')}: {run.get('model')}")
 
 
+def _run_protocol(
+    name: str, inputs: list[Path], model_name: str | None, device: str, rerank: Any, fmt: Any
+) -> None:
+    """`eval --protocol NAME ROOT`: the paper's sessions and thresholds (disco_cli.protocols),
+    printed in the layout of its table."""
+    from disco_cli.console import RowWriter, stderr, warn
+    from disco_cli.errors import DiscoError
+    from disco_cli.model import load_model
+    from disco_cli.protocols import TABLE_COLUMNS, run_protocol, table_rows
+
+    if len(inputs) != 1:
+        raise DiscoError("--protocol takes one dataset folder")
+    model = load_model(model_name or "default", device=device)
+    apply_rerank(model, rerank)
+    say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
+    proto, results = run_protocol(name, inputs[0], model, warn=warn, progress=say)
+    rows = table_rows(proto, results, approach=f"disco ({model.name})")
+    RowWriter(TABLE_COLUMNS, fmt, digits=2).write(rows, title=f"{proto.dataset}: {model.name}")
+
+
 # Options shared by both commands.
 RadiusOpt = Annotated[
     float,
@@ -167,15 +188,18 @@ def evaluate(
     queries: Annotated[
         list[Path],
         typer.Argument(
-            help="Query scans: files or folders (velodyne/ layout).", show_default=False
+            help="Query scans: files or folders (velodyne/ layout); with --protocol, the "
+            "dataset folder.",
+            show_default=False,
         ),
     ],
     db_path: Annotated[
-        Path,
+        Optional[Path],
         typer.Option(
             "--db", help="Map database of another session, with poses.", rich_help_panel=PANEL_INPUT
         ),
-    ],
+    ] = None,
+    protocol: ProtocolOpt = None,
     query_poses: Annotated[
         Optional[Path],
         typer.Option(
@@ -223,6 +247,10 @@ def evaluate(
     from disco_cli.poses import xy_yaw
     from disco_cli.search import SignatureIndex, match_queries, rerank_depth
 
+    if protocol is not None:
+        return _run_protocol(protocol, queries, model_name, device, rerank, fmt)
+    if db_path is None:
+        raise PoseFileError("give --db map.db (or --protocol NAME DATASET_FOLDER)")
     paths = _scan_paths(queries, scan_format)
     poses_file = _auto_file(queries, query_poses)
     if poses_file is None:

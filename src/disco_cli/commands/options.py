@@ -120,3 +120,14 @@ def pose_options(
         "extrinsic": extrinsic,
         "max_time_gap": max_time_gap,
     }
+
+
+ProtocolOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--protocol",
+        help="The DiSCO paper's protocol on a dataset folder: nclt, mulran or oxford "
+        "(docs/datasets.md).",
+        rich_help_panel="Protocol",
+    ),
+]
