@@ -53,6 +53,18 @@ class TrainData:
         return self.bevs[idx].astype(np.float32)
 
 
+def _is_session(folder: Path) -> bool:
+    """A dataset session folder: a pose file beside scans (NCLT velodyne_sync/, MulRan
+    sensor_data/Ouster/, ...)."""
+    from disco_cli.poses import find_pose_file
+    from disco_cli.readers import list_scans
+
+    try:
+        return find_pose_file(folder) is not None and bool(list_scans(folder))
+    except DiscoError:
+        return False
+
+
 def expand_sequences(paths: list[Path]) -> list[Path]:
     """Sequence folders: each path itself if it holds velodyne/, else its subfolders that do."""
     out: list[Path] = []
@@ -60,10 +72,12 @@ def expand_sequences(paths: list[Path]) -> list[Path]:
         p = Path(p)
         if not p.is_dir():
             raise DiscoError(f"{p}: not a folder")
-        if (p / "velodyne").is_dir():
+        if (p / "velodyne").is_dir() or _is_session(p):
             out.append(p)
             continue
-        subs = sorted(d for d in p.iterdir() if (d / "velodyne").is_dir())
+        subs = sorted(
+            d for d in p.iterdir() if d.is_dir() and ((d / "velodyne").is_dir() or _is_session(d))
+        )
         if not subs:
             raise DiscoError(f"{p}: no velodyne/ folder in it or in its subfolders")
         out.extend(subs)
@@ -142,8 +156,12 @@ def load_training_data(
     seed: int = 0,
     threads: int = 0,
     on_progress: Callable[[int, int], None] | None = None,
+    turn_x180: bool = False,
 ) -> TrainData:
-    """Read, voxelize and index every sequence (see the module docstring)."""
+    """Read, voxelize and index every sequence (see the module docstring).
+
+    `turn_x180` turns scans and poses 180 degrees about x, for sensors whose z axis points
+    down (NCLT; see `disco_cli.protocols`)."""
     from disco_cli.bev import polar_bev_batch
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import list_scans, read_scan
@@ -163,6 +181,9 @@ def load_training_data(
             groups[str(seq)] = gid
         else:
             poses = _read_poses(seq, scans)
+            if turn_x180:
+                flip = np.diag([1.0, -1.0, -1.0, 1.0])
+                poses = flip @ poses @ flip
             has = np.isfinite(poses[:, 0, 3])
             scans, poses = [s for s, h in zip(scans, has) if h], poses[has]
             if not scans:
@@ -182,6 +203,8 @@ def load_training_data(
         for start in range(0, len(scans), _CHUNK):
             batch = scans[start : start + _CHUNK]
             clouds = [read_scan(p) for p in batch]
+            if turn_x180:
+                clouds = [c * np.array([1, -1, -1, 1], np.float32) for c in clouds]
             n = len(clouds)
             rows = np.arange(row, row + n)
             meta_xy = [xy[start : start + n]]
