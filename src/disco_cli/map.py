@@ -109,6 +109,7 @@ class Map:
         self._closed = False
         self._snapshot: tuple[np.ndarray, Any] | None = None  # ids, SignatureIndex
         self._xy: np.ndarray | None = None  # stored x, y of the snapshot's scans
+        self._real: np.ndarray | None = None  # their files' real paths
         self._points = PointCache(self._read_match, size=32)
         self._missing: set[str] = set()
         self.scan_root: str | Path | None = None
@@ -198,9 +199,10 @@ class Map:
         self._check_open()
         return [] if self._db is None else self._db.paths()
 
-    def near(self, xy: Any, radius: float) -> np.ndarray:
+    def near(self, xy: Any, radius: float, path: str | None = None) -> np.ndarray:
         """Ids of the scans whose stored pose is within `radius` m of `xy` (x, y, or a
-        4 x 4 pose); scans without a pose are never near."""
+        4 x 4 pose; NaN: none), and of the stored scan of the file `path` itself when
+        given (a query that is in the map); scans without a pose are never near."""
         self._check_open()
         if self._db is None:
             return np.empty(0, np.int64)
@@ -212,7 +214,12 @@ class Map:
             self._xy = self._db.poses()[0][: len(ids), :2]
         stored = self._xy
         d = np.hypot(stored[:, 0] - xy[0], stored[:, 1] - xy[1])
-        return ids[d <= radius]  # unknown stored poses give NaN: never near
+        near = d <= radius  # unknown poses give NaN: never near
+        if path is not None:
+            if self._real is None or len(self._real) != len(ids):
+                self._real = np.array([os.path.realpath(p) for p in self.names()[: len(ids)]])
+            near |= self._real == os.path.realpath(path)
+        return ids[near]
 
     def stored(self, names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """`(found [N] bool, signatures [N, D], features [N, ...])` of the scan files

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import warnings
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -36,7 +37,7 @@ __all__ = [
     "scan_paths",
     "file_beside",
     "sequence_times",
-    "pose_lookup",
+    "QueryPoses",
     "collect_scans",
 ]
 
@@ -294,13 +295,18 @@ def scan_paths(inputs: list[Any], scan_format: str | None = None) -> list[Path]:
     return paths
 
 
-def file_beside(inputs: list[Path], given: Path | None, name: str) -> Path | None:
-    """`given`, else NAME beside the scans when a single folder was given (KITTI layout)."""
+def file_beside(inputs: list[Path], given: Path | None, name: str | None = None) -> Path | None:
+    """`given`, else NAME (default: the pose file, `disco_cli.poses.find_pose_file`) beside
+    the scans when a single folder was given."""
     if given is not None:
         return given
-    if len(inputs) == 1 and inputs[0].is_dir() and (inputs[0] / name).is_file():
-        return inputs[0] / name
-    return None
+    if len(inputs) != 1 or not inputs[0].is_dir():
+        return None
+    if name is None:
+        from disco_cli.poses import find_pose_file
+
+        return find_pose_file(inputs[0])
+    return inputs[0] / name if (inputs[0] / name).is_file() else None
 
 
 def sequence_times(folder: Any, paths: list[str], times_file: Any = None) -> np.ndarray | None:
@@ -318,24 +324,37 @@ def sequence_times(folder: Any, paths: list[str], times_file: Any = None) -> np.
     return t[frame_rows(paths, len(t), str(times_file))]
 
 
-def pose_lookup(poses_file: Any, calib: Any, n_scans: int | None) -> Any:
-    """`pose_of(index, path) -> [4]` x, y, z, yaw of the index-th scan given: row i of a
-    KITTI pose file when it has one row per scan (`n_scans`, None when unknown, as for
-    stdin), else the row of the frame number in the scan's name."""
-    from disco_cli.errors import PoseFileError
-    from disco_cli.poses import read_kitti_poses
+class QueryPoses:
+    """The pose rows (x, y, z, yaw; NaN when unknown) of query scans from a pose file
+    (`disco_cli.poses.ScanPoser`): for scans known up front (`paths`) KITTI's "row i for
+    scan i" applies when their count is the file's; scans streamed (stdin) go one by one,
+    by frame number or time. `missing` counts the queries without a pose; `warn` hears of
+    them (once when streamed)."""
 
-    rows = pose_rows(read_kitti_poses(poses_file, calib))
+    def __init__(self, poses_file: Any, pose_opts: dict, paths: list[str] | None, warn: Any):
+        from disco_cli.poses import ScanPoser
 
-    def pose_of(index: int, path: str) -> np.ndarray:
-        if n_scans is not None and n_scans == len(rows):
-            return rows[index]
-        row = int(frame_rows([path], len(rows), str(poses_file))[0])
-        if row >= len(rows):
-            raise PoseFileError(f"{poses_file}: no pose for query {path}")
-        return rows[row]
+        self.poser = ScanPoser(poses_file, **pose_opts)
+        self.warn = warn
+        self.missing = 0
+        self.rows = None
+        if paths is not None:
+            T, report = self.poser.poses(list(paths))
+            self.rows = pose_rows(T)
+            if report.warning():
+                warn(report.warning())
 
-    return pose_of
+    def __call__(self, index: int, path: str) -> np.ndarray:
+        if self.rows is not None:
+            row = self.rows[index]
+        else:
+            T, report = self.poser.poses([path])
+            row = pose_rows(T)[0]
+            if report.missing and not self.missing:
+                self.warn(report.warning())
+        if not np.isfinite(row[:2]).all():
+            self.missing += 1
+        return row
 
 
 def pose_rows(T: np.ndarray) -> np.ndarray:
@@ -372,29 +391,46 @@ class ScanList:
     paths: list[str]
     poses: np.ndarray  # [N, 4] x, y, z, yaw
     times: np.ndarray  # [N]
+    no_pose: int = 0  # scans a pose file was given for that got no pose
 
 
 def collect_scans(
     inputs: list[str],
     poses_file: Path | None,
     times_file: Path | None,
-    calib: Path | None,
+    calib: str | None,
     scan_format: str | None = None,
+    pose_opts: dict | None = None,
+    warn: Any = None,
 ) -> ScanList:
     """Expand folders, files and `-` (stdin) into one list of scans.
 
-    A folder with `poses.txt` / `times.txt` (and `calib.txt`) beside its scans brings
-    them along unless `--poses` / `--times` are given; those cover all scans in order.
+    A folder with a pose file (`disco_cli.poses.find_pose_file`) and `times.txt` beside
+    its scans brings them along unless `--poses` / `--times` are given; those cover all
+    scans. Poses come from `disco_cli.poses.ScanPoser`; scans left without one are
+    named in one `warn` per pose file and counted in `ScanList.no_pose`.
     """
     import numpy as np
 
-    from disco_cli.poses import read_kitti_poses, read_times
+    from disco_cli.poses import ScanPoser, find_pose_file, read_times
     from disco_cli.readers import list_scans
 
+    opts = dict(pose_opts or {})
+    opts.setdefault("calib", "auto" if calib is None else calib)
     paths: list[str] = []
     poses: list[np.ndarray] = []
     times: list[np.ndarray] = []
     seen: set[str] = set()
+    no_pose = 0
+
+    def lidar_rows(group: list[str], pose_file: Path) -> np.ndarray:
+        nonlocal no_pose
+        T, report = ScanPoser(pose_file, **opts).poses(group)
+        if report.warning():
+            (warn or warnings.warn)(report.warning())
+        no_pose += report.missing
+        return pose_rows(T)
+
     for item in inputs:
         if item == "-":
             group = list(stdin_paths())
@@ -406,11 +442,9 @@ def collect_scans(
         p_rows, t_rows = np.full((n, 4), np.nan), np.full(n, np.nan)
         folder = Path(item)
         if item != "-" and folder.is_dir() and group:
-            if poses_file is None and (folder / "poses.txt").is_file():
-                beside = folder / "calib.txt"
-                auto_calib = calib or (beside if beside.is_file() else None)
-                T = read_kitti_poses(folder / "poses.txt", auto_calib)
-                p_rows = pose_rows(T)[frame_rows(group, len(T), str(folder / "poses.txt"))]
+            beside = find_pose_file(folder) if poses_file is None else None
+            if beside is not None:
+                p_rows = lidar_rows(group, beside)
             if times_file is None and (folder / "times.txt").is_file():
                 t = read_times(folder / "times.txt")
                 t_rows = t[frame_rows(group, len(t), str(folder / "times.txt"))]
@@ -420,9 +454,8 @@ def collect_scans(
     all_poses = np.concatenate(poses) if poses else np.empty((0, 4))
     all_times = np.concatenate(times) if times else np.empty(0)
     if poses_file is not None:
-        T = read_kitti_poses(poses_file, calib)
-        all_poses = pose_rows(T)[frame_rows(paths, len(T), str(poses_file))]
+        all_poses = lidar_rows(paths, poses_file)
     if times_file is not None:
         t = read_times(times_file)
         all_times = t[frame_rows(paths, len(t), str(times_file))]
-    return ScanList(paths, all_poses, all_times)
+    return ScanList(paths, all_poses, all_times, no_pose)

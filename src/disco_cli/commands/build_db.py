@@ -15,13 +15,19 @@ from typing import Annotated, Optional
 import typer
 
 from disco_cli.commands.options import (
+    PANEL_POSES,
     PANEL_RUN,
+    CalibOpt,
     DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
+    PosesFormatOpt,
     ScanFormatOpt,
     WorkersOpt,
     model_option,
     opt,
     output_option,
+    pose_options,
 )
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
@@ -48,17 +54,15 @@ def build_db(
         Optional[Path],
         opt(
             "--poses",
-            panel=PANEL_IN,
-            help="KITTI poses (3 x 4 per line) of all scans, in "
-            "order; default: poses.txt beside each folder's scans.",
+            panel=PANEL_POSES,
+            help="Poses of all scans (KITTI by frame, or by time: --poses-format); "
+            "default: the pose file beside each folder's scans.",
         ),
-    ] = None,  # fmt: skip
-    calib: Annotated[
-        Optional[Path],
-        opt(
-            "--calib", help="KITTI calib.txt: turns camera poses into LiDAR poses.", panel=PANEL_IN
-        ),
-    ] = None,  # fmt: skip
+    ] = None,
+    poses_format: PosesFormatOpt = None,
+    calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     times: Annotated[
         Optional[Path],
         opt(
@@ -104,7 +108,8 @@ def build_db(
 
     check_device(device)
     fmt = scan_format.value if scan_format is not None else None
-    scans = collect_scans(inputs, poses, times, calib, fmt)
+    pose_opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
+    scans = collect_scans(inputs, poses, times, calib, fmt, pose_opts, warn)
     if not scans.paths:
         raise fail("no scans given")
     absolute = {os.path.abspath(p) for p in scans.paths}
@@ -157,6 +162,8 @@ def build_db(
     msg = f"{output}: wrote {result.written} scans in {elapsed:.1f} s ({rate:.1f} scans/s)"
     if result.already:
         msg += f", {result.already} were in it already"
+    if scans.no_pose:
+        msg += f", {scans.no_pose} without a pose"
     stderr.print(msg)
     if result.bad:
         warn(f"{len(result.bad)} unreadable scans skipped")

@@ -15,7 +15,6 @@ import typer
 from disco_cli.commands.evaluate import (
     PANEL_INPUT,
     PANEL_PROTOCOL,
-    CalibOpt,
     FormatOpt,
     RadiusOpt,
     ReportOpt,
@@ -23,12 +22,17 @@ from disco_cli.commands.evaluate import (
     _report_and_print,
 )
 from disco_cli.commands.options import (
+    CalibOpt,
     DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
+    PosesFormatOpt,
     RerankOpt,
     ScanFormatOpt,
     apply_rerank,
     model_option,
     opt,
+    pose_options,
 )
 from disco_cli.console import handle_errors
 
@@ -44,9 +48,12 @@ def evaluate_loops(
     ],
     poses: Annotated[
         Optional[Path],
-        opt("--poses", help="KITTI poses; default: poses.txt in the folder.", panel=PANEL_INPUT),
+        opt("--poses", help="Poses; default: the pose file in the folder.", panel=PANEL_INPUT),
     ] = None,
+    poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     times: Annotated[
         Optional[Path],
         opt(
@@ -87,30 +94,32 @@ def evaluate_loops(
     """Loop closure along one sequence: precision-recall, F1max, recall at 100% precision."""
     import numpy as np
 
+    from disco_cli.console import warn
     from disco_cli.errors import DiscoError, PoseFileError
-    from disco_cli.evaluation.protocols import exclusion_limits, loop_closure
+    from disco_cli.evaluation.protocols import exclusion_limits, loop_closure, posed_scans
     from disco_cli.model import load_model
-    from disco_cli.pipeline import file_beside, scan_paths
-    from disco_cli.poses import read_kitti_poses, read_times
+    from disco_cli.pipeline import file_beside, frame_rows, scan_paths
+    from disco_cli.poses import read_times
     from disco_cli.search import rerank_depth
 
     if exclude_seconds is not None and exclude_frames is not None:
         raise DiscoError("give --exclude-seconds or --exclude-frames, not both")
-    paths = scan_paths(sequence, scan_format)
-    poses_file = file_beside(sequence, poses, "poses.txt")
+    all_paths = scan_paths(sequence, scan_format)
+    poses_file = file_beside(sequence, poses)
     if poses_file is None:
         raise PoseFileError("no poses: give --poses FILE (or a folder with poses.txt)")
-    T = read_kitti_poses(poses_file, calib)
-    if len(T) != len(paths):
-        raise PoseFileError(f"{poses_file}: {len(T)} poses for {len(paths)} scans")
+    opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
+    paths, T = posed_scans(all_paths, poses_file, opts, warn)
     t, seconds = None, 30.0 if exclude_seconds is None else exclude_seconds
     if exclude_frames is None:
         times_file = file_beside(sequence, times, "times.txt")
         if times_file is None:
             raise PoseFileError("no times: give --times FILE or use --exclude-frames N")
         t = read_times(times_file)
-        if len(t) != len(paths):
-            raise PoseFileError(f"{times_file}: {len(t)} times for {len(paths)} scans")
+        # One row per scan, or by frame number (the KITTI rule), for the scans with a pose.
+        t = t[frame_rows(list(map(str, all_paths)), len(t), str(times_file))]
+        kept = set(paths)
+        t = t[[p in kept for p in all_paths]]
         if np.any(np.diff(t) < 0):
             raise PoseFileError(f"{times_file}: times go backwards")
     limit = exclusion_limits(len(paths), exclude_frames, t, seconds)

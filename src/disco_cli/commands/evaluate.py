@@ -16,13 +16,19 @@ from typing import Annotated, Any, Optional
 import typer
 
 from disco_cli.commands.options import (
+    CalibOpt,
     DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
+    PosesFormatOpt,
+    ProtocolOpt,
     RerankOpt,
     ScanFormatOpt,
     apply_rerank,
     db_option,
     model_option,
     opt,
+    pose_options,
     topk_option,
 )
 from disco_cli.console import OutputFormat, handle_errors
@@ -42,6 +48,26 @@ def _bar(total: int) -> Iterator[Callable[[int], None]]:
         yield lambda k: bar.advance(task, k)
 
 
+def _run_protocol(
+    name: str, inputs: list[Path], model_name: str | None, device: str, rerank: Any, fmt: Any
+) -> None:
+    """`eval --protocol NAME ROOT`: the paper's sessions and thresholds (disco_cli.protocols),
+    printed in the layout of its table."""
+    from disco_cli.console import RowWriter, stderr, warn
+    from disco_cli.errors import DiscoError
+    from disco_cli.model import load_model
+    from disco_cli.protocols import TABLE_COLUMNS, run_protocol, table_rows
+
+    if len(inputs) != 1:
+        raise DiscoError("--protocol takes one dataset folder")
+    model = load_model(model_name or "default", device=device)
+    apply_rerank(model, rerank)
+    say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
+    proto, results = run_protocol(name, inputs[0], model, warn=warn, progress=say)
+    rows = table_rows(proto, results, approach=f"disco ({model.name})")
+    RowWriter(TABLE_COLUMNS, fmt, digits=2).write(rows, title=f"{proto.dataset}: {model.name}")
+
+
 def _report_and_print(
     ev: Any, run: dict[str, Any], report: Path | None, fmt: OutputFormat | None
 ) -> None:
@@ -55,10 +81,6 @@ def _report_and_print(
 
 
 # Options shared by both commands.
-CalibOpt = Annotated[
-    Optional[Path],
-    opt("--calib", help="KITTI calib.txt: camera poses -> LiDAR poses.", panel=PANEL_INPUT),
-]
 RadiusOpt = Annotated[
     float,
     opt("--radius", min=0.0, help="True match within this many metres.", panel=PANEL_PROTOCOL),
@@ -80,21 +102,27 @@ def evaluate(
     queries: Annotated[
         list[Path],
         typer.Argument(
-            help="Query scans: files or folders (velodyne/ layout).", show_default=False
+            help="Query scans: files or folders (velodyne/ layout); with --protocol, the "
+            "dataset folder.",
+            show_default=False,
         ),
     ],
     db_path: Annotated[
-        Path, db_option("Map database of another session, with poses.", panel=PANEL_INPUT)
-    ],
+        Optional[Path], db_option("Map database of another session, with poses.", panel=PANEL_INPUT)
+    ] = None,
+    protocol: ProtocolOpt = None,
     query_poses: Annotated[
         Optional[Path],
         opt(
             "--query-poses",
             panel=PANEL_INPUT,
-            help="KITTI poses of the queries; default: poses.txt in a single query folder.",
+            help="Poses of the queries; default: the pose file in a single query folder.",
         ),
-    ] = None,  # fmt: skip
+    ] = None,
+    poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     scan_format: ScanFormatOpt = None,
     model_name: Annotated[
         Optional[str],
@@ -111,20 +139,23 @@ def evaluate(
     fmt: FormatOpt = None,
 ) -> None:
     """Multi-session evaluation: Recall@N, Recall@1%, PR AUC, F1max, yaw error vs a database."""
+    from disco_cli.console import warn
     from disco_cli.errors import PoseFileError
-    from disco_cli.evaluation.protocols import multi_session
+    from disco_cli.evaluation.protocols import multi_session, posed_scans
     from disco_cli.map import Map
     from disco_cli.pipeline import file_beside, scan_paths
-    from disco_cli.poses import read_kitti_poses
     from disco_cli.search import rerank_depth
 
+    if protocol is not None:
+        return _run_protocol(protocol, queries, model_name, device, rerank, fmt)
+    if db_path is None:
+        raise PoseFileError("give --db map.db (or --protocol NAME DATASET_FOLDER)")
     paths = scan_paths(queries, scan_format)
-    poses_file = file_beside(queries, query_poses, "poses.txt")
+    poses_file = file_beside(queries, query_poses)
     if poses_file is None:
         raise PoseFileError("no query poses: give --query-poses FILE (or a folder with poses.txt)")
-    q_poses = read_kitti_poses(poses_file, calib)
-    if len(q_poses) != len(paths):
-        raise PoseFileError(f"{poses_file}: {len(q_poses)} poses for {len(paths)} query scans")
+    opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
+    paths, q_poses = posed_scans(paths, poses_file, opts, warn)
     with Map.open(db_path, model=model_name, device=device) as m, _bar(len(paths)) as step:
         apply_rerank(m.model, rerank)
         ev = multi_session(paths, q_poses, m.database, m.model, radius, topk, scan_format, step)

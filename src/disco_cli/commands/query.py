@@ -14,8 +14,12 @@ from typing import Annotated, Optional
 import typer
 
 from disco_cli.commands.options import (
+    CalibOpt,
     DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
     OutputFormatOpt,
+    PosesFormatOpt,
     RerankOpt,
     ScanFormatOpt,
     ScanRootOpt,
@@ -24,6 +28,7 @@ from disco_cli.commands.options import (
     db_option,
     model_option,
     opt,
+    pose_options,
     topk_option,
 )
 from disco_cli.console import error, fail, handle_errors, warn
@@ -62,14 +67,14 @@ def query(
         opt(
             "--query-poses",
             panel=PANEL_FILTER,
-            help="KITTI poses of the query scans: row i "
-            "for the i-th scan, or by frame number in the file name.",
+            help="Poses of the query scans (KITTI: row i for the i-th scan, or by frame number "
+            "in the file name; other formats by time).",
         ),
-    ] = None,  # fmt: skip
-    calib: Annotated[
-        Optional[Path],
-        opt("--calib", help="KITTI calib.txt for --query-poses.", panel=PANEL_FILTER),
     ] = None,
+    poses_format: PosesFormatOpt = None,
+    calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     max_distance: Annotated[
         Optional[float],
         opt(
@@ -113,7 +118,7 @@ def query(
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
     from disco_cli.map import Map
-    from disco_cli.pipeline import pose_lookup, stdin_paths
+    from disco_cli.pipeline import QueryPoses, stdin_paths
     from disco_cli.readers import list_scans
 
     if exclude_radius is not None and query_poses is None:
@@ -131,11 +136,12 @@ def query(
     with Map.open(db_path, model=model, device=device, scan_root=scan_root) as m:
         m.on_missing_scan = warn
         apply_rerank(m.model, rerank)
-        exclude = None
-        if exclude_radius is not None:
-            n_given = None if "-" in given else len(given)
-            pose_of = pose_lookup(query_poses, calib, n_given)
-            exclude = lambda i, path: m.near(pose_of(i, path)[:2], exclude_radius)  # noqa: E731
+        exclude, poses_of = None, None
+        if exclude_radius is not None:  # the query's own scan, and those near its pose
+            opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
+            known = None if "-" in given else given
+            poses_of = QueryPoses(query_poses, opts, known, warn=error)
+            exclude = lambda i, p: m.near(poses_of(i, p)[:2], exclude_radius, p)  # noqa: E731
         results = m.query_files(
             paths, topk=topk, pose=with_pose, exclude=exclude, max_distance=max_distance,
             workers=workers, scan_format=fmt_name,
@@ -157,5 +163,7 @@ def query(
                 row = {**mt.as_dict(), "query": res.name, "match": m.shown(mt.name)}
                 rows.append({k: row.get(k) for k in keys})
             writer.write(rows, title=res.name)
+    if poses_of is not None and poses_of.missing:
+        error(f"{poses_of.missing} queries had no pose: only their own scan was excluded")
     if failed:
         raise typer.Exit(1)

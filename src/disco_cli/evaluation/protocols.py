@@ -18,7 +18,23 @@ import numpy as np
 
 from disco_cli.errors import DatabaseError, PoseFileError
 
-__all__ = ["multi_session", "loop_closure", "exclusion_limits"]
+__all__ = ["multi_session", "loop_closure", "exclusion_limits", "posed_scans"]
+
+
+def posed_scans(
+    paths: list[Any], poses_file: Any, pose_opts: dict, warn: Callable[[str], None]
+) -> tuple[list[Any], np.ndarray]:
+    """The scans that have a pose and their LiDAR poses (`disco_cli.poses.ScanPoser`); the
+    others are named in one `warn` and left out of the evaluation."""
+    from disco_cli.poses import ScanPoser
+
+    T, report = ScanPoser(poses_file, **pose_opts).poses(paths)
+    if report.warning():
+        warn(report.warning() + " and left out of the evaluation")
+    keep = np.isfinite(T[:, 0, 3])
+    if not keep.any():
+        raise PoseFileError(f"{poses_file}: none of the {len(paths)} scans has a pose")
+    return [p for p, k in zip(paths, keep) if k], T[keep]
 
 
 def multi_session(

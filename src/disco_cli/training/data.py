@@ -53,6 +53,18 @@ class TrainData:
         return self.bevs[idx].astype(np.float32)
 
 
+def _is_session(folder: Path) -> bool:
+    """A dataset session folder: a pose file beside scans (NCLT velodyne_sync/, MulRan
+    sensor_data/Ouster/, ...)."""
+    from disco_cli.poses import find_pose_file
+    from disco_cli.readers import list_scans
+
+    try:
+        return find_pose_file(folder) is not None and bool(list_scans(folder))
+    except DiscoError:
+        return False
+
+
 def expand_sequences(paths: list[Path]) -> list[Path]:
     """Sequence folders: each path itself if it holds velodyne/, else its subfolders that do."""
     out: list[Path] = []
@@ -60,10 +72,12 @@ def expand_sequences(paths: list[Path]) -> list[Path]:
         p = Path(p)
         if not p.is_dir():
             raise DiscoError(f"{p}: not a folder")
-        if (p / "velodyne").is_dir():
+        if (p / "velodyne").is_dir() or _is_session(p):
             out.append(p)
             continue
-        subs = sorted(d for d in p.iterdir() if (d / "velodyne").is_dir())
+        subs = sorted(
+            d for d in p.iterdir() if d.is_dir() and ((d / "velodyne").is_dir() or _is_session(d))
+        )
         if not subs:
             raise DiscoError(f"{p}: no velodyne/ folder in it or in its subfolders")
         out.extend(subs)
@@ -77,16 +91,22 @@ def _compact(bevs: np.ndarray) -> np.ndarray:
     return bevs.astype(np.float16)
 
 
-def _read_poses(seq: Path) -> np.ndarray:
-    from disco_cli.poses import read_kitti_poses
+def _read_poses(seq: Path, scans: list[Path]) -> np.ndarray:
+    """LiDAR poses `[N, 4, 4]` of a sequence's scans from the pose file beside them
+    (`disco_cli.poses.poses_for_scans`; NaN for a scan without a pose, named in one warning)."""
+    from disco_cli.poses import find_pose_file, poses_for_scans
 
-    poses_file = seq / "poses.txt"
-    if not poses_file.is_file():
+    poses_file = find_pose_file(seq)
+    if poses_file is None:
         raise PoseFileError(
-            f"{poses_file}: missing (train with --self-supervised for data without poses)"
+            f"{seq / 'poses.txt'}: missing (train with --self-supervised for data without poses)"
         )
-    calib = seq / "calib.txt"
-    return read_kitti_poses(poses_file, calib if calib.is_file() else None)
+    T, report = poses_for_scans(scans, poses_file)
+    if report.warning():
+        from disco_cli.console import warn
+
+        warn(report.warning())
+    return T
 
 
 def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
@@ -136,8 +156,12 @@ def load_training_data(
     seed: int = 0,
     threads: int = 0,
     on_progress: Callable[[int, int], None] | None = None,
+    turn_x180: bool = False,
 ) -> TrainData:
-    """Read, voxelize and index every sequence (see the module docstring)."""
+    """Read, voxelize and index every sequence (see the module docstring).
+
+    `turn_x180` turns scans and poses 180 degrees about x, for sensors whose z axis points
+    down (NCLT; see `disco_cli.protocols`)."""
     from disco_cli.bev import polar_bev_batch
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import list_scans, read_scan
@@ -156,11 +180,14 @@ def load_training_data(
             gid = len(groups)
             groups[str(seq)] = gid
         else:
-            poses = _read_poses(seq)
-            if len(poses) != len(scans):
-                raise PoseFileError(
-                    f"{seq / 'poses.txt'}: {len(poses)} poses for {len(scans)} scans"
-                )
+            poses = _read_poses(seq, scans)
+            if turn_x180:
+                flip = np.diag([1.0, -1.0, -1.0, 1.0])
+                poses = flip @ poses @ flip
+            has = np.isfinite(poses[:, 0, 3])
+            scans, poses = [s for s, h in zip(scans, has) if h], poses[has]
+            if not scans:
+                raise PoseFileError(f"{seq}: no scan has a pose")
             x, y, yaw = xy_yaw(poses)
             xy = np.stack([x, y], axis=1)
             heading = np.degrees(yaw)
@@ -176,6 +203,8 @@ def load_training_data(
         for start in range(0, len(scans), _CHUNK):
             batch = scans[start : start + _CHUNK]
             clouds = [read_scan(p) for p in batch]
+            if turn_x180:
+                clouds = [c * np.array([1, -1, -1, 1], np.float32) for c in clouds]
             n = len(clouds)
             rows = np.arange(row, row + n)
             meta_xy = [xy[start : start + n]]
