@@ -38,6 +38,7 @@ __all__ = [
     "FormatName",
     "ScanFormat",
     "guess_format",
+    "is_bag",
     "is_bag_message",
     "list_scans",
     "natural_key",
@@ -102,8 +103,9 @@ BAG_FORMAT = "rosbag"
 _BAG_SUFFIXES = (".bag", ".mcap")
 
 
-def _is_bag(path: Path) -> bool:
+def is_bag(path: str | Path) -> bool:
     """A ROS 1 .bag, an .mcap file, or a ROS 2 bag folder (metadata.yaml + .db3/.mcap)."""
+    path = Path(path)
     if path.suffix.lower() in _BAG_SUFFIXES:
         return path.is_file()
     if path.is_dir() and (path / "metadata.yaml").is_file():
@@ -118,12 +120,12 @@ def is_bag_message(path: str | Path) -> bool:
         return False
     left = name.rpartition("@")[0]
     bag = left.rpartition("#")[0]
-    return bool(bag) and _is_bag(Path(bag)) and not Path(name).is_file()
+    return bool(bag) and is_bag(Path(bag)) and not Path(name).is_file()
 
 
 def guess_format(path: str | Path) -> str:
     """The format name of a scan file from its extension and folder."""
-    if is_bag_message(path) or _is_bag(Path(path)):
+    if is_bag_message(path) or is_bag(Path(path)):
         return BAG_FORMAT
     path = Path(path)
     ext = path.suffix.lower()
@@ -152,7 +154,7 @@ def read_scan(path: str | Path, format: str | None = None) -> np.ndarray:
 
         return read_message(str(path))
     path = Path(path)
-    if _is_bag(path):
+    if is_bag(path):
         raise ScanReadError(
             path, "a bag holds many scans: name one as BAG#TOPIC@STAMP_NS, or list them"
         )
@@ -189,7 +191,7 @@ def list_scans(path: str | Path, format: str | None = None, topic: str | None = 
     no scans, or when a folder mixes formats and none was given.
     """
     path = Path(path)
-    if _is_bag(path):
+    if is_bag(path):
         from disco_cli.readers.bags import list_messages
 
         return [Path(n) for n in list_messages(path, topic)]
@@ -212,7 +214,7 @@ def list_scans(path: str | Path, format: str | None = None, topic: str | None = 
     found = [p for p in path.iterdir() if p.suffix.lower() in extensions and _visible(p)]
     if not found and fmt is None:
         # A folder of bags (one per recording session): their messages, bag after bag.
-        bags = sorted((p for p in path.iterdir() if _is_bag(p)), key=natural_key)
+        bags = sorted((p for p in path.iterdir() if is_bag(p)), key=natural_key)
         if bags:
             return [s for bag in bags for s in list_scans(bag, topic=topic)]
     if not found:

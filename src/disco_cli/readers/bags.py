@@ -34,11 +34,9 @@ import numpy as np
 from disco_cli.errors import DiscoError, ScanReadError
 
 __all__ = [
-    "BAG_SUFFIXES",
     "POINTCLOUD2",
     "POSE_TYPES",
     "bag_poses",
-    "is_bag",
     "list_messages",
     "message_name",
     "read_message",
@@ -46,7 +44,6 @@ __all__ = [
     "topics_of_type",
 ]
 
-BAG_SUFFIXES = (".bag", ".mcap")
 POINTCLOUD2 = "sensor_msgs/PointCloud2"
 POSE_TYPES = (
     "nav_msgs/Odometry",
@@ -62,17 +59,6 @@ _LOOK_AFTER_NS = 5_000_000_000
 _KEEP = 32
 # A request at most this many messages ahead of the cursor is read up to, not sought.
 _READ_AHEAD = 64
-
-
-def is_bag(path: str | Path) -> bool:
-    """True for a ROS 1 `.bag`, an `.mcap` file, or a ROS 2 bag folder (metadata.yaml
-    beside its .db3 or .mcap files)."""
-    path = Path(path)
-    if path.is_file():
-        return path.suffix.lower() in BAG_SUFFIXES
-    if path.is_dir() and (path / "metadata.yaml").is_file():
-        return any(p.suffix in (".db3", ".mcap") for p in path.iterdir())
-    return False
 
 
 def split_name(name: str) -> tuple[str, str, int] | None:
