@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from disco_cli.commands.options import TopicOpt
 from disco_cli.console import fail, handle_errors, stderr, warn
 from disco_cli.readers import FormatName
 
@@ -126,7 +127,13 @@ def _write(output: Path, save: Any) -> None:
 
 @handle_errors
 def bev(
-    scan: Annotated[Path, typer.Argument(help="The scan file (.bin, .npy, .pcd, .ply).")],
+    scan: Annotated[
+        Path,
+        typer.Argument(
+            help="The scan file (.bin, .npy, .pcd, .ply), a scan in a ROS bag "
+            "(BAG#TOPIC@STAMP_NS), or a bag (its first scan)."
+        ),
+    ],
     output: Annotated[
         Path,
         typer.Option(
@@ -163,6 +170,7 @@ def bev(
             "to see what it sees; default: the built-in BEV config.",
         ),
     ] = None,
+    topic: TopicOpt = None,
 ) -> None:
     """Write the polar BEV of one scan: check that your data is read correctly."""
     suffix = output.suffix.lower()
@@ -176,8 +184,10 @@ def bev(
     import numpy as np
 
     from disco_cli.bev import BEVConfig, polar_bev
-    from disco_cli.readers import guess_format, read_scan
+    from disco_cli.readers import guess_format, is_bag, list_scans, read_scan
 
+    if is_bag(scan):
+        scan = list_scans(scan, topic=topic)[0]
     points = read_scan(scan, format=format)
     fmt = format.value if format else guess_format(scan)
     if model is not None:

@@ -7,13 +7,20 @@ resumes, skipping the scans already stored (by path as given).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from disco_cli.commands.options import PANEL_RUN, DeviceOpt, ScanFormatOpt, WorkersOpt
+from disco_cli.commands.options import (
+    PANEL_RUN,
+    DeviceOpt,
+    PoseTopicOpt,
+    ScanFormatOpt,
+    TopicOpt,
+    WorkersOpt,
+)
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
 if TYPE_CHECKING:
@@ -29,6 +36,7 @@ class ScanList:
     paths: list[str]
     poses: np.ndarray  # [N, 4] x, y, z, yaw
     times: np.ndarray  # [N]
+    no_pose: list[str] = field(default_factory=list)  # bag scans the pose topic missed
 
 
 def collect_scans(
@@ -37,17 +45,22 @@ def collect_scans(
     times_file: Path | None,
     calib: Path | None,
     scan_format: str | None = None,
+    topic: str | None = None,
+    pose_topic: str | None = None,
 ) -> ScanList:
-    """Expand folders, files and `-` (stdin) into one list of scans.
+    """Expand folders, files, bags and `-` (stdin) into one list of scans.
 
     A folder with `poses.txt` / `times.txt` (and `calib.txt`) beside its scans brings
     them along unless `--poses` / `--times` are given; those cover all scans in order.
+    Scans in a bag are timed by their header stamps, and posed from the bag's
+    `pose_topic` when given.
     """
     import numpy as np
 
     from disco_cli.pipeline import frame_rows, pose_rows, stdin_paths
     from disco_cli.poses import read_kitti_poses, read_times
     from disco_cli.readers import list_scans
+    from disco_cli.readers.bags import bag_poses, scan_stamps
 
     paths: list[str] = []
     poses: list[np.ndarray] = []
@@ -57,11 +70,11 @@ def collect_scans(
         if item == "-":
             group = list(stdin_paths())
         else:
-            group = [str(p) for p in list_scans(item, scan_format)]
+            group = [str(p) for p in list_scans(item, scan_format, topic)]
         group = [p for p in dict.fromkeys(group) if p not in seen]
         seen.update(group)
         n = len(group)
-        p_rows, t_rows = np.full((n, 4), np.nan), np.full(n, np.nan)
+        p_rows, t_rows = np.full((n, 4), np.nan), scan_stamps(group)
         folder = Path(item)
         if item != "-" and folder.is_dir() and group:
             if poses_file is None and (folder / "poses.txt").is_file():
@@ -83,7 +96,11 @@ def collect_scans(
     if times_file is not None:
         t = read_times(times_file)
         all_times = t[frame_rows(paths, len(t), str(times_file))]
-    return ScanList(paths, all_poses, all_times)
+    missing: list[str] = []
+    if pose_topic is not None:
+        T, missing = bag_poses(paths, pose_topic)
+        all_poses = pose_rows(T)
+    return ScanList(paths, all_poses, all_times, missing)
 
 
 @handle_errors
@@ -137,6 +154,8 @@ def build_db(
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
     append: Annotated[
         bool,
         typer.Option(
@@ -175,9 +194,16 @@ def build_db(
 
     check_device(device)
     fmt = scan_format.value if scan_format is not None else None
-    scans = collect_scans(inputs, poses, times, calib, fmt)
+    if pose_topic is not None and poses is not None:
+        raise fail("give --poses or --pose-topic, not both")
+    scans = collect_scans(inputs, poses, times, calib, fmt, topic, pose_topic)
     if not scans.paths:
         raise fail("no scans given")
+    if scans.no_pose:
+        warn(
+            f"{len(scans.no_pose)} of {len(scans.paths)} scans have no pose on {pose_topic} "
+            f"near their stamp (e.g. {scans.no_pose[0]}); they are stored without one"
+        )
     net = load_model(model, device=device)
     info = ModelInfo.of(net)
     # How `disco query` finds the model again: a registry name or a checkpoint's full path.

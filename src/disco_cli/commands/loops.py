@@ -20,6 +20,7 @@ from disco_cli.commands.options import (
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    TopicOpt,
     WorkersOpt,
     apply_rerank,
 )
@@ -86,7 +87,7 @@ def loops(
         Path,
         typer.Argument(
             help="The sequence: a folder of scans (KITTI-style DIR/velodyne/ "
-            "or a folder of scan files).",
+            "or a folder of scan files), or a ROS bag.",
             show_default=False,
         ),
     ],
@@ -174,6 +175,7 @@ def loops(
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
     batch: Annotated[
         int,
         typer.Option(
@@ -205,16 +207,24 @@ def loops(
             raise fail(f"{output}: unknown loop file type; use {', '.join(FORMATS)}")
     with_pose = verify or verbose or output is not None
     fmt_name = scan_format.value if scan_format is not None else None
-    paths = [str(p) for p in list_scans(sequence, fmt_name)]
+    paths = [str(p) for p in list_scans(sequence, fmt_name, topic)]
     n = len(paths)
 
+    from disco_cli.readers.bags import scan_stamps
+
+    # Scans in a bag carry their time (header stamp) in their names.
+    bag_times = scan_stamps(paths) if times is None else None
+    if bag_times is not None and not np.isfinite(bag_times).all():
+        bag_times = None
     stamps = None
-    all_times = None
+    all_times = bag_times
     times_file = times or (sequence / "times.txt" if sequence.is_dir() else None)
     if with_pose and times_file is not None and Path(times_file).is_file():
         t = read_times(times_file)
         all_times = t[frame_rows(paths, len(t), str(times_file))]
-    if exclude_seconds is not None:
+    if exclude_seconds is not None and bag_times is not None:
+        stamps = bag_times
+    elif exclude_seconds is not None:
         times_file = times or (sequence / "times.txt" if sequence.is_dir() else None)
         if times_file is None or not Path(times_file).is_file():
             raise fail(f"{sequence}: --exclude-seconds needs times.txt beside the scans or --times")

@@ -19,6 +19,7 @@ from disco_cli.commands.options import (
     OutputFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    TopicOpt,
     WorkersOpt,
     apply_rerank,
 )
@@ -56,7 +57,8 @@ def query(
     scans: Annotated[
         list[str],
         typer.Argument(
-            help="Scan files, or - to read scan paths from stdin (one per line).",
+            help="Scan files, ROS bags (each of their scans; one as BAG#TOPIC@STAMP_NS), "
+            "or - to read scan paths from stdin (one per line).",
             show_default=False,
         ),
     ],
@@ -131,6 +133,7 @@ def query(
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
@@ -139,6 +142,7 @@ def query(
     from disco_cli.console import RowWriter
     from disco_cli.errors import DiscoError, PoseFileError
     from disco_cli.pipeline import check_device, embed_stream, load_stream, pose_rows, stdin_paths
+    from disco_cli.readers import is_bag, list_scans
     from disco_cli.search import SignatureIndex, match_queries
 
     if exclude_radius is not None and query_poses is None:
@@ -160,10 +164,12 @@ def query(
         for s in scans:
             if s == "-":
                 yield from stdin_paths()
+            elif is_bag(s):
+                yield from map(str, list_scans(s, topic=topic))
             else:
                 yield s
 
-    n_args = None if "-" in scans else len(scans)
+    n_args = None if "-" in scans or any(map(is_bag, scans)) else len(scans)
     with_pose = pose or verify
     # A table is titled by its query, so its rows need not repeat the path.
     writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt, table_omit=["query"])
