@@ -13,7 +13,14 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
-from disco_cli.commands.options import DeviceOpt, RerankOpt, ScanFormatOpt, apply_rerank
+from disco_cli.commands.options import (
+    DeviceOpt,
+    PoseTopicOpt,
+    RerankOpt,
+    ScanFormatOpt,
+    TopicOpt,
+    apply_rerank,
+)
 from disco_cli.console import OutputFormat, handle_errors
 
 if TYPE_CHECKING:
@@ -24,13 +31,13 @@ PANEL_PROTOCOL = "Protocol"
 PANEL_OUTPUT = "Output"
 
 
-def _scan_paths(inputs: list[Path], scan_format: str | None) -> list[Path]:
+def _scan_paths(inputs: list[Path], scan_format: str | None, topic: str | None) -> list[Path]:
     from disco_cli.errors import ScanReadError
     from disco_cli.readers import list_scans
 
     paths: list[Path] = []
     for item in inputs:
-        paths += list_scans(item, format=scan_format)
+        paths += list_scans(item, format=scan_format, topic=topic)
     if not paths:
         raise ScanReadError(", ".join(map(str, inputs)), "no scans found")
     return paths
@@ -67,6 +74,20 @@ def embed_scans(
             feats.append(out.features)
             bar.advance(task, len(out.items))
     return np.concatenate(sigs), np.concatenate(feats)
+
+
+def _bag_poses(paths: list[Path], pose_topic: str) -> np.ndarray:
+    """Poses of bag scans from the bags' pose topic; every scan must get one."""
+    from disco_cli.errors import PoseFileError
+    from disco_cli.readers.bags import bag_poses
+
+    T, missing = bag_poses([str(p) for p in paths], pose_topic)
+    if missing:
+        raise PoseFileError(
+            f"{pose_topic}: {len(missing)} of {len(paths)} scans have no pose near their "
+            f"stamp (e.g. {missing[0]})"
+        )
+    return T
 
 
 def _load_poses(path: Path, calib: Path | None, count: int, what: str) -> np.ndarray:
@@ -167,6 +188,8 @@ def evaluate(
     ] = None,
     calib: CalibOpt = None,
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
     model_name: Annotated[
         Optional[str],
         typer.Option(
@@ -201,11 +224,14 @@ def evaluate(
     from disco_cli.poses import xy_yaw
     from disco_cli.search import SignatureIndex, match_queries, rerank_depth
 
-    paths = _scan_paths(queries, scan_format)
+    paths = _scan_paths(queries, scan_format, topic)
     poses_file = _auto_file(queries, query_poses, "poses.txt")
-    if poses_file is None:
+    if pose_topic is not None:
+        q_poses = _bag_poses(paths, pose_topic)
+    elif poses_file is None:
         raise PoseFileError("no query poses: give --query-poses FILE (or a folder with poses.txt)")
-    q_poses = _load_poses(poses_file, calib, len(paths), "query scans")
+    else:
+        q_poses = _load_poses(poses_file, calib, len(paths), "query scans")
     with Database.open(db_path) as db:
         model = _model_for(db, model_name, device)
         apply_rerank(model, rerank)
@@ -242,7 +268,7 @@ def evaluate(
         "rerank": rerank_depth(model),
         "database": str(db_path),
         "queries": " ".join(map(str, queries)),
-        "query_poses": str(poses_file),
+        "query_poses": str(poses_file) if pose_topic is None else pose_topic,
         "radius_m": radius,
         "topk": topk,
     }
@@ -267,6 +293,7 @@ def evaluate_loops(
         ),
     ] = None,
     calib: CalibOpt = None,
+    pose_topic: PoseTopicOpt = None,
     times: Annotated[
         Optional[Path],
         typer.Option(
@@ -276,6 +303,7 @@ def evaluate_loops(
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
     model_name: Annotated[
         str,
         typer.Option(
@@ -320,11 +348,14 @@ def evaluate_loops(
 
     if exclude_seconds is not None and exclude_frames is not None:
         raise DiscoError("give --exclude-seconds or --exclude-frames, not both")
-    paths = _scan_paths(sequence, scan_format)
+    paths = _scan_paths(sequence, scan_format, topic)
     poses_file = _auto_file(sequence, poses, "poses.txt")
-    if poses_file is None:
+    if pose_topic is not None:
+        T = _bag_poses(paths, pose_topic)
+    elif poses_file is None:
         raise PoseFileError("no poses: give --poses FILE (or a folder with poses.txt)")
-    T = _load_poses(poses_file, calib, len(paths), "scans")
+    else:
+        T = _load_poses(poses_file, calib, len(paths), "scans")
     n = len(paths)
     if exclude_frames is not None:
         # Scan i searches scans 0 .. i - N.
@@ -332,10 +363,15 @@ def evaluate_loops(
         exclusion = f"{exclude_frames} frames"
     else:
         seconds = 30.0 if exclude_seconds is None else exclude_seconds
+        from disco_cli.readers.bags import scan_stamps
+
         times_file = _auto_file(sequence, times, "times.txt")
-        if times_file is None:
-            raise PoseFileError("no times: give --times FILE or use --exclude-frames N")
-        t = read_times(times_file)
+        # Scans in a bag carry their time (header stamp) in their names.
+        t = scan_stamps([str(p) for p in paths])
+        if times_file is not None or not np.isfinite(t).all():
+            if times_file is None:
+                raise PoseFileError("no times: give --times FILE or use --exclude-frames N")
+            t = read_times(times_file)
         if len(t) != n:
             raise PoseFileError(f"{times_file}: {len(t)} times for {n} scans")
         if np.any(np.diff(t) < 0):
@@ -385,7 +421,7 @@ def evaluate_loops(
         "fingerprint": model.fingerprint,
         "rerank": rerank_depth(model),
         "sequence": " ".join(map(str, sequence)),
-        "poses": str(poses_file),
+        "poses": str(poses_file) if pose_topic is None else pose_topic,
         "radius_m": radius,
         "exclusion": exclusion,
         "num_scans": n,
