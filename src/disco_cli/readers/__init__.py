@@ -7,7 +7,8 @@ Every bad file raises `ScanReadError(path, reason)`, never another exception.
 
 The format comes from `format=` when given, else from the file: `.bin` under a
 folder named `velodyne_sync` is NCLT, any other `.bin` is KITTI (MulRan uses
-the same layout), and `.npy`, `.pcd`, `.ply` are what they say.
+the same layout; under `pointcloud_20m[_10overlap]` PointNetVLAD's Oxford
+submaps), and `.npy`, `.pcd`, `.ply` are what they say.
 
 ROS bags (`.bag`, `.mcap`, a ROS 2 bag folder) hold many scans: `list_scans` expands a
 bag into one name per sensor_msgs/PointCloud2 message, `BAG#TOPIC@STAMP_NS`, and
@@ -73,6 +74,12 @@ FORMATS: dict[str, ScanFormat] = {
         "disco_cli.readers.nclt",
         "NCLT velodyne_sync .bin: uint16 x, y, z (5 mm, -100 m), uint8 intensity, laser",
     ),
+    "oxford": ScanFormat(
+        "oxford",
+        (".bin",),
+        "disco_cli.readers.oxford",
+        "PointNetVLAD Oxford submaps .bin: float64 x, y, z (4096 points)",
+    ),
     "npy": ScanFormat("npy", (".npy",), "disco_cli.readers.npy", "NumPy .npy: N x 3 or N x 4"),
     "pcd": ScanFormat("pcd", (".pcd",), "disco_cli.readers.pcd", "PCL .pcd: ascii or binary"),
     "ply": ScanFormat("ply", (".ply",), "disco_cli.readers.ply", "PLY: ascii or binary"),
@@ -83,9 +90,12 @@ FormatName = Enum("FormatName", {name: name for name in FORMATS}, type=str)  # t
 
 # The folder name that marks a .bin as NCLT rather than KITTI.
 _NCLT_FOLDER = "velodyne_sync"
+# The folders of PointNetVLAD's Oxford submaps (test and training).
+_OXFORD_FOLDERS = ("pointcloud_20m", "pointcloud_20m_10overlap")
 # Folder layouts searched first, in order: DIR/velodyne/*.bin (KITTI, MulRan
-# after extraction) and DIR/velodyne_sync/*.bin (NCLT).
-_SCAN_SUBFOLDERS = ("velodyne", _NCLT_FOLDER)
+# after extraction), DIR/velodyne_sync/*.bin (NCLT) and DIR/pointcloud_20m/*.bin (an
+# Oxford run's test submaps).
+_SCAN_SUBFOLDERS = ("velodyne", _NCLT_FOLDER, _OXFORD_FOLDERS[0])
 
 
 def _format_by_name(name: str, path: Path) -> ScanFormat:
@@ -130,6 +140,8 @@ def guess_format(path: str | Path) -> str:
     path = Path(path)
     ext = path.suffix.lower()
     if ext == ".bin":
+        if path.parent.name in _OXFORD_FOLDERS:
+            return "oxford"
         return "nclt" if path.parent.name == _NCLT_FOLDER else "kitti"
     for fmt in FORMATS.values():
         if ext in fmt.extensions:
