@@ -165,7 +165,9 @@ class _Bag:
                     stamps.append(_header_stamp(raw, self.ros2))
                     logtimes.append(lt)
             except Exception as exc:
-                raise ScanReadError(self.path, f"cannot read topic {topic} ({_reason(exc)})") from None
+                raise ScanReadError(
+                    self.path, f"cannot read topic {topic} ({_reason(exc)})"
+                ) from None
             idx = _Index(stamps, logtimes)
             for i, s in enumerate(stamps):
                 idx.position.setdefault(s, i)
@@ -372,25 +374,13 @@ def read_pose_topic(path: str | Path, topic: str | None = None) -> tuple[np.ndar
             raise ScanReadError(path, f"cannot read pose topic {topic} ({_reason(exc)})") from None
     if not rows:
         raise ScanReadError(path, f"pose topic {topic} has no messages")
+    from disco_cli.poses import quat_to_matrix
+
     table = np.asarray(rows, dtype=np.float64)
     T = np.tile(np.eye(4), (len(table), 1, 1))
-    T[:, :3, :3] = _quat_to_matrix(table[:, 3:7])
+    T[:, :3, :3] = quat_to_matrix(table[:, 3:7])
     T[:, :3, 3] = table[:, :3]
     return np.asarray(stamps, dtype=np.float64) * 1e-9, T
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices [N, 3, 3] of quaternions [N, 4] (x, y, z, w; normalized here)."""
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
 
 
 def scan_stamps(names: list[str]) -> np.ndarray:
