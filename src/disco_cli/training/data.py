@@ -165,8 +165,7 @@ def load_training_data(
 
             if pose_topic is None:
                 raise PoseFileError(
-                    f"{seq}: a bag's poses come from --pose-topic "
-                    "(or train with --self-supervised)"
+                    f"{seq}: a bag's poses come from --pose-topic (or train with --self-supervised)"
                 )
             poses, _ = bag_poses([str(s) for s in scans], pose_topic)
             posed = np.isfinite(poses[:, 0, 0])
