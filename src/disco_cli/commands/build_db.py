@@ -7,19 +7,25 @@ resumes, skipping the scans already stored (by path as given).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
 from disco_cli.commands.options import (
+    PANEL_POSES,
     PANEL_RUN,
+    CalibOpt,
     DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
+    PosesFormatOpt,
     PoseTopicOpt,
     ScanFormatOpt,
     TopicOpt,
     WorkersOpt,
+    pose_options,
 )
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
@@ -36,36 +42,51 @@ class ScanList:
     paths: list[str]
     poses: np.ndarray  # [N, 4] x, y, z, yaw
     times: np.ndarray  # [N]
-    no_pose: list[str] = field(default_factory=list)  # bag scans the pose topic missed
+    no_pose: int = 0  # scans a pose file was given for that got no pose
 
 
 def collect_scans(
     inputs: list[str],
     poses_file: Path | None,
     times_file: Path | None,
-    calib: Path | None,
+    calib: str | None,
     scan_format: str | None = None,
+    pose_opts: dict | None = None,
     topic: str | None = None,
     pose_topic: str | None = None,
 ) -> ScanList:
     """Expand folders, files, bags and `-` (stdin) into one list of scans.
 
-    A folder with `poses.txt` / `times.txt` (and `calib.txt`) beside its scans brings
-    them along unless `--poses` / `--times` are given; those cover all scans in order.
+    A folder with a pose file (`disco_cli.poses.find_pose_file`) and `times.txt` beside
+    its scans brings them along unless `--poses` / `--times` are given; those cover all
+    scans. Poses come from `disco_cli.poses.ScanPoser`; scans left without one are
+    named in one warning per pose file and counted in `ScanList.no_pose`.
     Scans in a bag are timed by their header stamps, and posed from the bag's
-    `pose_topic` when given.
+    `pose_topic` when given (by time, like a pose file).
     """
     import numpy as np
 
     from disco_cli.pipeline import frame_rows, pose_rows, stdin_paths
-    from disco_cli.poses import read_kitti_poses, read_times
+    from disco_cli.poses import ScanPoser, find_pose_file, read_times
     from disco_cli.readers import list_scans
-    from disco_cli.readers.bags import bag_poses, scan_stamps
+    from disco_cli.readers.bags import scan_stamps
 
+    opts = dict(pose_opts or {})
+    opts.setdefault("calib", "auto" if calib is None else calib)
     paths: list[str] = []
     poses: list[np.ndarray] = []
     times: list[np.ndarray] = []
     seen: set[str] = set()
+    no_pose = 0
+
+    def lidar_rows(group: list[str], pose_file: Path) -> np.ndarray:
+        nonlocal no_pose
+        T, report = ScanPoser(pose_file, **opts).poses(group)
+        if report.warning():
+            warn(report.warning())
+        no_pose += report.missing
+        return pose_rows(T)
+
     for item in inputs:
         if item == "-":
             group = list(stdin_paths())
@@ -77,11 +98,9 @@ def collect_scans(
         p_rows, t_rows = np.full((n, 4), np.nan), scan_stamps(group)
         folder = Path(item)
         if item != "-" and folder.is_dir() and group:
-            if poses_file is None and (folder / "poses.txt").is_file():
-                beside = folder / "calib.txt"
-                auto_calib = calib or (beside if beside.is_file() else None)
-                T = read_kitti_poses(folder / "poses.txt", auto_calib)
-                p_rows = pose_rows(T)[frame_rows(group, len(T), str(folder / "poses.txt"))]
+            beside = find_pose_file(folder) if poses_file is None else None
+            if beside is not None:
+                p_rows = lidar_rows(group, beside)
             if times_file is None and (folder / "times.txt").is_file():
                 t = read_times(folder / "times.txt")
                 t_rows = t[frame_rows(group, len(t), str(folder / "times.txt"))]
@@ -91,16 +110,22 @@ def collect_scans(
     all_poses = np.concatenate(poses) if poses else np.empty((0, 4))
     all_times = np.concatenate(times) if times else np.empty(0)
     if poses_file is not None:
-        T = read_kitti_poses(poses_file, calib)
-        all_poses = pose_rows(T)[frame_rows(paths, len(T), str(poses_file))]
+        all_poses = lidar_rows(paths, poses_file)
     if times_file is not None:
         t = read_times(times_file)
         all_times = t[frame_rows(paths, len(t), str(times_file))]
-    missing: list[str] = []
     if pose_topic is not None:
-        T, missing = bag_poses(paths, pose_topic)
+        from disco_cli.readers.bags import bag_poses
+
+        T, missing = bag_poses(paths, pose_topic, opts.get("max_time_gap"), opts.get("extrinsic"))
+        if missing:
+            warn(
+                f"{pose_topic}: {len(missing)} of {len(paths)} scans have no pose near their "
+                f"stamp (e.g. {missing[0]}); they are left without one"
+            )
+        no_pose += len(missing)
         all_poses = pose_rows(T)
-    return ScanList(paths, all_poses, all_times, missing)
+    return ScanList(paths, all_poses, all_times, no_pose)
 
 
 @handle_errors
@@ -132,19 +157,15 @@ def build_db(
         Optional[Path],
         typer.Option(
             "--poses",
-            help="KITTI poses (3 x 4 per line) of all scans, "
-            "in order; default: poses.txt beside each folder's scans.",
-            rich_help_panel=PANEL_IN,
+            help="Poses of all scans (KITTI by frame, or by time: --poses-format); "
+            "default: the pose file beside each folder's scans.",
+            rich_help_panel=PANEL_POSES,
         ),
     ] = None,
-    calib: Annotated[
-        Optional[Path],
-        typer.Option(
-            "--calib",
-            help="KITTI calib.txt: turns camera poses into LiDAR poses.",
-            rich_help_panel=PANEL_IN,
-        ),
-    ] = None,
+    poses_format: PosesFormatOpt = None,
+    calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     times: Annotated[
         Optional[Path],
         typer.Option(
@@ -196,14 +217,10 @@ def build_db(
     fmt = scan_format.value if scan_format is not None else None
     if pose_topic is not None and poses is not None:
         raise fail("give --poses or --pose-topic, not both")
-    scans = collect_scans(inputs, poses, times, calib, fmt, topic, pose_topic)
+    pose_opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
+    scans = collect_scans(inputs, poses, times, calib, fmt, pose_opts, topic, pose_topic)
     if not scans.paths:
         raise fail("no scans given")
-    if scans.no_pose:
-        warn(
-            f"{len(scans.no_pose)} of {len(scans.paths)} scans have no pose on {pose_topic} "
-            f"near their stamp (e.g. {scans.no_pose[0]}); they are stored without one"
-        )
     net = load_model(model, device=device)
     info = ModelInfo.of(net)
     # How `disco query` finds the model again: a registry name or a checkpoint's full path.
@@ -280,6 +297,8 @@ def build_db(
     msg = f"{output}: wrote {written} scans in {elapsed:.1f} s ({rate:.1f} scans/s)"
     if already:
         msg += f", {already} were in it already"
+    if scans.no_pose:
+        msg += f", {scans.no_pose} without a pose"
     stderr.print(msg)
     if bad:
         warn(f"{len(bad)} unreadable scans skipped")

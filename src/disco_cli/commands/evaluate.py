@@ -14,12 +14,18 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 import typer
 
 from disco_cli.commands.options import (
+    CalibOpt,
     DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
+    PosesFormatOpt,
     PoseTopicOpt,
+    ProtocolOpt,
     RerankOpt,
     ScanFormatOpt,
     TopicOpt,
     apply_rerank,
+    pose_options,
 )
 from disco_cli.console import OutputFormat, handle_errors
 
@@ -31,7 +37,9 @@ PANEL_PROTOCOL = "Protocol"
 PANEL_OUTPUT = "Output"
 
 
-def _scan_paths(inputs: list[Path], scan_format: str | None, topic: str | None) -> list[Path]:
+def _scan_paths(
+    inputs: list[Path], scan_format: str | None, topic: str | None = None
+) -> list[Path]:
     from disco_cli.errors import ScanReadError
     from disco_cli.readers import list_scans
 
@@ -43,13 +51,18 @@ def _scan_paths(inputs: list[Path], scan_format: str | None, topic: str | None) 
     return paths
 
 
-def _auto_file(inputs: list[Path], given: Path | None, name: str) -> Path | None:
-    """`given`, else NAME beside the scans when a single folder was given (KITTI layout)."""
+def _auto_file(inputs: list[Path], given: Path | None, name: str | None = None) -> Path | None:
+    """`given`, else NAME (default: the pose file, `disco_cli.poses.find_pose_file`) beside
+    the scans when a single folder was given."""
     if given is not None:
         return given
-    if len(inputs) == 1 and inputs[0].is_dir() and (inputs[0] / name).is_file():
-        return inputs[0] / name
-    return None
+    if len(inputs) != 1 or not inputs[0].is_dir():
+        return None
+    if name is None:
+        from disco_cli.poses import find_pose_file
+
+        return find_pose_file(inputs[0])
+    return inputs[0] / name if (inputs[0] / name).is_file() else None
 
 
 def embed_scans(
@@ -76,28 +89,48 @@ def embed_scans(
     return np.concatenate(sigs), np.concatenate(feats)
 
 
-def _bag_poses(paths: list[Path], pose_topic: str) -> np.ndarray:
-    """Poses of bag scans from the bags' pose topic; every scan must get one."""
+def _load_poses(
+    paths: list[Path], poses_file: Path, pose_opts: dict
+) -> tuple[list[Path], np.ndarray]:
+    """The scans that have a pose and their LiDAR poses (`disco_cli.poses.ScanPoser`);
+    the others are named in one warning and left out of the evaluation."""
+    import numpy as np
+
+    from disco_cli.console import warn
+    from disco_cli.errors import PoseFileError
+    from disco_cli.poses import ScanPoser
+
+    T, report = ScanPoser(poses_file, **pose_opts).poses(paths)
+    if report.warning():
+        warn(report.warning() + " and left out of the evaluation")
+    keep = np.isfinite(T[:, 0, 3])
+    if not keep.any():
+        raise PoseFileError(f"{poses_file}: none of the {len(paths)} scans has a pose")
+    return [p for p, k in zip(paths, keep) if k], T[keep]
+
+
+def _bag_poses(
+    paths: list[Path], pose_topic: str, pose_opts: dict
+) -> tuple[list[Path], np.ndarray]:
+    """`_load_poses` for scans in bags, posed from the bags' own pose topic by time."""
+    import numpy as np
+
+    from disco_cli.console import warn
     from disco_cli.errors import PoseFileError
     from disco_cli.readers.bags import bag_poses
 
-    T, missing = bag_poses([str(p) for p in paths], pose_topic)
+    T, missing = bag_poses(
+        [str(p) for p in paths], pose_topic, pose_opts["max_time_gap"], pose_opts["extrinsic"]
+    )
     if missing:
-        raise PoseFileError(
+        warn(
             f"{pose_topic}: {len(missing)} of {len(paths)} scans have no pose near their "
-            f"stamp (e.g. {missing[0]})"
+            f"stamp (e.g. {missing[0]}) and are left out of the evaluation"
         )
-    return T
-
-
-def _load_poses(path: Path, calib: Path | None, count: int, what: str) -> np.ndarray:
-    from disco_cli.errors import PoseFileError
-    from disco_cli.poses import read_kitti_poses
-
-    poses = read_kitti_poses(path, calib)
-    if len(poses) != count:
-        raise PoseFileError(f"{path}: {len(poses)} poses for {count} {what}")
-    return poses
+    keep = np.isfinite(T[:, 0, 3])
+    if not keep.any():
+        raise PoseFileError(f"{pose_topic}: none of the {len(paths)} scans has a pose")
+    return [p for p, k in zip(paths, keep) if k], T[keep]
 
 
 def _model_for(db: Any, name: str | None, device: str) -> Any:
@@ -130,13 +163,27 @@ def _report_and_print(
     print_metrics(ev.metrics, fmt, title=f"{run.get('protocol')}: {run.get('model')}")
 
 
+def _run_protocol(
+    name: str, inputs: list[Path], model_name: str | None, device: str, rerank: Any, fmt: Any
+) -> None:
+    """`eval --protocol NAME ROOT`: the paper's sessions and thresholds (disco_cli.protocols),
+    printed in the layout of its table."""
+    from disco_cli.console import RowWriter, stderr, warn
+    from disco_cli.errors import DiscoError
+    from disco_cli.model import load_model
+    from disco_cli.protocols import TABLE_COLUMNS, run_protocol, table_rows
+
+    if len(inputs) != 1:
+        raise DiscoError("--protocol takes one dataset folder")
+    model = load_model(model_name or "default", device=device)
+    apply_rerank(model, rerank)
+    say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
+    proto, results = run_protocol(name, inputs[0], model, warn=warn, progress=say)
+    rows = table_rows(proto, results, approach=f"disco ({model.name})")
+    RowWriter(TABLE_COLUMNS, fmt, digits=2).write(rows, title=f"{proto.dataset}: {model.name}")
+
+
 # Options shared by both commands.
-CalibOpt = Annotated[
-    Optional[Path],
-    typer.Option(
-        "--calib", help="KITTI calib.txt: camera poses -> LiDAR poses.", rich_help_panel=PANEL_INPUT
-    ),
-]
 RadiusOpt = Annotated[
     float,
     typer.Option(
@@ -169,24 +216,30 @@ def evaluate(
     queries: Annotated[
         list[Path],
         typer.Argument(
-            help="Query scans: files or folders (velodyne/ layout).", show_default=False
+            help="Query scans: files or folders (velodyne/ layout); with --protocol, the "
+            "dataset folder.",
+            show_default=False,
         ),
     ],
     db_path: Annotated[
-        Path,
+        Optional[Path],
         typer.Option(
             "--db", help="Map database of another session, with poses.", rich_help_panel=PANEL_INPUT
         ),
-    ],
+    ] = None,
+    protocol: ProtocolOpt = None,
     query_poses: Annotated[
         Optional[Path],
         typer.Option(
             "--query-poses",
-            help="KITTI poses of the queries; default: poses.txt in a single query folder.",
+            help="Poses of the queries; default: the pose file in a single query folder.",
             rich_help_panel=PANEL_INPUT,
         ),
     ] = None,
+    poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
@@ -224,14 +277,19 @@ def evaluate(
     from disco_cli.poses import xy_yaw
     from disco_cli.search import SignatureIndex, match_queries, rerank_depth
 
+    if protocol is not None:
+        return _run_protocol(protocol, queries, model_name, device, rerank, fmt)
+    if db_path is None:
+        raise PoseFileError("give --db map.db (or --protocol NAME DATASET_FOLDER)")
     paths = _scan_paths(queries, scan_format, topic)
-    poses_file = _auto_file(queries, query_poses, "poses.txt")
+    poses_file = _auto_file(queries, query_poses)
+    opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
     if pose_topic is not None:
-        q_poses = _bag_poses(paths, pose_topic)
+        paths, q_poses = _bag_poses(paths, pose_topic, opts)
     elif poses_file is None:
         raise PoseFileError("no query poses: give --query-poses FILE (or a folder with poses.txt)")
     else:
-        q_poses = _load_poses(poses_file, calib, len(paths), "query scans")
+        paths, q_poses = _load_poses(paths, poses_file, opts)
     with Database.open(db_path) as db:
         model = _model_for(db, model_name, device)
         apply_rerank(model, rerank)
@@ -288,12 +346,14 @@ def evaluate_loops(
         Optional[Path],
         typer.Option(
             "--poses",
-            help="KITTI poses; default: poses.txt in the folder.",
+            help="Poses; default: the pose file in the folder.",
             rich_help_panel=PANEL_INPUT,
         ),
     ] = None,
+    poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,
-    pose_topic: PoseTopicOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     times: Annotated[
         Optional[Path],
         typer.Option(
@@ -304,6 +364,7 @@ def evaluate_loops(
     ] = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
     model_name: Annotated[
         str,
         typer.Option(
@@ -343,19 +404,22 @@ def evaluate_loops(
     from disco_cli.errors import DiscoError, PoseFileError
     from disco_cli.evaluation.metrics import loop_evaluation, within_radius
     from disco_cli.model import load_model
+    from disco_cli.pipeline import frame_rows
     from disco_cli.poses import read_times, relative_yaw_deg
     from disco_cli.search import SignatureIndex, match_queries, rerank_depth
 
     if exclude_seconds is not None and exclude_frames is not None:
         raise DiscoError("give --exclude-seconds or --exclude-frames, not both")
     paths = _scan_paths(sequence, scan_format, topic)
-    poses_file = _auto_file(sequence, poses, "poses.txt")
+    poses_file = _auto_file(sequence, poses)
+    all_paths = paths
+    opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
     if pose_topic is not None:
-        T = _bag_poses(paths, pose_topic)
+        paths, T = _bag_poses(paths, pose_topic, opts)
     elif poses_file is None:
         raise PoseFileError("no poses: give --poses FILE (or a folder with poses.txt)")
     else:
-        T = _load_poses(poses_file, calib, len(paths), "scans")
+        paths, T = _load_poses(paths, poses_file, opts)
     n = len(paths)
     if exclude_frames is not None:
         # Scan i searches scans 0 .. i - N.
@@ -372,8 +436,10 @@ def evaluate_loops(
             if times_file is None:
                 raise PoseFileError("no times: give --times FILE or use --exclude-frames N")
             t = read_times(times_file)
-        if len(t) != n:
-            raise PoseFileError(f"{times_file}: {len(t)} times for {n} scans")
+            # One row per scan, or by frame number (the KITTI rule), for the scans with a pose.
+            t = t[frame_rows(list(map(str, all_paths)), len(t), str(times_file))]
+            kept = set(paths)
+            t = t[[p in kept for p in all_paths]]
         if np.any(np.diff(t) < 0):
             raise PoseFileError(f"{times_file}: times go backwards")
         limit = np.searchsorted(t, t - seconds, side="right")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
@@ -43,7 +44,7 @@ PoseTopicOpt = Annotated[
         "--pose-topic",
         help="ROS bags: the scans' poses from this nav_msgs/Odometry or "
         "geometry_msgs/PoseStamped topic of the bag, interpolated at each scan's stamp.",
-        rich_help_panel=PANEL_RUN,
+        rich_help_panel="Poses",
     ),
 ]
 WorkersOpt = Annotated[
@@ -80,3 +81,70 @@ def apply_rerank(model: object, rerank: int | None) -> None:
 
         raise DiscoError(f"model {getattr(model, 'name', '?')} cannot re-rank; use --rerank 0")
     model.rerank_candidates = rerank  # type: ignore[attr-defined]
+
+
+# Pose files: one vocabulary for every command that reads poses (docs/formats.md, "Pose files").
+PANEL_POSES = "Poses"
+PosesFormatOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--poses-format",
+        help="kitti, tum, nclt, mulran, oxford or kitti360; default: from the file's name "
+        "and content.",
+        rich_help_panel=PANEL_POSES,
+    ),
+]
+CalibOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--calib",
+        help="KITTI calib.txt (or KITTI-360 calibration/ folder) taking the poses to the "
+        "LiDAR; default: calib.txt beside poses.txt when it exists; 'none' keeps the poses "
+        "as stored.",
+        rich_help_panel=PANEL_POSES,
+    ),
+]
+ExtrinsicOpt = Annotated[
+    Optional[Path],
+    typer.Option(
+        "--extrinsic",
+        help="A 4 x 4 text file: the LiDAR's pose in the pose file's frame, applied after "
+        "the calibration.",
+        rich_help_panel=PANEL_POSES,
+    ),
+]
+MaxTimeGapOpt = Annotated[
+    Optional[float],
+    typer.Option(
+        "--max-time-gap",
+        min=0.0,
+        help="Seconds: a scan farther than this from the poses around it gets no pose; "
+        "default: 3 median periods of the pose file.",
+        rich_help_panel=PANEL_POSES,
+    ),
+]
+
+
+def pose_options(
+    poses_format: str | None, calib: str | None, extrinsic: Path | None, max_time_gap: float | None
+) -> dict:
+    """The keyword arguments of `disco_cli.poses.ScanPoser` from the four options above."""
+    from disco_cli.poses.scans import calib_arg
+
+    return {
+        "poses_format": poses_format,
+        "calib": calib_arg(calib),
+        "extrinsic": extrinsic,
+        "max_time_gap": max_time_gap,
+    }
+
+
+ProtocolOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--protocol",
+        help="The DiSCO paper's protocol on a dataset folder: nclt, mulran or oxford "
+        "(docs/datasets.md).",
+        rich_help_panel="Protocol",
+    ),
+]

@@ -15,13 +15,18 @@ import typer
 
 from disco_cli.commands.options import (
     PANEL_RUN,
+    CalibOpt,
     DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
     OutputFormatOpt,
+    PosesFormatOpt,
     RerankOpt,
     ScanFormatOpt,
     TopicOpt,
     WorkersOpt,
     apply_rerank,
+    pose_options,
 )
 from disco_cli.console import error, fail, handle_errors
 
@@ -84,17 +89,15 @@ def query(
         Optional[Path],
         typer.Option(
             "--query-poses",
-            help="KITTI poses of the query scans: row i "
-            "for the i-th scan, or by frame number in the file name.",
+            help="Poses of the query scans (KITTI: row i for the i-th scan, or by frame "
+            "number in the file name; other formats by time).",
             rich_help_panel=PANEL_FILTER,
         ),
     ] = None,
-    calib: Annotated[
-        Optional[Path],
-        typer.Option(
-            "--calib", help="KITTI calib.txt for --query-poses.", rich_help_panel=PANEL_FILTER
-        ),
-    ] = None,
+    poses_format: PosesFormatOpt = None,
+    calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     max_distance: Annotated[
         Optional[float],
         typer.Option(
@@ -139,6 +142,8 @@ def query(
     rerank: RerankOpt = None,
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
+    import numpy as np
+
     from disco_cli.console import RowWriter
     from disco_cli.errors import DiscoError, PoseFileError
     from disco_cli.pipeline import check_device, embed_stream, load_stream, pose_rows, stdin_paths
@@ -153,12 +158,22 @@ def query(
     ids, sigs = db.signatures()
     index = SignatureIndex(sigs)
     db_xy = None
-    q_rows = None
+    poser = None
     if exclude_radius is not None:
-        from disco_cli.poses import read_kitti_poses
+        from disco_cli.poses import ScanPoser
 
         db_xy = db.poses()[0][:, :2]
-        q_rows = pose_rows(read_kitti_poses(query_poses, calib))
+        db_files = np.array([str(Path(p).resolve()) for p in db.paths()])
+        poser = ScanPoser(query_poses, **pose_options(poses_format, calib, extrinsic, max_time_gap))
+        # With the query scans on the command line, KITTI's "row i for scan i" applies
+        # when their count is the file's; from stdin each scan goes by its frame number
+        # (a scan in a bag by the time in its name).
+        q_rows = None
+        if "-" not in scans and not any(map(is_bag, scans)):
+            T, report = poser.poses(list(scans))
+            q_rows = pose_rows(T)
+            if report.warning():
+                error(report.warning())
 
     def paths():
         for s in scans:
@@ -169,11 +184,11 @@ def query(
             else:
                 yield s
 
-    n_args = None if "-" in scans or any(map(is_bag, scans)) else len(scans)
     with_pose = pose or verify
     # A table is titled by its query, so its rows need not repeat the path.
     writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt, table_omit=["query"])
     failed = 0
+    no_pose = 0  # queries without a pose: only their own scan is excluded
     match_points = PointCache()
     loaded = load_stream(
         paths(),
@@ -191,16 +206,22 @@ def query(
             for j, item in enumerate(chunk.items):
                 exclude = None
                 try:
-                    if q_rows is not None:
-                        exclude = _exclusion(
-                            item.index,
-                            item.path,
-                            q_rows,
-                            n_args,
-                            db_xy,
-                            exclude_radius,
-                            str(query_poses),
-                        )
+                    if poser is not None:
+                        if q_rows is not None:
+                            row = q_rows[item.index]
+                        else:
+                            T, report = poser.poses([item.path])
+                            row = pose_rows(T)[0]
+                            if report.missing and not no_pose:
+                                error(report.warning())
+                        # The query's own scan is excluded by its path; the others by
+                        # distance (unknown poses, NaN, are never within the radius).
+                        exclude = db_files == str(Path(item.path).resolve())
+                        if np.isfinite(row[:2]).all():
+                            d = np.hypot(db_xy[:, 0] - row[0], db_xy[:, 1] - row[1])
+                            exclude |= d <= exclude_radius
+                        else:
+                            no_pose += 1
                 except PoseFileError as exc:
                     error(str(exc))
                     failed += 1
@@ -256,6 +277,8 @@ def query(
     finally:
         loaded.close()
         db.close()
+    if no_pose:
+        error(f"{no_pose} queries had no pose: only their own scan was excluded")
     if failed:
         raise typer.Exit(1)
 
@@ -280,21 +303,3 @@ class PointCache:
         if len(self._cache) > self.size:
             self._cache.popitem(last=False)
         return points
-
-
-def _exclusion(
-    index: int, path: str, q_rows: Any, n_args: int | None, db_xy: Any, radius: float, source: str
-) -> Any:
-    import numpy as np
-
-    from disco_cli.errors import PoseFileError
-    from disco_cli.pipeline import frame_rows
-
-    if n_args is not None and n_args == len(q_rows):
-        row = index
-    else:
-        row = int(frame_rows([path], len(q_rows), source)[0])
-    if row >= len(q_rows):
-        raise PoseFileError(f"{source}: no pose for query {path}")
-    d = np.hypot(db_xy[:, 0] - q_rows[row, 0], db_xy[:, 1] - q_rows[row, 1])
-    return d <= radius  # unknown stored poses give NaN: never excluded

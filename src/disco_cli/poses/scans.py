@@ -84,7 +84,8 @@ def guess_poses_format(path: str | Path) -> str:
     """The format of a pose file from its name, else from its first data line.
 
     Names: `groundtruth_YYYY-MM-DD.csv` (nclt), `global_pose.csv` (mulran),
-    `pointcloud_locations*.csv` (oxford). Otherwise the number of fields per line:
+    `pointcloud_locations*.csv` (oxford), `poses.txt` (kitti, or kitti360 when its lines
+    start with a frame number and hold 13 fields). Otherwise the fields per line:
     12 kitti, 13 with an integer first field kitti360 (a `.csv` of 13 is mulran), 8 tum,
     7 nclt. `PoseFileError` when none fits.
     """
@@ -106,6 +107,8 @@ def guess_poses_format(path: str | Path) -> str:
         raise PoseFileError(f"{path}: no poses")
     fields = split_fields(lines[0])
     n = len(fields)
+    if name == "poses.txt" and not (n == 13 and re.fullmatch(r"\d+", fields[0])):
+        return "kitti"  # KITTI's name: its reader says what is wrong with a line
     if n == 12:
         return "kitti"
     if n == 13:
@@ -312,10 +315,14 @@ def scan_times(scans: Sequence[str | Path], poses_format: str) -> np.ndarray:
 
 
 def _kitti_rows(names: list[str], n_rows: int, source: str) -> np.ndarray:
-    """Row per scan: i when the counts agree, else the frame number in the file name
-    (-1 when that row is not in the file). `PoseFileError` for a name with no number."""
+    """Row per scan: i when the counts agree, else (more rows than scans) the frame number
+    in the file name (-1 when that row is not in the file). `PoseFileError` for fewer
+    rows than scans, and for a name with no number."""
     if len(names) == n_rows:
         return np.arange(n_rows)
+    if n_rows < len(names):
+        # A KITTI file has a row for every frame: fewer rows than scans is another file.
+        raise PoseFileError(f"{source}: {n_rows} poses for {len(names)} scans")
     rows = np.empty(len(names), dtype=np.int64)
     for i, p in enumerate(names):
         stem = Path(p).stem

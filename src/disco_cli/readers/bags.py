@@ -394,16 +394,25 @@ def scan_stamps(names: list[str]) -> np.ndarray:
 
 
 def bag_poses(
-    names: list[str], pose_topic: str | None, max_gap: float | None = None
+    names: list[str],
+    pose_topic: str | None,
+    max_gap: float | None = None,
+    extrinsic: np.ndarray | str | Path | None = None,
 ) -> tuple[np.ndarray, list[str]]:
     """Poses `[N, 4, 4]` of bag scans from each bag's pose topic, by time (NaN: no pose).
 
     Each scan takes the pose at its header stamp, interpolated between the two nearest
     pose messages (linear translation, SLERP rotation) when both lie within `max_gap`
-    seconds (default: three median pose periods). Returns the poses and the names of the
-    scans left without one. Scans not in a bag get no pose.
+    seconds (default: three median pose periods). `extrinsic` (a 4 x 4, or a file of
+    one): the LiDAR's pose in the topic's tracked frame, applied after interpolation.
+    Returns the poses and the names of the scans left without one. Scans not in a bag
+    get no pose.
     """
-    from disco_cli.poses import interpolate_poses
+    from disco_cli.poses import interpolate_poses, read_extrinsic
+
+    E = None
+    if extrinsic is not None:
+        E = read_extrinsic(extrinsic) if isinstance(extrinsic, (str, Path)) else extrinsic
 
     out = np.full((len(names), 4, 4), np.nan)
     by_bag: dict[str, list[int]] = {}
@@ -415,6 +424,8 @@ def bag_poses(
         stamps, T = read_pose_topic(bag, pose_topic)
         times = scan_stamps([names[i] for i in rows])
         poses, found = interpolate_poses(stamps, T, times, max_gap)
+        if E is not None:
+            poses[found] = poses[found] @ E
         sel = np.asarray(rows)[found]
         out[sel] = poses[found]
     missing = [names[i] for i in range(len(names)) if not np.isfinite(out[i, 0, 0])]

@@ -83,16 +83,22 @@ def _compact(bevs: np.ndarray) -> np.ndarray:
     return bevs.astype(np.float16)
 
 
-def _read_poses(seq: Path) -> np.ndarray:
-    from disco_cli.poses import read_kitti_poses
+def _read_poses(seq: Path, scans: list[Path]) -> np.ndarray:
+    """LiDAR poses `[N, 4, 4]` of a sequence's scans from the pose file beside them
+    (`disco_cli.poses.poses_for_scans`; NaN for a scan without a pose, named in one warning)."""
+    from disco_cli.poses import find_pose_file, poses_for_scans
 
-    poses_file = seq / "poses.txt"
-    if not poses_file.is_file():
+    poses_file = find_pose_file(seq)
+    if poses_file is None:
         raise PoseFileError(
-            f"{poses_file}: missing (train with --self-supervised for data without poses)"
+            f"{seq / 'poses.txt'}: missing (train with --self-supervised for data without poses)"
         )
-    calib = seq / "calib.txt"
-    return read_kitti_poses(poses_file, calib if calib.is_file() else None)
+    T, report = poses_for_scans(scans, poses_file)
+    if report.warning():
+        from disco_cli.console import warn
+
+        warn(report.warning())
+    return T
 
 
 def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
@@ -170,6 +176,8 @@ def load_training_data(
             poses, _ = bag_poses([str(s) for s in scans], pose_topic)
             posed = np.isfinite(poses[:, 0, 0])
             scans = [s for s, ok in zip(scans, posed) if ok]
+            if not scans:
+                raise PoseFileError(f"{seq}: no scan has a pose on {pose_topic}")
             x, y, yaw = xy_yaw(poses[posed])
             xy = np.stack([x, y], axis=1)
             heading = np.degrees(yaw)
@@ -180,11 +188,11 @@ def load_training_data(
             gid = len(groups)
             groups[str(seq)] = gid
         else:
-            poses = _read_poses(seq)
-            if len(poses) != len(scans):
-                raise PoseFileError(
-                    f"{seq / 'poses.txt'}: {len(poses)} poses for {len(scans)} scans"
-                )
+            poses = _read_poses(seq, scans)
+            has = np.isfinite(poses[:, 0, 3])
+            scans, poses = [s for s, h in zip(scans, has) if h], poses[has]
+            if not scans:
+                raise PoseFileError(f"{seq}: no scan has a pose")
             x, y, yaw = xy_yaw(poses)
             xy = np.stack([x, y], axis=1)
             heading = np.degrees(yaw)
