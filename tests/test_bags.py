@@ -613,13 +613,40 @@ def test_odometry_topic_poses_by_time(data: Path) -> None:
     )
     assert code == 0, err
     # Scan 9 (900 ms) lies past the last odometry message (863 ms): one warning, no pose.
-    assert "1 of 10 scans have no pose on /odom" in err
+    assert "/odom: 1 of 10 scans have no pose near their stamp" in err
+    assert "1 without a pose" in err
     with Database.open(db) as d:
         poses, times = d.poses()
     taus = np.array([stamp(i) - T0 for i in MAP_FRAMES]) * 1e-9
     np.testing.assert_allclose(times, (T0 * 1e-9) + taus, rtol=0, atol=1e-6)
     truth = odom_truth(taus)
     np.testing.assert_allclose(poses[:9], truth[:9], rtol=0, atol=1e-6)
+    assert np.isnan(poses[9]).all()
+
+
+def test_tum_file_poses_bag_scans_by_time(data: Path) -> None:
+    from disco_cli.database import Database
+
+    # The odometry's trajectory as a TUM file: t tx ty tz qx qy qz qw.
+    lines = []
+    for tau in ODOM_TAUS:
+        T = odom_T(tau)
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        ns = T0 + round(tau * 1e9)
+        t = f"{ns // 10**9}.{ns % 10**9:09d}"  # seconds, to the nanosecond
+        lines.append(" ".join([t, *(repr(float(v)) for v in (*T[:3, 3], *q))]))
+    tum = data / "trajectory.tum"
+    tum.write_text("\n".join(lines) + "\n")
+    db = data / "tum.db"
+    code, _, err = run(
+        "build-db", data / "map.bag", "--topic", "/points", "--poses", tum,
+        "--poses-format", "tum", "-o", db, *MODEL,
+    )  # fmt: skip
+    assert code == 0, err
+    with Database.open(db) as d:
+        poses, _ = d.poses()
+    taus = np.array([stamp(i) - T0 for i in MAP_FRAMES]) * 1e-9
+    np.testing.assert_allclose(poses[:9], odom_truth(taus)[:9], rtol=0, atol=1e-5)
     assert np.isnan(poses[9]).all()
 
 
