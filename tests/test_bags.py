@@ -288,7 +288,7 @@ def test_decoder_one_hand_written_point_each_endianness() -> None:
         (dict(fields=[PointField("y", 4, 7), PointField("z", 8, 7)]), "no x field"),
         (
             dict(fields=[PointField("x", 0, 3), PointField("y", 4, 7), PointField("z", 8, 7)]),
-            "must be float32 or float64",
+            "field 'x' is INT16; x, y, z must be FLOAT32 or FLOAT64",
         ),
         (
             dict(fields=[PointField("x", 0, 7), PointField("y", 4, 7), PointField("z", 14, 7)]),

@@ -42,6 +42,9 @@ DATATYPES: dict[int, str] = {
     7: "f4",  # FLOAT32
     8: "f8",  # FLOAT64
 }
+# The datatype names of sensor_msgs/PointField, for messages.
+_TYPE_NAMES = {1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32",
+               7: "FLOAT32", 8: "FLOAT64"}  # fmt: skip
 # Intensity channel names, in order of preference: Ouster publishes both intensity
 # (signal strength) and reflectivity (calibrated); either serves.
 _INTENSITY = ("intensity", "reflectivity", *INTENSITY_NAMES[1:], "i")
@@ -120,7 +123,8 @@ def decode_pointcloud2(
         dt = field_type(f)
         if dt.kind != "f":
             raise ScanReadError(
-                name, f"field {c!r} is {DATATYPES[f.datatype]}; x, y, z must be float32 or float64"
+                name,
+                f"field {c!r} is {_TYPE_NAMES[f.datatype]}; x, y, z must be FLOAT32 or FLOAT64",
             )
         names.append(c)
         formats.append(dt)
