@@ -125,3 +125,26 @@ def test_kitti_rule_rows_by_frame_number(tmp_path):
     # Fewer rows than scans: not this sequence's file.
     with pytest.raises(PoseFileError, match="50 poses for 60 scans"):
         poses_for_scans([f"{i:06d}.bin" for i in range(60)], tmp_path / "poses.txt")
+
+
+def test_kitti360_scans_by_frame_number_with_gaps(tmp_path):
+    from disco_cli.poses import find_pose_file
+
+    frames = np.array([0, 1, 2, 3, 10, 11])  # the vehicle stood still over frames 4-9
+    T = screw_pose(frames * 0.1)
+    seq = tmp_path / "data_poses" / "drive"
+    seq.mkdir(parents=True)
+    rows = [f"{f} " + " ".join(f"{v:.17g}" for v in Ti[:3, :4].ravel()) for f, Ti in zip(frames, T)]
+    (seq / "poses.txt").write_text("\n".join(rows) + "\n")
+    scans = [f"data/{f:010d}.bin" for f in (1, 2, 6, 11)]
+    P, report = poses_for_scans(scans, seq / "poses.txt", calib="none")
+    assert report.format == "kitti360" and report.missing == 1  # frame 6: a 0.7 s gap
+    np.testing.assert_allclose(P[[0, 1, 3]], T[[1, 2, 5]], atol=1e-12)
+    P, report = poses_for_scans(scans, seq / "poses.txt", calib="none", max_time_gap=1.0)
+    assert report.missing == 0 and report.interpolated == 1
+    np.testing.assert_allclose(P[2], screw_pose(np.array([0.6]))[0], atol=1e-9)
+    # The NCLT download layout: ground_truth/ beside the session folders.
+    (tmp_path / "ground_truth").mkdir()
+    (tmp_path / "ground_truth" / "groundtruth_2012-02-04.csv").write_text("1,0,0,0,0,0,0\n")
+    (tmp_path / "2012-02-04").mkdir()
+    assert find_pose_file(tmp_path / "2012-02-04").name == "groundtruth_2012-02-04.csv"

@@ -139,3 +139,40 @@ def test_protocols_hold_the_papers_settings():
         np.array([620084.4, 620084.4, 619800.0]),
     )
     assert inside.tolist() == [True, False, True]
+
+
+def test_train_protocol_uses_the_papers_session_and_distances(nclt_tree, tmp_path):
+    import torch
+
+    from disco_cli.readers import read_scan
+
+    root, map_poses, _ = nclt_tree
+    out = tmp_path / "nclt.pt"
+    # On the evaluation tree: only 2012-02-04 is read (26 scans, not the queries' 39), and
+    # its scans, several metres apart, hold no positive pair within the paper's 1.5 m.
+    code, text = run("train", root, "--protocol", "nclt", "-o", out, "--epochs", "1")
+    assert code == 1 and f"{len(map_poses)} scans from 1 sequences" in text
+    assert "no positive pairs within 1.5 m" in text
+    # A training session where each place is seen twice, up to 1.4 m apart.
+    files = sorted((SAMPLES / "00" / "velodyne").glob("*.bin"))[:12]
+    scans = [read_scan(f) for f in files]
+    poses = list(map_poses[:12])
+    rng = np.random.default_rng(8)
+    for pts, T in zip(list(scans), list(poses)):
+        d = np.r_[rng.uniform(-1.0, 1.0, 2), 0.0]
+        scans.append(moved(pts, 0.0, d))
+        M = np.eye(4)
+        M[:3, 3] = d
+        poses.append(T @ M)
+    dense = tmp_path / "nclt"
+    write_nclt_session(dense, "2012-02-04", scans, np.array(poses), 1328388850000000)
+    code, text = run(
+        "train", dense, "--protocol", "nclt", "-o", out, "--epochs", "1", "--steps", "1",
+        "--batch", "2", "--negatives", "2", "--width", "2",
+    )  # fmt: skip
+    assert code == 0, text
+    ckpt = torch.load(out, weights_only=True)
+    opts = ckpt["train_state"]["options"]
+    assert (opts["d_pos"], opts["d_neg"]) == (1.5, 2.0)
+    assert "--d-pos 1.5 --d-neg 2.0" in ckpt["command"]
+    assert str(dense / "2012-02-04") in ckpt["command"] and "--protocol" not in ckpt["command"]

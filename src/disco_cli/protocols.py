@@ -466,3 +466,29 @@ def table_rows(protocol: Protocol, results: list[SessionResult], approach: str) 
 
 
 TABLE_COLUMNS = ["dataset", "approach", "session", "recall@1", "recall@1%", "auc", "queries"]
+
+
+@dataclass(frozen=True)
+class TrainingSetup:
+    """What `disco train --protocol` trains on: session folders and the paper's distances."""
+
+    sessions: list[Path]
+    d_pos: float
+    d_neg: float
+    spacing: float
+    turn_x180: bool
+
+
+def training_setup(name: str, root: str | Path) -> TrainingSetup:
+    """The paper's training sessions under `root` with its positive/negative distances."""
+    p = _protocol(name)
+    if p.every_pair:
+        raise DiscoError(
+            "train --protocol oxford: PointNetVLAD's training split (pointcloud_20m_10overlap "
+            "outside the test squares) is not wired yet; train on the runs' folders directly"
+        )
+    sessions = []
+    for s in p.train_sessions:
+        find_session(p, root, s)  # one clear line when it is missing
+        sessions.append(Path(root) / s)
+    return TrainingSetup(sessions, p.d_pos, p.d_neg, p.train_spacing, p.turn_x180)

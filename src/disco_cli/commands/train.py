@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from disco_cli.commands.options import PoseTopicOpt, TopicOpt
+from disco_cli.commands.options import PoseTopicOpt, ProtocolOpt, TopicOpt
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
@@ -110,6 +110,7 @@ def train(
         int, typer.Option(help="Random seed (sampling, augmentation, initialization).")
     ] = 0,
     threads: Annotated[int, typer.Option(min=0, help="Voxelizer threads (0: all cores).")] = 0,
+    protocol: ProtocolOpt = None,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
 ) -> None:
@@ -125,6 +126,19 @@ def train(
         raise fail("--lambda-verify needs poses (other passes of a place); not --self-supervised")
     if output.exists() and not resume:
         raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
+    turn_x180 = False
+    if protocol is not None:
+        # The paper's training sessions and distances (disco_cli.protocols) replace
+        # DATA, --d-pos, --d-neg and --spacing.
+        from disco_cli.protocols import training_setup
+
+        if len(data) != 1:
+            raise fail("--protocol takes one dataset folder")
+        setup = training_setup(protocol, data[0])
+        data, d_pos, d_neg, spacing = setup.sessions, setup.d_pos, setup.d_neg, setup.spacing
+        turn_x180 = setup.turn_x180
+        # The provenance records what the protocol chose, as a command that reruns it.
+        ctx.params.update(d_pos=d_pos, d_neg=d_neg, spacing=spacing, protocol=None)
     command = _command_line(ctx, data, output)
     bev_config = BEVConfig()
     opts = TrainOptions(
@@ -160,6 +174,7 @@ def train(
                 seed=seed,
                 threads=threads,
                 on_progress=lambda done, total: bar.update(task, completed=done, total=total),
+                turn_x180=turn_x180,
                 topic=topic,
                 pose_topic=pose_topic,
             )

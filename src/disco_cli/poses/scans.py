@@ -449,8 +449,9 @@ _BESIDE = ("poses.txt", "global_pose.csv", "groundtruth_*.csv", "pointcloud_loca
 
 def find_pose_file(folder: str | Path) -> Path | None:
     """The pose file in a scan folder: `poses.txt` (KITTI, KITTI-360), `global_pose.csv`
-    (MulRan), `groundtruth_*.csv` (NCLT) or `pointcloud_locations_20m.csv` (Oxford);
-    None when there is none. `PoseFileError` when a pattern matches several files."""
+    (MulRan), `groundtruth_*.csv` (NCLT; also `../ground_truth/groundtruth_<folder>.csv`)
+    or `pointcloud_locations_20m.csv` (Oxford); None when there is none.
+    `PoseFileError` when a pattern matches several files."""
     folder = Path(folder)
     for pattern in _BESIDE:
         found = sorted(p for p in folder.glob(pattern) if p.is_file())
@@ -459,7 +460,9 @@ def find_pose_file(folder: str | Path) -> Path | None:
             raise PoseFileError(f"{folder}: several pose files ({names}); pass --poses")
         if found:
             return found[0]
-    return None
+    # NCLT as downloaded: ground_truth/groundtruth_<date>.csv beside the <date>/ sessions.
+    nclt = folder.parent / "ground_truth" / f"groundtruth_{folder.name}.csv"
+    return nclt if nclt.is_file() else None
 
 
 def calib_arg(value: str | Path | None) -> str | Path:

@@ -94,8 +94,8 @@ _NCLT_FOLDER = "velodyne_sync"
 _OXFORD_FOLDERS = ("pointcloud_20m", "pointcloud_20m_10overlap")
 # Folder layouts searched first, in order: DIR/velodyne/*.bin (KITTI, MulRan
 # after extraction), DIR/velodyne_sync/*.bin (NCLT) and DIR/pointcloud_20m/*.bin (an
-# Oxford run's test submaps).
-_SCAN_SUBFOLDERS = ("velodyne", _NCLT_FOLDER, _OXFORD_FOLDERS[0])
+# Oxford run's test submaps) and DIR/sensor_data/Ouster/*.bin (a MulRan sequence).
+_SCAN_SUBFOLDERS = ("velodyne", _NCLT_FOLDER, _OXFORD_FOLDERS[0], "sensor_data/Ouster")
 
 
 def _format_by_name(name: str, path: Path) -> ScanFormat:

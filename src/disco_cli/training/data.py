@@ -53,6 +53,18 @@ class TrainData:
         return self.bevs[idx].astype(np.float32)
 
 
+def _is_session(folder: Path) -> bool:
+    """A dataset session folder: a pose file beside scans (NCLT velodyne_sync/, MulRan
+    sensor_data/Ouster/, ...)."""
+    from disco_cli.poses import find_pose_file
+    from disco_cli.readers import list_scans
+
+    try:
+        return find_pose_file(folder) is not None and bool(list_scans(folder))
+    except DiscoError:
+        return False
+
+
 def expand_sequences(paths: list[Path]) -> list[Path]:
     """Sequence folders: each path itself if it holds velodyne/ (or is a ROS bag), else its
     subfolders that do (and the bags in it)."""
@@ -66,10 +78,14 @@ def expand_sequences(paths: list[Path]) -> list[Path]:
             continue
         if not p.is_dir():
             raise DiscoError(f"{p}: not a folder")
-        if (p / "velodyne").is_dir():
+        if (p / "velodyne").is_dir() or _is_session(p):
             out.append(p)
             continue
-        subs = sorted(d for d in p.iterdir() if (d / "velodyne").is_dir() or is_bag(d))
+        subs = sorted(
+            d
+            for d in p.iterdir()
+            if is_bag(d) or (d.is_dir() and ((d / "velodyne").is_dir() or _is_session(d)))
+        )
         if not subs:
             raise DiscoError(f"{p}: no velodyne/ folder in it or in its subfolders")
         out.extend(subs)
@@ -148,12 +164,16 @@ def load_training_data(
     seed: int = 0,
     threads: int = 0,
     on_progress: Callable[[int, int], None] | None = None,
+    turn_x180: bool = False,
     topic: str | None = None,
     pose_topic: str | None = None,
 ) -> TrainData:
-    """Read, voxelize and index every sequence (see the module docstring). A ROS bag is a
-    sequence of its `topic`'s scans, posed from its `pose_topic` (scans without a pose
-    near their stamp are left out)."""
+    """Read, voxelize and index every sequence (see the module docstring).
+
+    `turn_x180` turns scans and poses 180 degrees about x, for sensors whose z axis points
+    down (NCLT; see `disco_cli.protocols`). A ROS bag is a sequence of its `topic`'s
+    scans, posed from its `pose_topic` (scans without a pose near their stamp are left
+    out)."""
     from disco_cli.bev import polar_bev_batch
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import is_bag, list_scans, read_scan
@@ -189,6 +209,9 @@ def load_training_data(
             groups[str(seq)] = gid
         else:
             poses = _read_poses(seq, scans)
+            if turn_x180:
+                flip = np.diag([1.0, -1.0, -1.0, 1.0])
+                poses = flip @ poses @ flip
             has = np.isfinite(poses[:, 0, 3])
             scans, poses = [s for s, h in zip(scans, has) if h], poses[has]
             if not scans:
@@ -208,6 +231,8 @@ def load_training_data(
         for start in range(0, len(scans), _CHUNK):
             batch = scans[start : start + _CHUNK]
             clouds = [read_scan(p) for p in batch]
+            if turn_x180:
+                clouds = [c * np.array([1, -1, -1, 1], np.float32) for c in clouds]
             n = len(clouds)
             rows = np.arange(row, row + n)
             meta_xy = [xy[start : start + n]]
