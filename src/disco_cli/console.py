@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -48,12 +49,12 @@ def resolve_format(fmt: OutputFormat | None) -> OutputFormat:
 
 
 def error(message: str) -> None:
-    """Print one error line on stderr."""
-    stderr.print(f"[bold red]error:[/] {message}", soft_wrap=True)
+    """Print one error line on stderr (the message as is: `[ros]` is no markup)."""
+    stderr.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
 
 
 def warn(message: str) -> None:
-    stderr.print(f"[yellow]warning:[/] {message}", soft_wrap=True)
+    stderr.print(f"[yellow]warning:[/] {escape(message)}", soft_wrap=True)
 
 
 def fail(message: str, code: int = 1) -> typer.Exit:
