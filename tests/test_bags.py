@@ -677,3 +677,16 @@ def test_pose_stamped_topic_and_eval(data: Path, bin_db: Path) -> None:
     got, want = json.loads(out_bag), json.loads(out_bin)
     assert got["recall@1"] == want["recall@1"]
     assert got["recall@N"] == want["recall@N"]
+
+
+def test_without_rosbags_one_line_with_the_install_hint(
+    data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import sys
+
+    bags._close_all()
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # import fails
+    code, _, err = run("build-db", data / "map_db3", "-o", data / "none.db")
+    assert code != 0 and not (data / "none.db").exists()
+    assert err.strip().endswith("pip install 'disco-cli[ros]'")
+    assert "\n" not in err.strip()
