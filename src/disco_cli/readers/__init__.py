@@ -113,13 +113,22 @@ BAG_FORMAT = "rosbag"
 _BAG_SUFFIXES = (".bag", ".mcap")
 
 
+# ROS 2 bag folders found so far: every scan name of a bag asks again, and listing the
+# folder each time would cost more than reading the message.
+_BAG_FOLDERS: set[str] = set()
+
+
 def is_bag(path: str | Path) -> bool:
     """A ROS 1 .bag, an .mcap file, or a ROS 2 bag folder (metadata.yaml + .db3/.mcap)."""
     path = Path(path)
     if path.suffix.lower() in _BAG_SUFFIXES:
         return path.is_file()
+    if str(path) in _BAG_FOLDERS:
+        return True
     if path.is_dir() and (path / "metadata.yaml").is_file():
-        return any(p.suffix in (".db3", ".mcap") for p in path.iterdir())
+        if any(p.suffix in (".db3", ".mcap") for p in path.iterdir()):
+            _BAG_FOLDERS.add(str(path))
+            return True
     return False
 
 
