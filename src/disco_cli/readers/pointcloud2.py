@@ -166,10 +166,15 @@ def decode_pointcloud2(
         {"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step}
     )
     cloud = np.frombuffer(points, dtype=record, count=height * width)
-    return assemble(
-        name,  # type: ignore[arg-type]
-        cloud["x"],
-        cloud["y"],
-        cloud["z"],
-        cloud["intensity"] if inten is not None else None,
-    )
+    cols = [cloud[c] for c in ("x", "y", "z")]
+    inten_col = cloud["intensity"] if inten is not None else None
+    # Missing returns (NaN): tested column by column, cheaper than on the N x 3 result.
+    keep = np.isfinite(cols[0])
+    keep &= np.isfinite(cols[1])
+    keep &= np.isfinite(cols[2])
+    if not keep.all():
+        if not keep.any():
+            raise ScanReadError(name, f"none of its {len(keep)} points has finite x, y, z")
+        cols = [c[keep] for c in cols]
+        inten_col = inten_col[keep] if inten_col is not None else None
+    return assemble(name, *cols, inten_col, drop_nonfinite=False)  # type: ignore[arg-type]
