@@ -282,14 +282,16 @@ def frame_rows(paths: list[str], n_rows: int, source: str) -> np.ndarray:
     return np.asarray(rows, dtype=np.int64)
 
 
-def scan_paths(inputs: list[Any], scan_format: str | None = None) -> list[Path]:
-    """The scan files of every input (files or folders), in order; `ScanReadError` when
-    there are none."""
+def scan_paths(
+    inputs: list[Any], scan_format: str | None = None, topic: str | None = None
+) -> list[Path]:
+    """The scan files of every input (files, folders or bags), in order; `ScanReadError`
+    when there are none."""
     from disco_cli.readers import list_scans
 
     paths: list[Path] = []
     for item in inputs:
-        paths += list_scans(item, format=scan_format)
+        paths += list_scans(item, format=scan_format, topic=topic)
     if not paths:
         raise ScanReadError(", ".join(map(str, inputs)), "no scans found")
     return paths
@@ -310,12 +312,17 @@ def file_beside(inputs: list[Path], given: Path | None, name: str | None = None)
 
 
 def sequence_times(folder: Any, paths: list[str], times_file: Any = None) -> np.ndarray | None:
-    """The time (s) of each scan of a sequence: from `times_file`, else `times.txt` in
-    `folder`, by row or frame number (`frame_rows`); None when there is no such file."""
+    """The time (s) of each scan of a sequence: from `times_file`, else the header stamps
+    of scans in a bag, else `times.txt` in `folder`, by row or frame number
+    (`frame_rows`); None when there is none of these."""
     from pathlib import Path
 
     from disco_cli.poses import read_times
+    from disco_cli.readers.bags import scan_stamps
 
+    stamps = scan_stamps(paths) if times_file is None else None
+    if stamps is not None and np.isfinite(stamps).all():
+        return stamps
     folder = Path(folder)
     times_file = times_file or (folder / "times.txt" if folder.is_dir() else None)
     if times_file is None or not Path(times_file).is_file():
@@ -402,6 +409,8 @@ def collect_scans(
     scan_format: str | None = None,
     pose_opts: dict | None = None,
     warn: Any = None,
+    topic: str | None = None,
+    pose_topic: str | None = None,
 ) -> ScanList:
     """Expand folders, files and `-` (stdin) into one list of scans.
 
@@ -409,11 +418,14 @@ def collect_scans(
     its scans brings them along unless `--poses` / `--times` are given; those cover all
     scans. Poses come from `disco_cli.poses.ScanPoser`; scans left without one are
     named in one `warn` per pose file and counted in `ScanList.no_pose`.
+    Scans in a bag are timed by their header stamps, and posed from the bag's
+    `pose_topic` when given (by time, like a pose file).
     """
     import numpy as np
 
     from disco_cli.poses import ScanPoser, find_pose_file, read_times
     from disco_cli.readers import list_scans
+    from disco_cli.readers.bags import scan_stamps
 
     opts = dict(pose_opts or {})
     opts.setdefault("calib", "auto" if calib is None else calib)
@@ -435,11 +447,11 @@ def collect_scans(
         if item == "-":
             group = list(stdin_paths())
         else:
-            group = [str(p) for p in list_scans(item, scan_format)]
+            group = [str(p) for p in list_scans(item, scan_format, topic)]
         group = [p for p in dict.fromkeys(group) if p not in seen]
         seen.update(group)
         n = len(group)
-        p_rows, t_rows = np.full((n, 4), np.nan), np.full(n, np.nan)
+        p_rows, t_rows = np.full((n, 4), np.nan), scan_stamps(group)
         folder = Path(item)
         if item != "-" and folder.is_dir() and group:
             beside = find_pose_file(folder) if poses_file is None else None
@@ -458,4 +470,15 @@ def collect_scans(
     if times_file is not None:
         t = read_times(times_file)
         all_times = t[frame_rows(paths, len(t), str(times_file))]
+    if pose_topic is not None:
+        from disco_cli.readers.bags import bag_poses
+
+        T, missing = bag_poses(paths, pose_topic, opts.get("max_time_gap"), opts.get("extrinsic"))
+        if missing:
+            (warn or warnings.warn)(
+                f"{pose_topic}: {len(missing)} of {len(paths)} scans have no pose near their "
+                f"stamp (e.g. {missing[0]}); they are left without one"
+            )
+        no_pose += len(missing)
+        all_poses = pose_rows(T)
     return ScanList(paths, all_poses, all_times, no_pose)

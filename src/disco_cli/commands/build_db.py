@@ -22,7 +22,9 @@ from disco_cli.commands.options import (
     ExtrinsicOpt,
     MaxTimeGapOpt,
     PosesFormatOpt,
+    PoseTopicOpt,
     ScanFormatOpt,
+    TopicOpt,
     WorkersOpt,
     model_option,
     opt,
@@ -72,6 +74,8 @@ def build_db(
         ),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
     append: Annotated[
         bool,
         opt(
@@ -108,8 +112,10 @@ def build_db(
 
     check_device(device)
     fmt = scan_format.value if scan_format is not None else None
+    if pose_topic is not None and poses is not None:
+        raise fail("give --poses or --pose-topic, not both")
     pose_opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
-    scans = collect_scans(inputs, poses, times, calib, fmt, pose_opts, warn)
+    scans = collect_scans(inputs, poses, times, calib, fmt, pose_opts, warn, topic, pose_topic)
     if not scans.paths:
         raise fail("no scans given")
     absolute = {os.path.abspath(p) for p in scans.paths}

@@ -27,8 +27,10 @@ from disco_cli.commands.options import (
     ExtrinsicOpt,
     MaxTimeGapOpt,
     PosesFormatOpt,
+    PoseTopicOpt,
     RerankOpt,
     ScanFormatOpt,
+    TopicOpt,
     apply_rerank,
     model_option,
     opt,
@@ -63,6 +65,8 @@ def evaluate_loops(
         ),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
     model_name: Annotated[
         str,
         model_option("default, spectral, scancontext or a checkpoint path.", panel=PANEL_PROTOCOL),
@@ -100,26 +104,29 @@ def evaluate_loops(
     from disco_cli.model import load_model
     from disco_cli.pipeline import file_beside, frame_rows, scan_paths
     from disco_cli.poses import read_times
+    from disco_cli.readers.bags import scan_stamps
     from disco_cli.search import rerank_depth
 
     if exclude_seconds is not None and exclude_frames is not None:
         raise DiscoError("give --exclude-seconds or --exclude-frames, not both")
-    all_paths = scan_paths(sequence, scan_format)
+    all_paths = scan_paths(sequence, scan_format, topic)
     poses_file = file_beside(sequence, poses)
-    if poses_file is None:
+    if poses_file is None and pose_topic is None:
         raise PoseFileError("no poses: give --poses FILE (or a folder with poses.txt)")
     opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
-    paths, T = posed_scans(all_paths, poses_file, opts, warn)
+    paths, T = posed_scans(all_paths, poses_file, opts, warn, pose_topic)
     t, seconds = None, 30.0 if exclude_seconds is None else exclude_seconds
     if exclude_frames is None:
         times_file = file_beside(sequence, times, "times.txt")
-        if times_file is None:
-            raise PoseFileError("no times: give --times FILE or use --exclude-frames N")
-        t = read_times(times_file)
-        # One row per scan, or by frame number (the KITTI rule), for the scans with a pose.
-        t = t[frame_rows(list(map(str, all_paths)), len(t), str(times_file))]
-        kept = set(paths)
-        t = t[[p in kept for p in all_paths]]
+        t = scan_stamps([str(p) for p in paths])  # scans in a bag carry their header stamp
+        if times_file is not None or not np.isfinite(t).all():
+            if times_file is None:
+                raise PoseFileError("no times: give --times FILE or use --exclude-frames N")
+            t = read_times(times_file)
+            # One row per scan, or by frame number (the KITTI rule), for the scans with a pose.
+            t = t[frame_rows(list(map(str, all_paths)), len(t), str(times_file))]
+            kept = set(paths)
+            t = t[[p in kept for p in all_paths]]
         if np.any(np.diff(t) < 0):
             raise PoseFileError(f"{times_file}: times go backwards")
     limit = exclusion_limits(len(paths), exclude_frames, t, seconds)
@@ -133,7 +140,7 @@ def evaluate_loops(
         "fingerprint": model.fingerprint,
         "rerank": rerank_depth(model),
         "sequence": " ".join(map(str, sequence)),
-        "poses": str(poses_file),
+        "poses": str(poses_file) if pose_topic is None else pose_topic,
         "radius_m": radius,
         "exclusion": f"{exclude_frames} frames" if exclude_frames else f"{seconds:g} s",
         "num_scans": len(paths),

@@ -21,9 +21,11 @@ from disco_cli.commands.options import (
     ExtrinsicOpt,
     MaxTimeGapOpt,
     PosesFormatOpt,
+    PoseTopicOpt,
     ProtocolOpt,
     RerankOpt,
     ScanFormatOpt,
+    TopicOpt,
     apply_rerank,
     db_option,
     model_option,
@@ -124,6 +126,8 @@ def evaluate(
     extrinsic: ExtrinsicOpt = None,
     max_time_gap: MaxTimeGapOpt = None,
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
     model_name: Annotated[
         Optional[str],
         model_option(
@@ -150,12 +154,12 @@ def evaluate(
         return _run_protocol(protocol, queries, model_name, device, rerank, fmt)
     if db_path is None:
         raise PoseFileError("give --db map.db (or --protocol NAME DATASET_FOLDER)")
-    paths = scan_paths(queries, scan_format)
+    paths = scan_paths(queries, scan_format, topic)
     poses_file = file_beside(queries, query_poses)
-    if poses_file is None:
+    if poses_file is None and pose_topic is None:
         raise PoseFileError("no query poses: give --query-poses FILE (or a folder with poses.txt)")
     opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
-    paths, q_poses = posed_scans(paths, poses_file, opts, warn)
+    paths, q_poses = posed_scans(paths, poses_file, opts, warn, pose_topic)
     with Map.open(db_path, model=model_name, device=device) as m, _bar(len(paths)) as step:
         apply_rerank(m.model, rerank)
         ev = multi_session(paths, q_poses, m.database, m.model, radius, topk, scan_format, step)
@@ -166,7 +170,7 @@ def evaluate(
         "rerank": rerank_depth(m.model),
         "database": str(db_path),
         "queries": " ".join(map(str, queries)),
-        "query_poses": str(poses_file),
+        "query_poses": str(poses_file) if pose_topic is None else pose_topic,
         "radius_m": radius,
         "topk": topk,
     }

@@ -24,6 +24,7 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     ScanRootOpt,
     TimesOpt,
+    TopicOpt,
     WorkersOpt,
     db_option,
     model_option,
@@ -47,7 +48,7 @@ def loops(
         typer.Argument(
             show_default=False,
             help="The sequence: a folder of scans (KITTI-style "
-            "DIR/velodyne/ or a folder of scan files).",
+            "DIR/velodyne/ or a folder of scan files), or a ROS bag.",
         ),
     ],  # fmt: skip
     exclude_frames: ExcludeFramesOpt = None,  # default 50
@@ -105,6 +106,7 @@ def loops(
         ),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
     scan_root: ScanRootOpt = None,
     batch: BatchOpt = 32,
     workers: WorkersOpt = 1,
@@ -127,7 +129,7 @@ def loops(
     if output is not None:
         check_loop_file(output)
     with_pose = verify or verbose or output is not None
-    paths = [str(p) for p in list_scans(sequence, scan_format)]
+    paths = [str(p) for p in list_scans(sequence, scan_format, topic)]
     needs_times = with_pose or exclude_seconds is not None
     stamps = sequence_times(sequence, paths, times) if needs_times else None
     if exclude_seconds is not None:

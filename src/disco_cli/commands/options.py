@@ -91,6 +91,23 @@ ScanRootOpt = Annotated[
         rich_help_panel=PANEL_RUN,
     ),
 ]
+TopicOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--topic",
+        help="ROS bags: the sensor_msgs/PointCloud2 topic to read; default: the bag's only one.",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
+PoseTopicOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--pose-topic",
+        help="ROS bags: the scans' poses from this nav_msgs/Odometry or "
+        "geometry_msgs/PoseStamped topic of the bag, interpolated at each scan's stamp.",
+        rich_help_panel="Poses",
+    ),
+]
 WorkersOpt = Annotated[
     int,
     typer.Option(

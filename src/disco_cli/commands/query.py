@@ -23,6 +23,7 @@ from disco_cli.commands.options import (
     RerankOpt,
     ScanFormatOpt,
     ScanRootOpt,
+    TopicOpt,
     WorkersOpt,
     apply_rerank,
     db_option,
@@ -44,8 +45,8 @@ def query(
     scans: Annotated[
         list[str],
         typer.Argument(
-            help="Scan files, folders of scans (as for build-db), or - to read scan paths "
-            "from stdin (one per line).",
+            help="Scan files, folders of scans (as for build-db), ROS bags (each of their "
+            "scans; one as BAG#TOPIC@STAMP_NS), or - to read scan paths from stdin (one per line).",
             show_default=False,
         ),
     ],
@@ -110,6 +111,7 @@ def query(
         ),
     ] = None,  # fmt: skip
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
     scan_root: ScanRootOpt = None,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
@@ -119,7 +121,7 @@ def query(
     from disco_cli.console import RowWriter
     from disco_cli.map import Map
     from disco_cli.pipeline import QueryPoses, stdin_paths
-    from disco_cli.readers import list_scans
+    from disco_cli.readers import is_bag, list_scans
 
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --query-poses")
@@ -129,8 +131,13 @@ def query(
     writer = RowWriter(columns, fmt, table_omit=["query"])
     keys = columns + (["T"] if with_pose else [])  # JSON lines carry the whole T
     fmt_name = scan_format.value if scan_format is not None else None
-    # A folder is expanded like build-db's (DIR/velodyne/ or a folder of scans).
-    given = [str(f) for a in scans for f in (list_scans(a, fmt_name) if Path(a).is_dir() else [a])]
+
+    # A folder or a bag is expanded like build-db's (DIR/velodyne/, a folder of scans).
+    def expand(a: str) -> list[str]:
+        listed = a != "-" and (is_bag(a) or Path(a).is_dir())
+        return [str(f) for f in list_scans(a, fmt_name, topic)] if listed else [a]
+
+    given = [f for a in scans for f in expand(a)]
     paths = (p for s in given for p in (stdin_paths() if s == "-" else [s]))
     failed = 0
     with Map.open(db_path, model=model, device=device, scan_root=scan_root) as m:
@@ -139,7 +146,8 @@ def query(
         exclude, poses_of = None, None
         if exclude_radius is not None:  # the query's own scan, and those near its pose
             opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
-            known = None if "-" in given else given
+            # Scans in a bag go by the time in their names, scans from stdin one by one.
+            known = None if "-" in given or any(map(is_bag, scans)) else given
             poses_of = QueryPoses(query_poses, opts, known, warn=error)
             exclude = lambda i, p: m.near(poses_of(i, p)[:2], exclude_radius, p)  # noqa: E731
         results = m.query_files(

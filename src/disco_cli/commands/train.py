@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from disco_cli.commands.options import ProtocolOpt, output_option
+from disco_cli.commands.options import PoseTopicOpt, ProtocolOpt, TopicOpt, output_option
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
@@ -40,9 +40,9 @@ def train(
         list[Path],
         typer.Argument(
             exists=True,
-            file_okay=False,
             show_default=False,
-            help="Sequence folders (velodyne/ + poses.txt), or folders of them (one world each).",
+            help="Sequence folders (velodyne/ + poses.txt) or ROS bags, or folders of them "
+            "(one world each).",
         ),
     ],
     output: Annotated[Path, output_option("Checkpoint to write (after every epoch).")],
@@ -109,6 +109,8 @@ def train(
     ] = 0,
     threads: Annotated[int, typer.Option(min=0, help="Voxelizer threads (0: all cores).")] = 0,
     protocol: ProtocolOpt = None,
+    topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
     from disco_cli.bev import BEVConfig
@@ -171,6 +173,8 @@ def train(
                 threads=threads,
                 on_progress=lambda done, total: bar.update(task, completed=done, total=total),
                 turn_x180=turn_x180,
+                topic=topic,
+                pose_topic=pose_topic,
             )
         stderr.print(f"{what}: {len(result.anchors)} scans from {len(result.sessions)} sequences")
         return result

@@ -22,18 +22,36 @@ __all__ = ["multi_session", "loop_closure", "exclusion_limits", "posed_scans"]
 
 
 def posed_scans(
-    paths: list[Any], poses_file: Any, pose_opts: dict, warn: Callable[[str], None]
+    paths: list[Any],
+    poses_file: Any,
+    pose_opts: dict,
+    warn: Callable[[str], None],
+    pose_topic: str | None = None,
 ) -> tuple[list[Any], np.ndarray]:
-    """The scans that have a pose and their LiDAR poses (`disco_cli.poses.ScanPoser`); the
-    others are named in one `warn` and left out of the evaluation."""
-    from disco_cli.poses import ScanPoser
+    """The scans that have a pose and their LiDAR poses: from a pose file
+    (`disco_cli.poses.ScanPoser`), or for scans in bags from the bags' `pose_topic` by
+    time. The others are named in one `warn` and left out of the evaluation."""
+    if pose_topic is not None:
+        from disco_cli.readers.bags import bag_poses
 
-    T, report = ScanPoser(poses_file, **pose_opts).poses(paths)
-    if report.warning():
-        warn(report.warning() + " and left out of the evaluation")
+        source = pose_topic
+        gap, extrinsic = pose_opts["max_time_gap"], pose_opts["extrinsic"]
+        T, missing = bag_poses([str(p) for p in paths], pose_topic, gap, extrinsic)
+        if missing:
+            warn(
+                f"{pose_topic}: {len(missing)} of {len(paths)} scans have no pose near their "
+                f"stamp (e.g. {missing[0]}) and are left out of the evaluation"
+            )
+    else:
+        from disco_cli.poses import ScanPoser
+
+        source = poses_file
+        T, report = ScanPoser(poses_file, **pose_opts).poses(paths)
+        if report.warning():
+            warn(report.warning() + " and left out of the evaluation")
     keep = np.isfinite(T[:, 0, 3])
     if not keep.any():
-        raise PoseFileError(f"{poses_file}: none of the {len(paths)} scans has a pose")
+        raise PoseFileError(f"{source}: none of the {len(paths)} scans has a pose")
     return [p for p, k in zip(paths, keep) if k], T[keep]
 
 

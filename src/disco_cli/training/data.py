@@ -66,17 +66,25 @@ def _is_session(folder: Path) -> bool:
 
 
 def expand_sequences(paths: list[Path]) -> list[Path]:
-    """Sequence folders: each path itself if it holds velodyne/, else its subfolders that do."""
+    """Sequence folders: each path itself if it holds velodyne/ (or is a ROS bag), else its
+    subfolders that do (and the bags in it)."""
+    from disco_cli.readers import is_bag
+
     out: list[Path] = []
     for p in paths:
         p = Path(p)
+        if is_bag(p):
+            out.append(p)
+            continue
         if not p.is_dir():
             raise DiscoError(f"{p}: not a folder")
         if (p / "velodyne").is_dir() or _is_session(p):
             out.append(p)
             continue
         subs = sorted(
-            d for d in p.iterdir() if d.is_dir() and ((d / "velodyne").is_dir() or _is_session(d))
+            d
+            for d in p.iterdir()
+            if is_bag(d) or (d.is_dir() and ((d / "velodyne").is_dir() or _is_session(d)))
         )
         if not subs:
             raise DiscoError(f"{p}: no velodyne/ folder in it or in its subfolders")
@@ -157,24 +165,44 @@ def load_training_data(
     threads: int = 0,
     on_progress: Callable[[int, int], None] | None = None,
     turn_x180: bool = False,
+    topic: str | None = None,
+    pose_topic: str | None = None,
 ) -> TrainData:
     """Read, voxelize and index every sequence (see the module docstring).
 
     `turn_x180` turns scans and poses 180 degrees about x, for sensors whose z axis points
-    down (NCLT; see `disco_cli.protocols`)."""
+    down (NCLT; see `disco_cli.protocols`). A ROS bag is a sequence of its `topic`'s
+    scans, posed from its `pose_topic` (scans without a pose near their stamp are left
+    out)."""
     from disco_cli.bev import polar_bev_batch
     from disco_cli.poses import xy_yaw
-    from disco_cli.readers import list_scans, read_scan
+    from disco_cli.readers import is_bag, list_scans, read_scan
 
     seqs = expand_sequences(paths)
     rng = np.random.default_rng(seed)
     plan: list[tuple[int, int, Path, list[Path], np.ndarray, np.ndarray]] = []
     groups: dict[str, int] = {}
     for sid, seq in enumerate(seqs):
-        scans = list_scans(seq)
+        scans = list_scans(seq, topic=topic)
         if not scans:
             raise DiscoError(f"{seq}: no scans")
-        if self_supervised:
+        if not self_supervised and is_bag(seq):
+            from disco_cli.readers.bags import bag_poses
+
+            if pose_topic is None:
+                raise PoseFileError(
+                    f"{seq}: a bag's poses come from --pose-topic (or train with --self-supervised)"
+                )
+            poses, _ = bag_poses([str(s) for s in scans], pose_topic)
+            posed = np.isfinite(poses[:, 0, 0])
+            scans = [s for s, ok in zip(scans, posed) if ok]
+            if not scans:
+                raise PoseFileError(f"{seq}: no scan has a pose on {pose_topic}")
+            x, y, yaw = xy_yaw(poses[posed])
+            xy = np.stack([x, y], axis=1)
+            heading = np.degrees(yaw)
+            gid = groups.setdefault(str(seq.resolve().parent), len(groups))
+        elif self_supervised:
             xy = np.zeros((len(scans), 2))
             heading = np.zeros(len(scans))
             gid = len(groups)
