@@ -263,12 +263,15 @@ def test_resume_after_kill(tmp_path: Path, sig: signal.Signals) -> None:
     proc.send_signal(sig)
     code = proc.wait(timeout=60)
     err = proc.stderr.read().decode()
-    if sig == signal.SIGINT:  # Ctrl-C: exit 130, no traceback
+    if sig == signal.SIGINT:  # Ctrl-C: exit 130, no traceback, what is safe and what next
         assert code == 130 and "Traceback" not in err, err
+        assert "safely stored; run the same command again to resume" in err, err
     with Database.open(out) as db:
         assert db.check() == []
         done = db.paths()
     assert 0 < len(done) < n, "the build was not interrupted mid-way"
+    if sig == signal.SIGINT:
+        assert f"holds {len(done)} of the {n} scans given" in err, err
     assert done == [str(scans / f"{i:06d}.bin") for i in range(len(done))]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr

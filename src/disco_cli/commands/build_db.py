@@ -153,14 +153,18 @@ def build_db(
             )  # fmt: skip
         except KeyboardInterrupt:
             # Every committed batch is safe (one transaction each); say so, and how to go on.
-            if m.database is None:
+            held = len(stored & absolute) + done[0]
+            if m.database is None and output.exists():
+                # Interrupted while the new file, its first batch committed, was opened.
+                held = _count(output, held)
+            if m.database is None and not output.exists():
                 stderr.print(f"interrupted: nothing written; {output} was not created")
             else:
-                held = len(stored & absolute) + done[0]
                 stderr.print(
                     f"interrupted: {output} holds {held} of the {len(absolute)} scans given, "
-                    "safely stored; run the same command again to resume", soft_wrap=True,
-                )  # fmt: skip
+                    "safely stored; run the same command again to resume",
+                    soft_wrap=True,
+                )
             raise typer.Exit(130) from None
         created = m.database is not None
     elapsed = time.perf_counter() - start
@@ -175,3 +179,15 @@ def build_db(
         warn(f"{len(result.bad)} unreadable scans skipped")
     if result.written == 0 and not created:
         raise fail(f"{output}: no readable scans; nothing written")
+
+
+def _count(path: Path, default: int) -> int:
+    """How many scans the database at `path` holds (`default` when it cannot be read)."""
+    from disco_cli.database import Database
+    from disco_cli.errors import DatabaseError
+
+    try:
+        with Database.open(path, verify=False) as fresh:
+            return len(fresh)
+    except DatabaseError:
+        return default
