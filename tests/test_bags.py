@@ -690,3 +690,48 @@ def test_without_rosbags_one_line_with_the_install_hint(
     assert code != 0 and not (data / "none.db").exists()
     assert err.strip().endswith("pip install 'disco-cli[ros]'")
     assert "\n" not in err.strip()
+
+
+def test_loops_on_a_bag_times_scans_by_their_stamps(data: Path) -> None:
+    # The .bin copy of the map with times.txt = the bag's stamps (0.1 s apart).
+    seq = data / "bin_timed"
+    if not seq.exists():
+        shutil.copytree(data / "bin", seq)
+        np.savetxt(seq / "times.txt", [0.1 * i for i in MAP_FRAMES])
+    args = ["--exclude-seconds", "0.35", "--format", "jsonl", *MODEL]
+    code, out_bin, err = run("loops", seq, *args)
+    assert code == 0, err
+    code, out_bag, err = run("loops", data / "map.bag", "--topic", "/points", *args)
+    assert code == 0, err
+    want, got = jsonl(out_bin), jsonl(out_bag)
+    assert len(got) == len(want) == len(MAP_FRAMES) - 4  # scans 4.. have a scan 0.35 s back
+    for g, w in zip(got, want):
+        assert (g["query_index"], g["match_index"]) == (w["query_index"], w["match_index"])
+        assert g["yaw_deg"] == pytest.approx(w["yaw_deg"], abs=1e-4)
+
+
+def test_bev_of_a_bag_is_its_first_scan(data: Path) -> None:
+    from disco_cli.bev import BEVConfig, polar_bev
+
+    out = data / "bev.npy"
+    code, _, err = run("bev", data / "map.bag", "--topic", "/os_cloud_node/points", "-o", out)
+    assert code == 0, err
+    assert f"map.bag#/os_cloud_node/points@{stamp(0)}" in err
+    np.testing.assert_array_equal(np.load(out), polar_bev(scan("00", 0), BEVConfig()))
+
+
+def test_a_bad_message_is_named_and_skippable(tmp_path: Path) -> None:
+    ts = get_typestore(Stores.LATEST)
+    good = [(stamp(i), cloud_msg(ts, scan("00", i), "xyzi", stamp(i), False, i)) for i in (0, 1)]
+    bad = cloud_msg(ts, scan("00", 2), "xyzi", stamp(2), False, 2)
+    bad.width += 1  # the cloud claims one point more than the data holds
+    bad.row_step += 16
+    bag = write_bag(tmp_path / "bad.mcap", "mcap", {"/points": (PC2, [*good, (stamp(2), bad)])})
+    db = tmp_path / "bad.db"
+    code, _, err = run("build-db", bag, "-o", db, *MODEL)
+    assert code != 0
+    assert f"bad.mcap#/points@{stamp(2)}: data holds" in err and "truncated" in err
+    code, _, err = run("build-db", bag, "-o", tmp_path / "skip.db", "--skip-bad", *MODEL)
+    assert code == 0, err
+    err = " ".join(err.split())  # rich wraps long lines
+    assert "wrote 2 scans" in err and "1 unreadable scans skipped" in err
