@@ -548,6 +548,15 @@ def test_messages_read_back_by_name_in_any_order(data: Path, kind: str) -> None:
         np.testing.assert_array_equal(got, want)
     with pytest.raises(ScanReadError, match="no message with this header stamp"):
         read_scan(f"{data / map_name}#/points@{stamp(3) + 1}")
+    # Reading threads (build-db --workers) share the bag and its cursor.
+    from concurrent.futures import ThreadPoolExecutor
+
+    bags._close_all()
+    names = list_scans(data / map_name, topic="/points")
+    with ThreadPoolExecutor(4) as pool:
+        for i, got in zip(MAP_FRAMES, pool.map(read_scan, names)):
+            want = pack(scan("00", i), LAYOUTS[map_layout], seed=i).expected
+            np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
