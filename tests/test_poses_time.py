@@ -122,6 +122,10 @@ def test_kitti_rule_rows_by_frame_number(tmp_path):
     assert r.missing == 1 and np.isnan(P[1]).all() and "000077.bin" in r.warning()
     with pytest.raises(PoseFileError, match="no frame number"):
         poses_for_scans(["a.bin", "b.bin"], tmp_path / "poses.txt")
+    # Numbers are frame numbers for KITTI poses (they hold no times).
+    P, r = poses_for_scans(np.array([7, 42, 99]), tmp_path / "poses.txt")
+    np.testing.assert_allclose(P[:2], T[[7, 42]], atol=1e-8)
+    assert r.missing == 1 and "frame 99" in r.warning()
     # Fewer rows than scans: not this sequence's file.
     with pytest.raises(PoseFileError, match="50 poses for 60 scans"):
         poses_for_scans([f"{i:06d}.bin" for i in range(60)], tmp_path / "poses.txt")

@@ -176,3 +176,64 @@ def test_train_protocol_uses_the_papers_session_and_distances(nclt_tree, tmp_pat
     assert (opts["d_pos"], opts["d_neg"]) == (1.5, 2.0)
     assert "--d-pos 1.5 --d-neg 2.0" in ckpt["command"]
     assert str(dense / "2012-02-04") in ckpt["command"] and "--protocol" not in ckpt["command"]
+
+
+def test_mulran_protocol_reads_ouster_scans_by_nanoseconds(tmp_path):
+    """A miniature MulRan tree (DCC01 map, DCC02 queries; scans named by nanoseconds,
+    base poses in global_pose.csv): the protocol keeps one place every 5 m and gives the
+    figures of `disco eval --radius 3 --topk 10` on those scans in KITTI layout."""
+    import shutil
+
+    from disco_cli.poses.mulran import base_to_ouster, write_mulran_poses
+
+    root = tmp_path / "mulran"
+    kitti = {}
+    for name, sample in (("DCC01", "00"), ("DCC02", "01")):
+        files = sorted((SAMPLES / sample / "velodyne").glob("*.bin"))
+        lidar = read_kitti_poses(SAMPLES / sample / "poses.txt")
+        stamps = 1566535751292145922 + 100_000_000 * np.arange(len(files), dtype=np.int64)
+        (root / name / "sensor_data" / "Ouster").mkdir(parents=True)
+        # Each scan also 20 ms later (the same points): its pose is interpolated a fifth
+        # of the way (2 to 3 m) to the next one, closer than 5 m, so the spacing drops it.
+        xy = []
+        for k, (s, f) in enumerate(zip(stamps, files)):
+            shutil.copy(f, root / name / "sensor_data" / "Ouster" / f"{s}.bin")
+            xy.append((k, lidar[k, :2, 3]))
+            if k + 1 < len(files):
+                shutil.copy(f, root / name / "sensor_data" / "Ouster" / f"{s + 20_000_000}.bin")
+                xy.append((None, 0.8 * lidar[k, :2, 3] + 0.2 * lidar[k + 1, :2, 3]))
+        write_mulran_poses(
+            root / name / "global_pose.csv", stamps, lidar @ np.linalg.inv(base_to_ouster())
+        )
+        # The places the protocol keeps: one every 5 m of travel, written independently.
+        kept = [xy[0]]
+        for item in xy[1:]:
+            if np.linalg.norm(item[1] - kept[-1][1]) >= 5.0:
+                kept.append(item)
+        keep = [k for k, _ in kept]
+        assert None not in keep and len(keep) < len(xy)
+        out = tmp_path / "kitti" / name
+        (out / "velodyne").mkdir(parents=True)
+        for j, i in enumerate(keep):
+            shutil.copy(files[i], out / "velodyne" / f"{j:06d}.bin")
+        write_kitti_poses(out / "poses.txt", lidar[keep])
+        kitti[name] = (out, len(keep))
+
+    code, out = run(
+        "eval", "--protocol", "mulran", root, "--model", "spectral", "--format", "jsonl"
+    )
+    assert code == 0, out
+    assert out.count("skipped") == 1  # DCC03 is missing
+    rows = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    got = next(r for r in rows if r["session"] == "DCC02")
+    assert got["queries"] == kitti["DCC02"][1]
+
+    db = tmp_path / "dcc01.db"
+    assert run("build-db", kitti["DCC01"][0], "-o", db, "--model", "spectral")[0] == 0
+    code, out = run("eval", kitti["DCC02"][0], "--db", db, "--radius", "3", "--topk", "10",
+                    "--format", "jsonl")  # fmt: skip
+    assert code == 0, out
+    ref = json.loads(out.strip().splitlines()[-1])
+    assert ref["num_queries_with_match"] > 0
+    for key in ("recall@1", "recall@1%", "auc"):
+        assert got[key] == pytest.approx(100 * ref[key], abs=0.006)

@@ -375,8 +375,15 @@ class ScanPoser:
         n = len(scans)
         out = np.full((n, 4, 4), np.nan)
 
-        if self.by_frame and times is None and not by_time:
-            rows = _kitti_rows(names, len(T), source)
+        if self.by_frame:
+            # KITTI rows are frames, not times: numbers given are frame numbers.
+            if by_time:
+                f = np.asarray(scans, dtype=np.float64)
+                ok_f = (f == np.round(f)) & (f >= 0) & (f < len(T))
+                rows = np.where(ok_f, f, -1).astype(np.int64)
+                names = [f"frame {v:g}" for v in f]
+            else:
+                rows = _kitti_rows(names, len(T), source)
             ok = rows >= 0
             out[ok] = _apply(T[rows[ok]], self._left, self._right)
             missing = np.flatnonzero(~ok)
@@ -437,7 +444,8 @@ def poses_for_scans(
     `times.txt`). `poses_format`: one of `POSE_FORMATS`, else guessed from the file.
     `calib`, `extrinsic`: see `read_poses`. `max_time_gap` (s): the farthest a pose
     may be from a scan's time to be used (exact matches always are); default three
-    median periods of the pose file. Frame-numbered KITTI poses ignore times.
+    median periods of the pose file. Frame-numbered KITTI poses ignore `times`, and
+    take an array of numbers as frame numbers.
     """
     poser = ScanPoser(poses_file, poses_format, calib, extrinsic, max_time_gap)
     return poser.poses(scans, times)
