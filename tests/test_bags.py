@@ -610,6 +610,9 @@ def test_topic_errors_list_the_topics(data: Path) -> None:
     )
     assert code != 0 and "is sensor_msgs/PointCloud2, not nav_msgs/Odometry" in err
     assert not (data / "x.db").exists()
+    (db3,) = (data / "map_db3").glob("*.db3")
+    code, _, err = run("build-db", db3, "-o", data / "x.db")
+    assert code != 0 and "give the bag's folder (metadata.yaml)" in err
 
 
 def test_odometry_topic_poses_by_time(data: Path) -> None:
