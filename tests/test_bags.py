@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +65,6 @@ class Layout:
     row_pad: int = 0  # bytes of padding after each row
     holes: bool = False  # NaN points among the real ones (organized clouds)
     scale: float = 1.0  # intensity [0, 1] -> stored value
-    extra: dict = field(default_factory=dict)
 
 
 LAYOUTS = {
@@ -82,7 +81,7 @@ LAYOUTS = {
         ],
         32,
         scale=255.0,
-    ),  # fmt: skip
+    ),
     # ouster-ros PointOS0: x, y, z, padding, intensity, t, reflectivity, ring, ambient, range.
     "ouster": Layout(
         [
@@ -98,7 +97,7 @@ LAYOUTS = {
         ],
         48,
         scale=1000.0,
-    ),  # fmt: skip
+    ),
     # Ouster-like with no float intensity: uint16 reflectivity, uint8 ring, padding.
     "ouster_reflectivity": Layout(
         [
@@ -110,7 +109,7 @@ LAYOUTS = {
         ],
         24,
         scale=65535.0,
-    ),  # fmt: skip
+    ),
     # HesaiLidar_ROS_2.0: uint8 intensity, uint16 ring, float64 timestamp.
     "hesai": Layout(
         [
@@ -123,7 +122,7 @@ LAYOUTS = {
         ],
         24,
         scale=255.0,
-    ),  # fmt: skip
+    ),
     # livox_ros_driver2 PointXYZRTLT: tag, line uint8 and an unaligned float64 timestamp.
     "livox": Layout(
         [
@@ -137,7 +136,7 @@ LAYOUTS = {
         ],
         26,
         scale=255.0,
-    ),  # fmt: skip
+    ),
     # Organized 8 x W, float64 x, y, z, uint8 intensity, rows padded, NaN holes.
     "organized": Layout(
         [("x", 0, "f8"), ("y", 8, "f8"), ("z", 16, "f8"), ("intensity", 24, "u1")],
@@ -146,14 +145,14 @@ LAYOUTS = {
         row_pad=16,
         holes=True,
         scale=255.0,
-    ),  # fmt: skip
+    ),
     # Big endian float32 x, y, z and uint16 intensity, 2 bytes of padding.
     "bigendian": Layout(
         [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 12, "u2")],
         16,
         bigendian=True,
         scale=65535.0,
-    ),  # fmt: skip
+    ),
 }
 
 
@@ -270,8 +269,8 @@ def test_decoder_without_intensity_gives_zero() -> None:
 def test_decoder_one_hand_written_point_each_endianness() -> None:
     # One point, bytes written out by hand: x=1.5, y=-2, z=0.25 (float32), intensity 300
     # (uint16), two bytes of padding.
-    little = bytes.fromhex("0000c03f000000c00000803e2c01abcd")
-    big = bytes.fromhex("3fc00000c00000003e800000012cabcd")
+    little = bytes.fromhex("0000c03f 000000c0 0000803e 2c01 abcd")
+    big = bytes.fromhex("3fc00000 c0000000 3e800000 012c abcd")
     fields = [PointField("x", 0, 7), PointField("y", 4, 7), PointField("z", 8, 7),
               PointField("intensity", 12, 4)]  # fmt: skip
     for data, be in ((little, False), (big, True)):
@@ -473,11 +472,11 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
         if ros1:
             # A second cloud topic (so --topic is needed) and odometry to pose by time.
             topics["/os_cloud_node/points"] = clouds(kind, "00", MAP_FRAMES, "ouster")
-            topics["/odom"] = (
-                "nav_msgs/msg/Odometry",
-                [(T0 + round(tau * 1e9), odometry_msg(ts, odom_T(tau), T0 + round(tau * 1e9),
-                  True)) for tau in ODOM_TAUS],
-            )  # fmt: skip
+            odom = []
+            for tau in ODOM_TAUS:
+                ns = T0 + round(tau * 1e9)
+                odom.append((ns, odometry_msg(ts, odom_T(tau), ns, True)))
+            topics["/odom"] = ("nav_msgs/msg/Odometry", odom)
         else:
             # The scans' own poses at their stamps, as PoseStamped.
             topics["/pose"] = (
