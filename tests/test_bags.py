@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +65,6 @@ class Layout:
     row_pad: int = 0  # bytes of padding after each row
     holes: bool = False  # NaN points among the real ones (organized clouds)
     scale: float = 1.0  # intensity [0, 1] -> stored value
-    extra: dict = field(default_factory=dict)
 
 
 LAYOUTS = {
@@ -82,7 +81,7 @@ LAYOUTS = {
         ],
         32,
         scale=255.0,
-    ),  # fmt: skip
+    ),
     # ouster-ros PointOS0: x, y, z, padding, intensity, t, reflectivity, ring, ambient, range.
     "ouster": Layout(
         [
@@ -98,7 +97,7 @@ LAYOUTS = {
         ],
         48,
         scale=1000.0,
-    ),  # fmt: skip
+    ),
     # Ouster-like with no float intensity: uint16 reflectivity, uint8 ring, padding.
     "ouster_reflectivity": Layout(
         [
@@ -110,7 +109,7 @@ LAYOUTS = {
         ],
         24,
         scale=65535.0,
-    ),  # fmt: skip
+    ),
     # HesaiLidar_ROS_2.0: uint8 intensity, uint16 ring, float64 timestamp.
     "hesai": Layout(
         [
@@ -123,7 +122,7 @@ LAYOUTS = {
         ],
         24,
         scale=255.0,
-    ),  # fmt: skip
+    ),
     # livox_ros_driver2 PointXYZRTLT: tag, line uint8 and an unaligned float64 timestamp.
     "livox": Layout(
         [
@@ -137,7 +136,7 @@ LAYOUTS = {
         ],
         26,
         scale=255.0,
-    ),  # fmt: skip
+    ),
     # Organized 8 x W, float64 x, y, z, uint8 intensity, rows padded, NaN holes.
     "organized": Layout(
         [("x", 0, "f8"), ("y", 8, "f8"), ("z", 16, "f8"), ("intensity", 24, "u1")],
@@ -146,14 +145,14 @@ LAYOUTS = {
         row_pad=16,
         holes=True,
         scale=255.0,
-    ),  # fmt: skip
+    ),
     # Big endian float32 x, y, z and uint16 intensity, 2 bytes of padding.
     "bigendian": Layout(
         [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 12, "u2")],
         16,
         bigendian=True,
         scale=65535.0,
-    ),  # fmt: skip
+    ),
 }
 
 
@@ -270,8 +269,8 @@ def test_decoder_without_intensity_gives_zero() -> None:
 def test_decoder_one_hand_written_point_each_endianness() -> None:
     # One point, bytes written out by hand: x=1.5, y=-2, z=0.25 (float32), intensity 300
     # (uint16), two bytes of padding.
-    little = bytes.fromhex("0000c03f000000c00000803e2c01abcd")
-    big = bytes.fromhex("3fc00000c00000003e800000012cabcd")
+    little = bytes.fromhex("0000c03f 000000c0 0000803e 2c01 abcd")
+    big = bytes.fromhex("3fc00000 c0000000 3e800000 012c abcd")
     fields = [PointField("x", 0, 7), PointField("y", 4, 7), PointField("z", 8, 7),
               PointField("intensity", 12, 4)]  # fmt: skip
     for data, be in ((little, False), (big, True)):
@@ -473,11 +472,11 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
         if ros1:
             # A second cloud topic (so --topic is needed) and odometry to pose by time.
             topics["/os_cloud_node/points"] = clouds(kind, "00", MAP_FRAMES, "ouster")
-            topics["/odom"] = (
-                "nav_msgs/msg/Odometry",
-                [(T0 + round(tau * 1e9), odometry_msg(ts, odom_T(tau), T0 + round(tau * 1e9),
-                  True)) for tau in ODOM_TAUS],
-            )  # fmt: skip
+            odom = []
+            for tau in ODOM_TAUS:
+                ns = T0 + round(tau * 1e9)
+                odom.append((ns, odometry_msg(ts, odom_T(tau), ns, True)))
+            topics["/odom"] = ("nav_msgs/msg/Odometry", odom)
         else:
             # The scans' own poses at their stamps, as PoseStamped.
             topics["/pose"] = (
@@ -548,6 +547,15 @@ def test_messages_read_back_by_name_in_any_order(data: Path, kind: str) -> None:
         np.testing.assert_array_equal(got, want)
     with pytest.raises(ScanReadError, match="no message with this header stamp"):
         read_scan(f"{data / map_name}#/points@{stamp(3) + 1}")
+    # Reading threads (build-db --workers) share the bag and its cursor.
+    from concurrent.futures import ThreadPoolExecutor
+
+    bags._close_all()
+    names = list_scans(data / map_name, topic="/points")
+    with ThreadPoolExecutor(4) as pool:
+        for i, got in zip(MAP_FRAMES, pool.map(read_scan, names)):
+            want = pack(scan("00", i), LAYOUTS[map_layout], seed=i).expected
+            np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
@@ -601,6 +609,9 @@ def test_topic_errors_list_the_topics(data: Path) -> None:
     )
     assert code != 0 and "is sensor_msgs/PointCloud2, not nav_msgs/Odometry" in err
     assert not (data / "x.db").exists()
+    (db3,) = (data / "map_db3").glob("*.db3")
+    code, _, err = run("build-db", db3, "-o", data / "x.db")
+    assert code != 0 and "give the bag's folder (metadata.yaml)" in err
 
 
 def test_odometry_topic_poses_by_time(data: Path) -> None:
@@ -613,6 +624,7 @@ def test_odometry_topic_poses_by_time(data: Path) -> None:
     )
     assert code == 0, err
     # Scan 9 (900 ms) lies past the last odometry message (863 ms): one warning, no pose.
+    err = " ".join(err.split())  # rich wraps long lines
     assert "/odom: 1 of 10 scans have no pose near their stamp" in err
     assert "1 without a pose" in err
     with Database.open(db) as d:
@@ -690,3 +702,48 @@ def test_without_rosbags_one_line_with_the_install_hint(
     assert code != 0 and not (data / "none.db").exists()
     assert err.strip().endswith("pip install 'disco-cli[ros]'")
     assert "\n" not in err.strip()
+
+
+def test_loops_on_a_bag_times_scans_by_their_stamps(data: Path) -> None:
+    # The .bin copy of the map with times.txt = the bag's stamps (0.1 s apart).
+    seq = data / "bin_timed"
+    if not seq.exists():
+        shutil.copytree(data / "bin", seq)
+        np.savetxt(seq / "times.txt", [0.1 * i for i in MAP_FRAMES])
+    args = ["--exclude-seconds", "0.35", "--format", "jsonl", *MODEL]
+    code, out_bin, err = run("loops", seq, *args)
+    assert code == 0, err
+    code, out_bag, err = run("loops", data / "map.bag", "--topic", "/points", *args)
+    assert code == 0, err
+    want, got = jsonl(out_bin), jsonl(out_bag)
+    assert len(got) == len(want) == len(MAP_FRAMES) - 4  # scans 4.. have a scan 0.35 s back
+    for g, w in zip(got, want):
+        assert (g["query_index"], g["match_index"]) == (w["query_index"], w["match_index"])
+        assert g["yaw_deg"] == pytest.approx(w["yaw_deg"], abs=1e-4)
+
+
+def test_bev_of_a_bag_is_its_first_scan(data: Path) -> None:
+    from disco_cli.bev import BEVConfig, polar_bev
+
+    out = data / "bev.npy"
+    code, _, err = run("bev", data / "map.bag", "--topic", "/os_cloud_node/points", "-o", out)
+    assert code == 0, err
+    assert f"map.bag#/os_cloud_node/points@{stamp(0)}" in err
+    np.testing.assert_array_equal(np.load(out), polar_bev(scan("00", 0), BEVConfig()))
+
+
+def test_a_bad_message_is_named_and_skippable(tmp_path: Path) -> None:
+    ts = get_typestore(Stores.LATEST)
+    good = [(stamp(i), cloud_msg(ts, scan("00", i), "xyzi", stamp(i), False, i)) for i in (0, 1)]
+    bad = cloud_msg(ts, scan("00", 2), "xyzi", stamp(2), False, 2)
+    bad.width += 1  # the cloud claims one point more than the data holds
+    bad.row_step += 16
+    bag = write_bag(tmp_path / "bad.mcap", "mcap", {"/points": (PC2, [*good, (stamp(2), bad)])})
+    db = tmp_path / "bad.db"
+    code, _, err = run("build-db", bag, "-o", db, *MODEL)
+    assert code != 0
+    assert f"bad.mcap#/points@{stamp(2)}: data holds" in err and "truncated" in err
+    code, _, err = run("build-db", bag, "-o", tmp_path / "skip.db", "--skip-bad", *MODEL)
+    assert code == 0, err
+    err = " ".join(err.split())  # rich wraps long lines
+    assert "wrote 2 scans" in err and "1 unreadable scans skipped" in err

@@ -155,6 +155,8 @@ def guess_format(path: str | Path) -> str:
     for fmt in FORMATS.values():
         if ext in fmt.extensions:
             return fmt.name
+    if ext == ".db3":
+        raise ScanReadError(path, "a ROS 2 bag's database: give the bag's folder (metadata.yaml)")
     known = ", ".join(sorted({e for f in FORMATS.values() for e in f.extensions}))
     raise ScanReadError(
         path,

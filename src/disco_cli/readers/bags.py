@@ -133,7 +133,7 @@ class _Bag:
         # Position and log time of the last message the cursor read (None: unknown).
         self._last: int | None = None
         self._last_lt: int | None = None
-        self._kept: OrderedDict[tuple[str, int], tuple[bytes, str]] = OrderedDict()
+        self._kept: OrderedDict[tuple[str, int], bytes] = OrderedDict()
 
     def close(self) -> None:
         self._stop()
@@ -190,7 +190,7 @@ class _Bag:
         assert self._gen is not None
         for _ in range(limit):
             try:
-                conn, lt, raw = next(self._gen)
+                _, lt, raw = next(self._gen)
             except StopIteration:
                 self._stop()
                 return None
