@@ -1,7 +1,7 @@
 """`disco eval-loops`: loop closure along one sequence against ground-truth poses.
 
 The single-sequence protocol used on KITTI: every scan against the scans at least an
-exclusion window before it. The work is `evaluation.protocols.loop_closure`.
+exclusion window before it. The work is `evaluation.runs.loop_closure`.
 Definitions: docs/evaluation.md.
 """
 
@@ -100,7 +100,7 @@ def evaluate_loops(
 
     from disco_cli.console import warn
     from disco_cli.errors import DiscoError, PoseFileError
-    from disco_cli.evaluation.protocols import exclusion_limits, loop_closure, posed_scans
+    from disco_cli.evaluation.runs import exclusion_limits, loop_closure, posed_scans
     from disco_cli.model import load_model
     from disco_cli.pipeline import file_beside, frame_rows, scan_paths
     from disco_cli.poses import read_times

@@ -2,7 +2,7 @@
 
 The paper's protocol: scans of one session are queried against a database of another;
 the database's stored poses are the ground truth. The work is
-`evaluation.protocols.multi_session`; `disco eval-loops` (eval_loops.py) shares the
+`evaluation.runs.multi_session`; `disco eval-loops` (eval_loops.py) shares the
 options and the report below. Definitions: docs/evaluation.md.
 """
 
@@ -145,7 +145,7 @@ def evaluate(
     """Multi-session evaluation: Recall@N, Recall@1%, PR AUC, F1max, yaw error vs a database."""
     from disco_cli.console import warn
     from disco_cli.errors import PoseFileError
-    from disco_cli.evaluation.protocols import multi_session, posed_scans
+    from disco_cli.evaluation.runs import multi_session, posed_scans
     from disco_cli.map import Map
     from disco_cli.pipeline import file_beside, scan_paths
     from disco_cli.search import rerank_depth

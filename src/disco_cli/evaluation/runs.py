@@ -1,4 +1,5 @@
-"""The two evaluation protocols, from scans and poses to an `Evaluation`.
+"""The two evaluation runs, from scans and poses to an `Evaluation` (the paper's dataset
+settings that feed them are in `disco_cli/protocols.py`).
 
 - `multi_session`: the paper's protocol. Scans of one session are queried against a
   map database of another; the database's stored poses are the ground truth.
