@@ -255,8 +255,9 @@ class LoopDetector:
             known, sigs, feats = stored
         else:
             known, sigs, feats = np.zeros(n, bool), None, None
-        fresh = self._embed_files([paths[i] for i in range(n) if not known[i]], batch, workers,
-                                  scan_format)  # fmt: skip
+        fresh = self._embed_files(
+            [paths[i] for i in range(n) if not known[i]], batch, workers, scan_format
+        )
         for i, path in enumerate(paths):
             if known[i]:
                 sig, feat = sigs[i], feats[i]  # type: ignore[index]

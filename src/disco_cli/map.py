@@ -26,7 +26,7 @@ from disco_cli.database import Database, ModelInfo, ScanBatch
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.localize import Match, PointCache, as_match, refine_matches
 
-__all__ = ["Map", "AddResult", "QueryResult", "model_for_database"]
+__all__ = ["Map", "AddResult", "Interrupted", "QueryResult", "model_for_database"]
 
 
 def model_for_database(db: Database, model: Any = None, device: str = "cpu") -> tuple[Any, str]:
@@ -62,6 +62,16 @@ def _load_model(model: Any, device: str) -> Any:
 
     check_device(device)
     return load_model(model, device=device) if isinstance(model, (str, Path)) else model
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during `Map.add_files`. Every batch committed before it is stored (one
+    transaction each): `added` scans were added by this call; `added` is None when no
+    file was created."""
+
+    def __init__(self, added: int | None):
+        super().__init__()
+        self.added = added
 
 
 @dataclass
@@ -289,9 +299,8 @@ class Map:
         resumes. `poses`: `[N, 4]`
         x, y, z, yaw (rad) rows, NaN where unknown. The first unreadable scan raises
         its `ScanReadError`, unless `skip_bad` (then `on_skip(error)` is told).
-        `on_progress(done, written)` after each batch."""
+        `on_progress(done, written)` after each batch. Ctrl-C raises `Interrupted`."""
         from disco_cli.database import stored_paths
-        from disco_cli.pipeline import embed_stream, load_stream
 
         self._check_writable()
         n = len(paths)
@@ -307,6 +316,59 @@ class Map:
         result = AddResult(already=sum(p in stored for p in absolute), bad=[])
         if not todo:
             return result
+        before = self._count()
+        try:
+            self._add_todo(
+                paths,
+                todo,
+                absolute,
+                rel_paths,
+                poses,
+                times,
+                batch,
+                workers,
+                scan_format,
+                skip_bad,
+                on_progress,
+                on_skip,
+                result,
+            )
+        except KeyboardInterrupt:
+            now = self._count()
+            raise Interrupted(None if now is None else now - (before or 0)) from None
+        return result
+
+    def _count(self) -> int | None:
+        """Scans in the file now; None when there is no file (also when a new map's file
+        appeared but was not opened yet, it is counted)."""
+        if self._db is not None:
+            return len(self._db)
+        if not self.path.exists():
+            return None
+        try:
+            with Database.open(self.path, verify=False) as fresh:
+                return len(fresh)
+        except DatabaseError:
+            return 0
+
+    def _add_todo(
+        self,
+        paths,
+        todo,
+        absolute,
+        rel_paths,
+        poses,
+        times,
+        batch,
+        workers,
+        scan_format,
+        skip_bad,
+        on_progress,
+        on_skip,
+        result,
+    ) -> None:
+        from disco_cli.pipeline import embed_stream, load_stream
+
         loaded = load_stream(
             (paths[i] for i in todo),
             self._model.bev_config,
@@ -339,7 +401,6 @@ class Map:
                     on_progress(result.written + len(result.bad), result.written)  # type: ignore[arg-type]
         finally:
             loaded.close()  # type: ignore[attr-defined]
-        return result
 
     def _check_writable(self) -> None:
         self._check_open()

@@ -72,7 +72,7 @@ def build_db(
             panel=PANEL_IN,
             help="Timestamps (s), one per scan; default: times.txt beside each folder's scans.",
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
@@ -83,7 +83,7 @@ def build_db(
             panel=PANEL_IN,
             help="Add these scans to an existing database built from other scans (same model).",
         ),
-    ] = False,  # fmt: skip
+    ] = False,
     batch: Annotated[
         int,
         opt(
@@ -93,7 +93,7 @@ def build_db(
             panel=PANEL_RUN,
             help="Scans per network batch and per transaction.",
         ),
-    ] = 32,  # fmt: skip
+    ] = 32,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     skip_bad: Annotated[
@@ -103,11 +103,11 @@ def build_db(
             panel=PANEL_RUN,
             help="Warn about unreadable scans and go on, instead of stopping at the first.",
         ),
-    ] = False,  # fmt: skip
+    ] = False,
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
     from disco_cli.errors import DatabaseError
-    from disco_cli.map import Map
+    from disco_cli.map import Interrupted, Map
     from disco_cli.pipeline import check_device, collect_scans
 
     check_device(device)
@@ -136,30 +136,31 @@ def build_db(
         m.close()
         return
 
-    start, done = time.perf_counter(), [0]
+    start = time.perf_counter()
     with m, progress() as bar:
         task = bar.add_task("build-db", total=len(absolute - stored), rate="")
 
         def advance(n_done: int, written: int) -> None:
-            done[0] = written
             rate = written / max(time.perf_counter() - start, 1e-9)
             bar.update(task, completed=n_done, rate=f"{rate:.1f} scans/s")
 
         try:
             result = m.add_files(
-                scans.paths, poses=scans.poses, times=scans.times, batch=batch, workers=workers,
-                scan_format=fmt, skip_bad=skip_bad, on_progress=advance,
+                scans.paths,
+                poses=scans.poses,
+                times=scans.times,
+                batch=batch,
+                workers=workers,
+                scan_format=fmt,
+                skip_bad=skip_bad,
+                on_progress=advance,
                 on_skip=lambda exc: warn(f"skipped: {exc}"),
-            )  # fmt: skip
-        except KeyboardInterrupt:
-            # Every committed batch is safe (one transaction each); say so, and how to go on.
-            held = len(stored & absolute) + done[0]
-            if m.database is None and output.exists():
-                # Interrupted while the new file, its first batch committed, was opened.
-                held = _count(output, held)
-            if m.database is None and not output.exists():
+            )
+        except Interrupted as stop:  # every committed batch is safe; say so, and how to go on
+            if stop.added is None:
                 stderr.print(f"interrupted: nothing written; {output} was not created")
             else:
+                held = len(stored & absolute) + stop.added
                 stderr.print(
                     f"interrupted: {output} holds {held} of the {len(absolute)} scans given, "
                     "safely stored; run the same command again to resume",
@@ -179,15 +180,3 @@ def build_db(
         warn(f"{len(result.bad)} unreadable scans skipped")
     if result.written == 0 and not created:
         raise fail(f"{output}: no readable scans; nothing written")
-
-
-def _count(path: Path, default: int) -> int:
-    """How many scans the database at `path` holds (`default` when it cannot be read)."""
-    from disco_cli.database import Database
-    from disco_cli.errors import DatabaseError
-
-    try:
-        with Database.open(path, verify=False) as fresh:
-            return len(fresh)
-    except DatabaseError:
-        return default

@@ -63,14 +63,14 @@ def evaluate_loops(
             panel=PANEL_INPUT,
             help="Timestamps, one per scan; default: times.txt in the folder.",
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
     model_name: Annotated[
         str,
         model_option("default, spectral, scancontext or a checkpoint path.", panel=PANEL_PROTOCOL),
-    ] = "default",  # fmt: skip
+    ] = "default",
     radius: RadiusOpt = 3.0,
     exclude_seconds: Annotated[
         Optional[float],
@@ -80,7 +80,7 @@ def evaluate_loops(
             panel=PANEL_PROTOCOL,
             help="Search only scans at least this long before (default 30; needs times).",
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     exclude_frames: Annotated[
         Optional[int],
         opt(
@@ -89,7 +89,7 @@ def evaluate_loops(
             panel=PANEL_PROTOCOL,
             help="Search only scans at least N frames before.",
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
     report: ReportOpt = None,

@@ -89,14 +89,20 @@ RadiusOpt = Annotated[
 ]
 ReportOpt = Annotated[
     Optional[Path],
-    opt("--report", panel=PANEL_OUTPUT,
-        help="Write metrics.json, curves.json, summary.md and PNG plots into this folder."),
-]  # fmt: skip
+    opt(
+        "--report",
+        panel=PANEL_OUTPUT,
+        help="Write metrics.json, curves.json, summary.md and PNG plots into this folder.",
+    ),
+]
 FormatOpt = Annotated[
     Optional[OutputFormat],
-    opt("--format", panel=PANEL_OUTPUT,
-        help="table (default on a terminal), tsv (default in a pipe) or jsonl (one object)."),
-]  # fmt: skip
+    opt(
+        "--format",
+        panel=PANEL_OUTPUT,
+        help="table (default on a terminal), tsv (default in a pipe) or jsonl (one object).",
+    ),
+]
 
 
 @handle_errors
@@ -134,7 +140,7 @@ def evaluate(
             "Model name or checkpoint; default: the one that built the database.",
             panel=PANEL_PROTOCOL,
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     radius: RadiusOpt = 3.0,
     topk: Annotated[int, topk_option("Recall@1..N up to this N.", panel=PANEL_PROTOCOL)] = 25,
     device: DeviceOpt = "cpu",

@@ -50,7 +50,7 @@ def loops(
             help="The sequence: a folder of scans (KITTI-style "
             "DIR/velodyne/ or a folder of scan files), or a ROS bag.",
         ),
-    ],  # fmt: skip
+    ],
     exclude_frames: ExcludeFramesOpt = None,  # default 50
     exclude_seconds: ExcludeSecondsOpt = None,
     threshold: Annotated[
@@ -61,7 +61,7 @@ def loops(
             min=0.0,
             help="Report pairs with a distance at most this (the `distance` column); default: all.",
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     topk: Annotated[int, topk_option("Candidates per query scan.", max=1000)] = 1,
     model: Annotated[
         str, model_option("default, spectral, scancontext or a checkpoint path.", panel=None)
@@ -76,7 +76,7 @@ def loops(
             "correlation + ICP) and keep only the accepted ones: yaw_deg becomes the refined "
             "yaw, roll_deg and pitch_deg are added (JSON lines also carry the 4 x 4 T).",
         ),
-    ] = False,  # fmt: skip
+    ] = False,
     verbose: Annotated[
         bool,
         opt(
@@ -87,7 +87,7 @@ def loops(
             "show it (dx, dy, dz, fitness, rmse, accepted, reason), rejected pairs included "
             "unless --verify.",
         ),
-    ] = False,  # fmt: skip
+    ] = False,
     output: Annotated[
         Optional[Path],
         output_option(
@@ -95,7 +95,7 @@ def loops(
             "accepted loops only), .tum or .csv.",
             panel=PANEL_OUT,
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     times: TimesOpt = None,
     db_path: Annotated[
         Optional[Path],
@@ -104,7 +104,7 @@ def loops(
             "scans not in it are embedded.",
             panel=PANEL_RUN,
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     scan_root: ScanRootOpt = None,
@@ -140,11 +140,17 @@ def loops(
 
     pose_failures = []
     detector = LoopDetector(
-        model, exclude_frames=None if exclude_seconds is not None else (exclude_frames or 50),
-        exclude_seconds=exclude_seconds, threshold=threshold, verify=verify, pose=with_pose,
-        topk=topk, rerank=rerank, device=device,
+        model,
+        exclude_frames=None if exclude_seconds is not None else (exclude_frames or 50),
+        exclude_seconds=exclude_seconds,
+        threshold=threshold,
+        verify=verify,
+        pose=with_pose,
+        topk=topk,
+        rerank=rerank,
+        device=device,
         on_pose_error=lambda msg: (error(msg), pose_failures.append(msg)),
-    )  # fmt: skip
+    )
     columns = COLUMNS + (ANGLE_COLUMNS if with_pose else []) + (POSE_COLUMNS if verbose else [])
     writer = RowWriter(columns, fmt, title=f"loops in {sequence}")
     keys = columns + (["T"] if with_pose else [])
@@ -157,9 +163,14 @@ def loops(
     with progress(transient=True) as bar:
         task = bar.add_task("loops", total=len(paths), rate="")
         stream = detector.add_files(
-            paths, times=stamps, stored=reuse, batch=batch, workers=workers,
-            scan_format=scan_format, on_progress=lambda k: bar.advance(task, k),
-        )  # fmt: skip
+            paths,
+            times=stamps,
+            stored=reuse,
+            batch=batch,
+            workers=workers,
+            scan_format=scan_format,
+            on_progress=lambda k: bar.advance(task, k),
+        )
         for i, new in enumerate(stream):
             found += new
             block += [{k: lp.as_dict()[k] for k in keys} for lp in new]

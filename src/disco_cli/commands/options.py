@@ -35,7 +35,6 @@ OutputFormatOpt = Annotated[
 ]
 
 
-
 def model_option(help: str, panel: str | None = PANEL_RUN) -> Any:
     """`--model/-m NAME|PATH`."""
     return typer.Option("--model", "-m", help=help, rich_help_panel=panel)
@@ -152,19 +151,28 @@ BatchOpt = Annotated[
 ]
 TimesOpt = Annotated[
     Optional[Path],
-    opt("--times", help="Timestamps (s), one per scan; default: times.txt beside the scans.",
-        panel=PANEL_RUN),
-]  # fmt: skip
+    opt(
+        "--times",
+        help="Timestamps (s), one per scan; default: times.txt beside the scans.",
+        panel=PANEL_RUN,
+    ),
+]
 ExcludeFramesOpt = Annotated[
     Optional[int],
-    opt("--exclude-frames", min=1,
-        help="Search only scans at least this many frames before the query."),
-]  # fmt: skip
+    opt(
+        "--exclude-frames",
+        min=1,
+        help="Search only scans at least this many frames before the query.",
+    ),
+]
 ExcludeSecondsOpt = Annotated[
     Optional[float],
-    opt("--exclude-seconds", min=0.0,
-        help="Search only scans at least this many seconds before the query (needs times)."),
-]  # fmt: skip
+    opt(
+        "--exclude-seconds",
+        min=0.0,
+        help="Search only scans at least this many seconds before the query (needs times).",
+    ),
+]
 
 
 # Pose files: one vocabulary for every command that reads poses (docs/formats.md, "Pose files").

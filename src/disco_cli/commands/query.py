@@ -62,7 +62,7 @@ def query(
             help="Drop matches whose stored "
             "pose is within this many metres (x, y) of the query's pose (needs --query-poses).",
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     query_poses: Annotated[
         Optional[Path],
         opt(
@@ -84,7 +84,7 @@ def query(
             panel=PANEL_FILTER,
             help="Drop matches with a distance above this (the `distance` column).",
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     pose: Annotated[
         bool,
         opt(
@@ -95,7 +95,7 @@ def query(
             "roll_deg, pitch_deg, dx, dy, dz, fitness, accepted are added (JSON lines also carry "
             "the 4 x 4 T).",
         ),
-    ] = False,  # fmt: skip
+    ] = False,
     verify: Annotated[
         bool,
         opt(
@@ -103,13 +103,13 @@ def query(
             panel=PANEL_POSE,
             help="Keep only matches whose relative pose is accepted (implies --pose).",
         ),
-    ] = False,  # fmt: skip
+    ] = False,
     model: Annotated[
         Optional[str],
         model_option(
             "The model; default: the one that built the database (needed for checkpoint paths)."
         ),
-    ] = None,  # fmt: skip
+    ] = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     scan_root: ScanRootOpt = None,
@@ -151,9 +151,14 @@ def query(
             poses_of = QueryPoses(query_poses, opts, known, warn=error)
             exclude = lambda i, p: m.near(poses_of(i, p)[:2], exclude_radius, p)  # noqa: E731
         results = m.query_files(
-            paths, topk=topk, pose=with_pose, exclude=exclude, max_distance=max_distance,
-            workers=workers, scan_format=fmt_name,
-        )  # fmt: skip
+            paths,
+            topk=topk,
+            pose=with_pose,
+            exclude=exclude,
+            max_distance=max_distance,
+            workers=workers,
+            scan_format=fmt_name,
+        )
         for res in results:
             if res.error is not None:
                 error(str(res.error))
