@@ -288,3 +288,30 @@ def test_public_names() -> None:
     sig2, _ = model.embed(disco_cli.polar_bev(scan, model.bev_config)[None])
     np.testing.assert_array_equal(sig, sig2[0])
     assert abs(float(model.yaw(feat, feat[None])[0])) < 1e-6
+
+
+def test_poses_near_exclude_overwrite_and_query_many(samples: Path, seq_paths, tmp_path) -> None:
+    from disco_cli.poses import read_kitti_poses
+
+    poses = read_kitti_poses(samples / "00" / "poses.txt")
+    path = tmp_path / "posed.db"
+    with Map.create(path, "spectral") as m:
+        ids = m.add_many((read_scan(p), p, T) for p, T in zip(seq_paths, poses))
+        assert len(m) == len(seq_paths) and ids[-1] == len(seq_paths)
+    with Map.open(path) as m:
+        # near(): the stored x, y against a NumPy distance over poses.txt.
+        here = poses[3]
+        d = np.hypot(*(poses[:, :2, 3] - here[:2, 3]).T)
+        np.testing.assert_array_equal(m.near(here, 30.0), np.flatnonzero(d <= 30.0) + 1)
+        # Excluding those ids leaves only matches farther than 30 m.
+        found = m.query(read_scan(seq_paths[3]), topk=5, exclude=m.near(here, 30.0))
+        assert found and all(d[f.match_id - 1] > 30.0 for f in found)
+        assert m.query(read_scan(seq_paths[3]), topk=1)[0].match_id == 4  # itself, unexcluded
+        many = list(m.query_many([read_scan(p) for p in seq_paths[:3]], topk=2))
+        assert [r[0].match_id for r in many] == [1, 2, 3]
+    # overwrite=True replaces the old map with its first batch; without it, refused.
+    with Map.create(path, "spectral", overwrite=True) as m:
+        assert len(m) == 0
+        m.add(read_scan(seq_paths[0]), name="only")
+    with Map.open(path) as m:
+        assert m.names() == ["only"] and len(m) == 1
