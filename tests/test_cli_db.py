@@ -705,13 +705,22 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     assert code == 0, err
     rows = jsonl(out)
     assert rows, "no verified loops in data/samples/00"
-    assert set(rows[0]) == {"query_index", "query", "match_index", "match", "distance", "yaw_deg"}
+    # With a pose, yaw_deg is the refined yaw of T; roll, pitch and the full T come along.
+    base = {"query_index", "query", "match_index", "match", "distance", "yaw_deg"}
+    assert set(rows[0]) == base | {"roll_deg", "pitch_deg", "T"}
+    for r in rows:
+        T = np.array(r["T"])
+        assert T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])
+        assert abs(r["yaw_deg"] - _yaw_of(T)) < 1e-9
+        assert abs(r["pitch_deg"] - np.degrees(np.arcsin(-T[2, 0]))) < 1e-6
+        assert abs(r["roll_deg"] - np.degrees(np.arctan2(T[2, 1], T[2, 2]))) < 1e-9
     edges = [ln.split() for ln in (tmp_path / "loops.g2o").read_text().splitlines()]
     assert len(edges) == len(rows)
     for e, r in zip(edges, rows):
         assert e[0] == "EDGE_SE3:QUAT" and len(e) == 3 + 7 + 21
         assert (int(e[1]), int(e[2])) == (r["match_index"], r["query_index"])
         t, q = np.array(e[3:6], float), np.array(e[6:10], float)
+        np.testing.assert_allclose(t, np.array(r["T"])[:3, 3], atol=1e-6)  # the same pose
         T = _gt_relative(samples, ("00", r["query_index"]), ("00", r["match_index"]))
         assert np.linalg.norm(t - T[:3, 3]) < 0.3
         assert abs(np.linalg.norm(q) - 1.0) < 1e-6

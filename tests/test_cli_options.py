@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from disco_cli.cli import app
 
 OUTPUT_FORMATS = {"table", "tsv", "jsonl"}
-SCAN_FORMATS = {"kitti", "nclt", "npy", "pcd", "ply"}
+SCAN_FORMATS = {"kitti", "nclt", "npy", "pcd", "ply", "oxford"}  # readers.FORMATS
 SHORT = {"-m": "--model", "-d": "--db", "-k": "--topk", "-o": "--output"}
 
 

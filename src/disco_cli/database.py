@@ -553,19 +553,25 @@ class Database:
 def _locate(
     stored: str, rel: str | None, db_path: Path, scan_root: str | Path | None
 ) -> Path | None:
-    """The resolution order of `Database.locate`."""
+    """The resolution order of `Database.locate`. A scan in a ROS bag
+    (`BAG#TOPIC@STAMP_NS`) exists when its bag does."""
+    from disco_cli.readers import is_bag_message
+
+    def exists(p: Path) -> bool:
+        return p.exists() or is_bag_message(p)
+
     first = Path(stored)
-    if first.exists():
+    if exists(first):
         return first if first.is_absolute() else Path(os.path.abspath(first))
     if rel:
         beside = Path(os.path.abspath(db_path)).parent / rel
-        if beside.exists():
+        if exists(beside):
             return Path(os.path.normpath(beside))
     if scan_root is not None:
         parts = [p for p in first.parts if p not in (first.anchor, "..", ".")]
         for k in range(len(parts)):
             candidate = Path(scan_root, *parts[k:])
-            if candidate.exists():
+            if exists(candidate):
                 return Path(os.path.abspath(candidate))
     return None
 

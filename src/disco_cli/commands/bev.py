@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from disco_cli.commands.options import ScanFormatOpt, model_option, output_option
+from disco_cli.commands.options import ScanFormatOpt, TopicOpt, model_option, output_option
 from disco_cli.console import fail, handle_errors, stderr, warn
 
 if TYPE_CHECKING:
@@ -126,7 +126,13 @@ def _write(output: Path, save: Any) -> None:
 
 @handle_errors
 def bev(
-    scan: Annotated[Path, typer.Argument(help="The scan file (.bin, .npy, .pcd, .ply).")],
+    scan: Annotated[
+        Path,
+        typer.Argument(
+            help="The scan file (.bin, .npy, .pcd, .ply), a scan in a ROS bag "
+            "(BAG#TOPIC@STAMP_NS), or a bag (its first scan)."
+        ),
+    ],
     output: Annotated[
         Path, output_option("Where to write: .png for a picture, .npy for the raw array.")
     ],
@@ -157,6 +163,7 @@ def bev(
             panel=None,
         ),
     ] = None,
+    topic: TopicOpt = None,
 ) -> None:
     """Write the polar BEV of one scan: check that your data is read correctly."""
     suffix = output.suffix.lower()
@@ -170,8 +177,10 @@ def bev(
     import numpy as np
 
     from disco_cli.bev import BEVConfig, polar_bev
-    from disco_cli.readers import guess_format, read_scan
+    from disco_cli.readers import guess_format, is_bag, list_scans, read_scan
 
+    if is_bag(scan):
+        scan = list_scans(scan, topic=topic)[0]
     points = read_scan(scan, format=scan_format)
     fmt = scan_format.value if scan_format else guess_format(scan)
     if model is not None:

@@ -8,11 +8,17 @@ distance (m) and the relative yaw (deg, the query's heading in the match's frame
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
-from disco_cli.commands.options import OutputFormatOpt, calib_file, calib_option
+from disco_cli.commands.options import (
+    CalibOpt,
+    ExtrinsicOpt,
+    OutputFormatOpt,
+    PosesFormatOpt,
+    pose_options,
+)
 from disco_cli.console import RowWriter, fail, handle_errors, stderr
 
 COLUMNS = ["query_seq", "query", "match_seq", "match", "distance_m", "yaw_deg"]
@@ -23,7 +29,9 @@ def gt_loops(
     seqs: Annotated[
         list[Path],
         typer.Argument(
-            help="KITTI-style folders, each with poses.txt.", exists=True, file_okay=False
+            help="Sequence folders, each with its pose file (poses.txt, global_pose.csv, ...).",
+            exists=True,
+            file_okay=False,
         ),
     ],
     radius: Annotated[float, typer.Option("--radius", min=0.0, help="Revisit radius (m).")] = 3.0,
@@ -35,32 +43,32 @@ def gt_loops(
             help="Within one sequence: pair frames at least this far apart.",
         ),
     ] = 50,
-    calib: Annotated[
-        Optional[Path],
-        calib_option(
-            "KITTI calib.txt for every sequence's camera poses; default: the calib.txt "
-            "beside each poses.txt; none: use the poses as they are."
-        ),
-    ] = None,
+    poses_format: PosesFormatOpt = None,
+    calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
     fmt: OutputFormatOpt = None,
 ) -> None:
     """List true revisit pairs (ground truth) within or between sequences."""
     from disco_cli.poses import (
+        find_pose_file,
         gt_pairs,
         gt_pairs_within,
         pair_distances,
-        read_kitti_poses,
+        read_poses,
         relative_yaw_deg,
     )
 
     if not seqs:
         raise fail("give at least one sequence folder")
+    opts = pose_options(poses_format, calib, extrinsic, None)
+    del opts["max_time_gap"]
     poses = []
     for seq in seqs:
-        if not (seq / "poses.txt").is_file():
-            raise fail(f"{seq}: no poses.txt")
-        poses_file = seq / "poses.txt"
-        poses.append(read_kitti_poses(poses_file, calib=calib_file(calib, poses_file)))
+        found = find_pose_file(seq)
+        if found is None:
+            raise fail(f"{seq}: no poses.txt (nor global_pose.csv, groundtruth_*.csv)")
+        # Every row of the pose file, in the LiDAR's frame; indices are the file's rows.
+        poses.append(read_poses(found, **opts)[1])
 
     writer = RowWriter(COLUMNS, fmt, digits=3)
     if len(seqs) == 1:
