@@ -78,13 +78,12 @@ def nclt_tree(tmp_path_factory):
 
 
 def kitti_copy(nclt_session: Path, poses: np.ndarray, out: Path) -> Path:
-    """The same scans, decoded from NCLT's encoding, in KITTI layout (z up)."""
+    """The same scans, decoded from NCLT's encoding (z up), in KITTI layout."""
     from disco_cli.readers import list_scans, read_scan
 
     (out / "velodyne").mkdir(parents=True)
     for i, f in enumerate(list_scans(nclt_session)):
-        pts = read_scan(f)
-        pts[:, 1:3] *= -1.0
+        pts = read_scan(f)  # the nclt reader returns z up
         pts.astype("<f4").tofile(out / "velodyne" / f"{i:06d}.bin")
     write_kitti_poses(out / "poses.txt", poses)
     return out

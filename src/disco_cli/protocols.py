@@ -53,10 +53,6 @@ class Protocol:
     map_spacing: float
     query_spacing: float
     train_spacing: float
-    # NCLT's Velodyne, body and world frames have z pointing down (north-east-down); the
-    # BEV needs z up, so scans are turned 180 degrees about x, and the poses with them
-    # (sensor and world: T -> X T X with X that turn), which keeps yaw counter-clockwise.
-    turn_x180: bool = False
     every_pair: bool = False  # Oxford: every run is the map for every other run
     # The paper's rows: approach -> (Recall@1, Recall@1 %, AUC), in percent.
     paper: dict[str, tuple[float, float, float]] = field(default_factory=dict)
@@ -97,7 +93,6 @@ PROTOCOLS: dict[str, Protocol] = {
         map_spacing=0.0,
         query_spacing=0.0,
         train_spacing=0.0,
-        turn_x180=True,
         paper={
             "DiSCO-occupied": (89.08, 99.14, 92.91),
             "DiSCO-density": (86.71, 97.87, 90.76),
@@ -226,9 +221,6 @@ def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
     return np.asarray(keep)
 
 
-_X180 = np.diag([1.0, -1.0, -1.0, 1.0])  # 180 degrees about x (its own inverse)
-
-
 def load_session(
     protocol: Protocol | str,
     root: str | Path,
@@ -251,8 +243,6 @@ def load_session(
     if not has.any():
         raise DiscoError(f"{pose_file}: none of the {len(scans)} scans of {name} has a pose")
     scans, T = [s for s, h in zip(scans, has) if h], T[has]
-    if p.turn_x180:
-        T = _X180 @ T @ _X180
     keep = _keep_by_spacing(T[:, :2, 3], spacing)
     return Session(name, [scans[i] for i in keep], T[keep])
 
@@ -271,9 +261,6 @@ def embed_session(
         bevs = []
         for path in session.scans[start : start + batch]:
             pts = read_scan(path, fmt)
-            if protocol.turn_x180:
-                pts = pts.copy()
-                pts[:, 1:3] *= -1.0  # (x, y, z) -> (x, -y, -z): z up
             bev = polar_bev(pts, model.bev_config)
             if not np.any(bev):
                 raise ScanReadError(path, f"no points in range ({len(pts)} points)")
@@ -476,7 +463,6 @@ class TrainingSetup:
     d_pos: float
     d_neg: float
     spacing: float
-    turn_x180: bool
 
 
 def training_setup(name: str, root: str | Path) -> TrainingSetup:
@@ -491,4 +477,4 @@ def training_setup(name: str, root: str | Path) -> TrainingSetup:
     for s in p.train_sessions:
         find_session(p, root, s)  # one clear line when it is missing
         sessions.append(Path(root) / s)
-    return TrainingSetup(sessions, p.d_pos, p.d_neg, p.train_spacing, p.turn_x180)
+    return TrainingSetup(sessions, p.d_pos, p.d_neg, p.train_spacing)
