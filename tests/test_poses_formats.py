@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from disco_cli.errors import PoseFileError
+from disco_cli.errors import DiscoError, PoseFileError
 from disco_cli.poses import guess_poses_format, read_poses
 
 
@@ -159,8 +159,27 @@ def test_oxford_locations_and_submap(tmp_path):
     assert [p.name for p in paths] == [f"{stamps[0]}.bin"]
     pts = read_scan(paths[0])
     assert pts.shape == (4096, 4) and pts.dtype == np.float32
-    np.testing.assert_allclose(pts[:, :3], submap, atol=1e-6)
+    # Metres at the default 20 m per unit, x negated back (PointNetVLAD negated all three).
+    np.testing.assert_allclose(pts[:, :3], submap * [-20.0, 20.0, 20.0], atol=1e-4)
     assert np.all(pts[:, 3] == 0)
+    from disco_cli.readers import oxford
+
+    with oxford.scale(5.0):
+        np.testing.assert_allclose(read_scan(paths[0])[:, :3], submap * [-5, 5, 5], atol=1e-5)
+    np.testing.assert_allclose(read_scan(paths[0])[:, :3], pts[:, :3])  # the default again
+    with pytest.raises(DiscoError, match="positive"), oxford.scale(0.0):
+        pass
+    # The frame: points in PointNetVLAD's vehicle frame (x forward, y right, z down),
+    # centred, scaled and negated as generate_submaps.m does, come back x forward, y left,
+    # z up: a wall 8 m ahead on the left, 4 m above the ground.
+    ned = np.array([[8.0, -3.0, -4.0], [8.0, -3.0, 0.0], [-6.0, 5.0, -1.0]])
+    c = ned.mean(axis=0)
+    m = 20.0
+    stored = -(ned - c) / m  # scale 1 / m: the reader's 20 m per unit gives metres back
+    stored.astype("<f8").tofile(run / "pointcloud_20m" / "frame.bin")
+    back = read_scan(run / "pointcloud_20m" / "frame.bin")[:, :3]
+    np.testing.assert_allclose(back, (ned - c) * [1.0, -1.0, -1.0], atol=1e-5)
+    assert back[0, 1] > 0 and back[0, 2] > back[1, 2]  # on the left; higher up
     # A file of another size is refused in one line.
     (run / "pointcloud_20m" / "bad.bin").write_bytes(b"\0" * 25)
     from disco_cli.errors import ScanReadError

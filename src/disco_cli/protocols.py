@@ -149,7 +149,9 @@ PROTOCOLS: dict[str, Protocol] = {
         notes=(
             "PointNetVLAD's test split: 23 runs, each the map for the queries of the 22 "
             "others; figures are the mean over map runs",
-            "the submaps are normalized to [-1, 1], not metres: use a model trained on them",
+            "the submaps are normalized to [-1, 1] with a scale of their own that is not "
+            "stored; disco reads them at --oxford-scale metres per unit (default 20: "
+            "docs/formats.md)",
         ),
     ),
 }
@@ -359,9 +361,24 @@ def run_protocol(
     model: Any,
     warn: Callable[[str], None] | None = None,
     progress: Callable[[str], None] | None = None,
+    oxford_scale: float | None = None,
 ) -> tuple[Protocol, list[SessionResult]]:
     """Evaluate `model` on a dataset folder by the paper's protocol: one result per
-    (map session, query session) pair."""
+    (map session, query session) pair. `oxford_scale`: metres per unit of PointNetVLAD's
+    normalized submaps (None: `disco_cli.readers.oxford.DEFAULT_SCALE`)."""
+    from disco_cli.readers import oxford
+
+    with oxford.scale(oxford_scale):
+        return _run_protocol(name, root, model, warn, progress)
+
+
+def _run_protocol(
+    name: str,
+    root: str | Path,
+    model: Any,
+    warn: Callable[[str], None] | None,
+    progress: Callable[[str], None] | None,
+) -> tuple[Protocol, list[SessionResult]]:
     p = _protocol(name)
     root = Path(root)
     if not root.is_dir():
