@@ -487,8 +487,9 @@ def training_setup(name: str, root: str | Path) -> TrainingSetup:
     p = _protocol(name)
     if p.every_pair:
         raise DiscoError(
-            "train --protocol oxford: PointNetVLAD's training split (pointcloud_20m_10overlap "
-            "outside the test squares) is not wired yet; train on the runs' folders directly"
+            "train --protocol oxford: PointNetVLAD's training split (the "
+            "pointcloud_20m_10overlap submaps of the first 44 runs, outside the test "
+            "squares) is not wired yet (docs/datasets.md)"
         )
     sessions = []
     for s in p.train_sessions:
