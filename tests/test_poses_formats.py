@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from disco_cli.errors import PoseFileError
+from disco_cli.errors import DiscoError, PoseFileError
 from disco_cli.poses import guess_poses_format, read_poses
 
 
@@ -68,13 +68,53 @@ def test_nclt_roll_pitch_yaw_and_body_to_velodyne(tmp_path):
     np.testing.assert_allclose(keys, utime * 1e-6, rtol=0, atol=1e-6)
     np.testing.assert_allclose(body, T, atol=1e-12)
     # By default the Velodyne's pose: body pose times NCLT's published x_body_velo
-    # (0.002, -0.004, -0.957 m; roll 0.807, pitch 0.166, yaw -90.703 deg).
+    # (0.002, -0.004, -0.957 m; roll 0.807, pitch 0.166, yaw -90.703 deg), with sensor
+    # and world turned 180 degrees about x (z up, as the nclt scan reader returns points).
     E = np.eye(4)
     E[:3, :3] = rot_z(np.radians(-90.703)) @ rot_y(np.radians(0.166)) @ rot_x(np.radians(0.807))
     E[:3, 3] = [0.002, -0.004, -0.957]
+    X = np.diag([1.0, -1.0, -1.0, 1.0])
     _, velo, _, frame = read_poses(path)
-    np.testing.assert_allclose(velo, T @ E, atol=1e-12)
+    np.testing.assert_allclose(velo, X @ T @ E @ X, atol=1e-12)
     assert "x_body_velo" in frame
+
+
+def test_nclt_relative_poses_map_returned_points_onto_each_other(tmp_path):
+    """Two NCLT scans of one world, written in NCLT's encoding (z-down Velodyne frame)
+    with body poses in NCLT's z-down world: the relative transform of the returned
+    (z-up) poses maps the returned points of one scan onto those of the other."""
+    from disco_cli.poses import poses_for_scans
+    from disco_cli.poses.nclt import body_to_velo, write_nclt_poses
+    from disco_cli.readers import read_scan
+
+    rng = np.random.default_rng(5)
+    # NCLT's z-down world: ground-like points 0.5 to 1.5 m below the body origin.
+    world = np.c_[rng.uniform(-40, 40, (400, 2)), rng.uniform(0.5, 1.5, 400)]
+    body = np.tile(np.eye(4), (2, 1, 1))
+    body[0, :3, :3] = rot_z(0.3) @ rot_y(0.02) @ rot_x(-0.03)
+    body[0, :3, 3] = [2.0, -1.0, -0.2]
+    body[1, :3, :3] = rot_z(1.4) @ rot_y(-0.04) @ rot_x(0.05)
+    body[1, :3, 3] = [6.0, 3.0, 0.1]
+    velo = body @ body_to_velo()  # T_world<-velodyne, NCLT's own frames
+    folder = tmp_path / "2012-02-04" / "velodyne_sync"
+    folder.mkdir(parents=True)
+    utimes = [1328388850000000, 1328388850100000]
+    for u, V in zip(utimes, velo):
+        local = (np.c_[world, np.ones(len(world))] @ np.linalg.inv(V).T)[:, :3]
+        raw = np.round((local + 100.0) / 0.005).astype("<u2")
+        rec = np.zeros(len(raw), dtype=[("x", "<u2"), ("y", "<u2"), ("z", "<u2"),
+                                        ("i", "u1"), ("l", "u1")])  # fmt: skip
+        rec["x"], rec["y"], rec["z"] = raw.T
+        rec.tofile(folder / f"{u}.bin")
+    write_nclt_poses(tmp_path / "2012-02-04" / "groundtruth_2012-02-04.csv", utimes, body)
+    scans = [folder / f"{u}.bin" for u in utimes]
+    P, report = poses_for_scans(scans, tmp_path / "2012-02-04" / "groundtruth_2012-02-04.csv")
+    assert report.missing == 0
+    a, b = (read_scan(s)[:, :3].astype(np.float64) for s in scans)
+    rel = np.linalg.inv(P[0]) @ P[1]  # scan 1's frame -> scan 0's frame
+    np.testing.assert_allclose(b @ rel[:3, :3].T + rel[:3, 3], a, atol=0.01)
+    # Both scans see those points below the sensor: z < 0 (z up).
+    assert np.median(a[:, 2]) < 0 and np.median(b[:, 2]) < 0
 
 
 def test_mulran_nanoseconds_and_ouster_extrinsic(tmp_path):
@@ -119,8 +159,27 @@ def test_oxford_locations_and_submap(tmp_path):
     assert [p.name for p in paths] == [f"{stamps[0]}.bin"]
     pts = read_scan(paths[0])
     assert pts.shape == (4096, 4) and pts.dtype == np.float32
-    np.testing.assert_allclose(pts[:, :3], submap, atol=1e-6)
+    # Metres at the default 20 m per unit, x negated back (PointNetVLAD negated all three).
+    np.testing.assert_allclose(pts[:, :3], submap * [-20.0, 20.0, 20.0], atol=1e-4)
     assert np.all(pts[:, 3] == 0)
+    from disco_cli.readers import oxford
+
+    with oxford.scale(5.0):
+        np.testing.assert_allclose(read_scan(paths[0])[:, :3], submap * [-5, 5, 5], atol=1e-5)
+    np.testing.assert_allclose(read_scan(paths[0])[:, :3], pts[:, :3])  # the default again
+    with pytest.raises(DiscoError, match="positive"), oxford.scale(0.0):
+        pass
+    # The frame: points in PointNetVLAD's vehicle frame (x forward, y right, z down),
+    # centred, scaled and negated as generate_submaps.m does, come back x forward, y left,
+    # z up: a wall 8 m ahead on the left, 4 m above the ground.
+    ned = np.array([[8.0, -3.0, -4.0], [8.0, -3.0, 0.0], [-6.0, 5.0, -1.0]])
+    c = ned.mean(axis=0)
+    m = 20.0
+    stored = -(ned - c) / m  # scale 1 / m: the reader's 20 m per unit gives metres back
+    stored.astype("<f8").tofile(run / "pointcloud_20m" / "frame.bin")
+    back = read_scan(run / "pointcloud_20m" / "frame.bin")[:, :3]
+    np.testing.assert_allclose(back, (ned - c) * [1.0, -1.0, -1.0], atol=1e-5)
+    assert back[0, 1] > 0 and back[0, 2] > back[1, 2]  # on the left; higher up
     # A file of another size is refused in one line.
     (run / "pointcloud_20m" / "bad.bin").write_bytes(b"\0" * 25)
     from disco_cli.errors import ScanReadError

@@ -103,7 +103,8 @@ def test_nclt_scans_by_utime(tmp_path):
     scans = [f"velodyne_sync/{u}.bin" for u in (utime[3], utime[3] + 50_000, utime[-1] + 10**6)]
     P, report = poses_for_scans(scans, tmp_path / "groundtruth_2012-02-04.csv")
     assert report.format == "nclt" and report.missing == 1
-    want = screw_pose(np.array([0.3, 0.35])) @ body_to_velo()
+    X = np.diag([1.0, -1.0, -1.0, 1.0])  # NCLT's z down -> z up, world and LiDAR
+    want = X @ screw_pose(np.array([0.3, 0.35])) @ body_to_velo() @ X
     np.testing.assert_allclose(P[:2], want, atol=1e-9)
 
 

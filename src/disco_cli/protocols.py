@@ -53,10 +53,6 @@ class Protocol:
     map_spacing: float
     query_spacing: float
     train_spacing: float
-    # NCLT's Velodyne, body and world frames have z pointing down (north-east-down); the
-    # BEV needs z up, so scans are turned 180 degrees about x, and the poses with them
-    # (sensor and world: T -> X T X with X that turn), which keeps yaw counter-clockwise.
-    turn_x180: bool = False
     every_pair: bool = False  # Oxford: every run is the map for every other run
     # The paper's rows: approach -> (Recall@1, Recall@1 %, AUC), in percent.
     paper: dict[str, tuple[float, float, float]] = field(default_factory=dict)
@@ -97,7 +93,6 @@ PROTOCOLS: dict[str, Protocol] = {
         map_spacing=0.0,
         query_spacing=0.0,
         train_spacing=0.0,
-        turn_x180=True,
         paper={
             "DiSCO-occupied": (89.08, 99.14, 92.91),
             "DiSCO-density": (86.71, 97.87, 90.76),
@@ -154,7 +149,9 @@ PROTOCOLS: dict[str, Protocol] = {
         notes=(
             "PointNetVLAD's test split: 23 runs, each the map for the queries of the 22 "
             "others; figures are the mean over map runs",
-            "the submaps are normalized to [-1, 1], not metres: use a model trained on them",
+            "the submaps are normalized to [-1, 1] with a scale of their own that is not "
+            "stored; disco reads them at --oxford-scale metres per unit (default 20: "
+            "docs/formats.md)",
         ),
     ),
 }
@@ -226,9 +223,6 @@ def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
     return np.asarray(keep)
 
 
-_X180 = np.diag([1.0, -1.0, -1.0, 1.0])  # 180 degrees about x (its own inverse)
-
-
 def load_session(
     protocol: Protocol | str,
     root: str | Path,
@@ -251,8 +245,6 @@ def load_session(
     if not has.any():
         raise DiscoError(f"{pose_file}: none of the {len(scans)} scans of {name} has a pose")
     scans, T = [s for s, h in zip(scans, has) if h], T[has]
-    if p.turn_x180:
-        T = _X180 @ T @ _X180
     keep = _keep_by_spacing(T[:, :2, 3], spacing)
     return Session(name, [scans[i] for i in keep], T[keep])
 
@@ -271,9 +263,6 @@ def embed_session(
         bevs = []
         for path in session.scans[start : start + batch]:
             pts = read_scan(path, fmt)
-            if protocol.turn_x180:
-                pts = pts.copy()
-                pts[:, 1:3] *= -1.0  # (x, y, z) -> (x, -y, -z): z up
             bev = polar_bev(pts, model.bev_config)
             if not np.any(bev):
                 raise ScanReadError(path, f"no points in range ({len(pts)} points)")
@@ -372,9 +361,24 @@ def run_protocol(
     model: Any,
     warn: Callable[[str], None] | None = None,
     progress: Callable[[str], None] | None = None,
+    oxford_scale: float | None = None,
 ) -> tuple[Protocol, list[SessionResult]]:
     """Evaluate `model` on a dataset folder by the paper's protocol: one result per
-    (map session, query session) pair."""
+    (map session, query session) pair. `oxford_scale`: metres per unit of PointNetVLAD's
+    normalized submaps (None: `disco_cli.readers.oxford.DEFAULT_SCALE`)."""
+    from disco_cli.readers import oxford
+
+    with oxford.scale(oxford_scale):
+        return _run_protocol(name, root, model, warn, progress)
+
+
+def _run_protocol(
+    name: str,
+    root: str | Path,
+    model: Any,
+    warn: Callable[[str], None] | None,
+    progress: Callable[[str], None] | None,
+) -> tuple[Protocol, list[SessionResult]]:
     p = _protocol(name)
     root = Path(root)
     if not root.is_dir():
@@ -476,7 +480,6 @@ class TrainingSetup:
     d_pos: float
     d_neg: float
     spacing: float
-    turn_x180: bool
 
 
 def training_setup(name: str, root: str | Path) -> TrainingSetup:
@@ -484,11 +487,12 @@ def training_setup(name: str, root: str | Path) -> TrainingSetup:
     p = _protocol(name)
     if p.every_pair:
         raise DiscoError(
-            "train --protocol oxford: PointNetVLAD's training split (pointcloud_20m_10overlap "
-            "outside the test squares) is not wired yet; train on the runs' folders directly"
+            "train --protocol oxford: PointNetVLAD's training split (the "
+            "pointcloud_20m_10overlap submaps of the first 44 runs, outside the test "
+            "squares) is not wired yet (docs/datasets.md)"
         )
     sessions = []
     for s in p.train_sessions:
         find_session(p, root, s)  # one clear line when it is missing
         sessions.append(Path(root) / s)
-    return TrainingSetup(sessions, p.d_pos, p.d_neg, p.train_spacing, p.turn_x180)
+    return TrainingSetup(sessions, p.d_pos, p.d_neg, p.train_spacing)

@@ -20,6 +20,7 @@ from disco_cli.commands.options import (
     DeviceOpt,
     ExtrinsicOpt,
     MaxTimeGapOpt,
+    OxfordScaleOpt,
     PosesFormatOpt,
     PoseTopicOpt,
     ProtocolOpt,
@@ -51,7 +52,13 @@ def _bar(total: int) -> Iterator[Callable[[int], None]]:
 
 
 def _run_protocol(
-    name: str, inputs: list[Path], model_name: str | None, device: str, rerank: Any, fmt: Any
+    name: str,
+    inputs: list[Path],
+    model_name: str | None,
+    device: str,
+    rerank: Any,
+    fmt: Any,
+    oxford_scale: float | None = None,
 ) -> None:
     """`eval --protocol NAME ROOT`: the paper's sessions and thresholds (disco_cli.protocols),
     printed in the layout of its table."""
@@ -65,7 +72,9 @@ def _run_protocol(
     model = load_model(model_name or "default", device=device)
     apply_rerank(model, rerank)
     say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
-    proto, results = run_protocol(name, inputs[0], model, warn=warn, progress=say)
+    proto, results = run_protocol(
+        name, inputs[0], model, warn=warn, progress=say, oxford_scale=oxford_scale
+    )
     rows = table_rows(proto, results, approach=f"disco ({model.name})")
     RowWriter(TABLE_COLUMNS, fmt, digits=2).write(rows, title=f"{proto.dataset}: {model.name}")
 
@@ -119,6 +128,7 @@ def evaluate(
         Optional[Path], db_option("Map database of another session, with poses.", panel=PANEL_INPUT)
     ] = None,
     protocol: ProtocolOpt = None,
+    oxford_scale: OxfordScaleOpt = None,
     query_poses: Annotated[
         Optional[Path],
         opt(
@@ -157,7 +167,7 @@ def evaluate(
     from disco_cli.search import rerank_depth
 
     if protocol is not None:
-        return _run_protocol(protocol, queries, model_name, device, rerank, fmt)
+        return _run_protocol(protocol, queries, model_name, device, rerank, fmt, oxford_scale)
     if db_path is None:
         raise PoseFileError("give --db map.db (or --protocol NAME DATASET_FOLDER)")
     paths = scan_paths(queries, scan_format, topic)

@@ -240,3 +240,14 @@ ProtocolOpt = Annotated[
         rich_help_panel="Protocol",
     ),
 ]
+
+OxfordScaleOpt = Annotated[
+    Optional[float],
+    typer.Option(
+        "--oxford-scale",
+        min=0.001,
+        help="Metres per unit of PointNetVLAD's normalized Oxford submaps, with --protocol "
+        "oxford; default 20 (docs/datasets.md).",
+        rich_help_panel="Protocol",
+    ),
+]

@@ -124,7 +124,6 @@ def train(
         raise fail("--lambda-verify needs poses (other passes of a place); not --self-supervised")
     if output.exists() and not resume:
         raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
-    turn_x180 = False
     if protocol is not None:
         # The paper's training sessions and distances (disco_cli.protocols) replace
         # DATA, --d-pos, --d-neg and --spacing.
@@ -134,7 +133,6 @@ def train(
             raise fail("--protocol takes one dataset folder")
         setup = training_setup(protocol, data[0])
         data, d_pos, d_neg, spacing = setup.sessions, setup.d_pos, setup.d_neg, setup.spacing
-        turn_x180 = setup.turn_x180
         # The provenance records what the protocol chose, as a command that reruns it.
         ctx.params.update(d_pos=d_pos, d_neg=d_neg, spacing=spacing, protocol=None)
     command = _command_line(ctx, data, output)
@@ -172,7 +170,6 @@ def train(
                 seed=seed,
                 threads=threads,
                 on_progress=lambda done, total: bar.update(task, completed=done, total=total),
-                turn_x180=turn_x180,
                 topic=topic,
                 pose_topic=pose_topic,
             )

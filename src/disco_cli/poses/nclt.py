@@ -10,6 +10,13 @@ The Velodyne HDL-32E sits on the body at `X_BODY_VELO`: x, y, z (m), roll, pitch
 (deg), the values NCLT publishes with its dataset tools and in Carlevaris-Bianco et
 al., "University of Michigan North Campus long-term vision and lidar dataset", IJRR
 2016 (the `x_body_velo` of its `project_vel_to_cam.py`).
+
+NCLT's frames have z pointing down; disco's are z up. The `nclt` scan reader returns
+points turned 180 degrees about x (`disco_cli.readers.nclt.TURN`), and the LiDAR poses
+made here are those of that same turned frame, in the world turned the same way
+(x north, y west, z up): `X @ P @ x_body_velo @ X` with `X = diag(1, -1, -1, 1)`
+(`lidar_calibration`). Relative poses between scans therefore map returned points onto
+returned points, and yaw is counter-clockwise seen from above.
 """
 
 from __future__ import annotations
@@ -33,6 +40,15 @@ def body_to_velo() -> np.ndarray:
     """`T_body<-velo`: the Velodyne's pose in NCLT's body frame (4 x 4)."""
     x, y, z, r, p, yaw = X_BODY_VELO
     return xyzrpy_to_4x4(x, y, z, np.radians(r), np.radians(p), np.radians(yaw))
+
+
+def lidar_calibration() -> tuple[np.ndarray, np.ndarray]:
+    """(left, right): the z-up LiDAR pose of a body pose P is `left @ P @ right`, in the
+    frame the `nclt` scan reader returns (z up), in a z-up world."""
+    from disco_cli.readers.nclt import TURN
+
+    X = np.diag([*TURN, 1.0])  # its own inverse
+    return X, body_to_velo() @ X
 
 
 def read_nclt_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

@@ -189,9 +189,10 @@ def _calibration(
     if none:
         return None, None, "as stored"
     if fmt == "nclt":
-        from disco_cli.poses.nclt import body_to_velo
+        from disco_cli.poses.nclt import lidar_calibration
 
-        return None, body_to_velo(), "body -> Velodyne by NCLT's x_body_velo"
+        left, right = lidar_calibration()
+        return left, right, "body -> Velodyne by NCLT's x_body_velo, turned z up"
     if fmt == "mulran":
         from disco_cli.poses.mulran import base_to_ouster
 

@@ -164,16 +164,13 @@ def load_training_data(
     seed: int = 0,
     threads: int = 0,
     on_progress: Callable[[int, int], None] | None = None,
-    turn_x180: bool = False,
     topic: str | None = None,
     pose_topic: str | None = None,
 ) -> TrainData:
     """Read, voxelize and index every sequence (see the module docstring).
 
-    `turn_x180` turns scans and poses 180 degrees about x, for sensors whose z axis points
-    down (NCLT; see `disco_cli.protocols`). A ROS bag is a sequence of its `topic`'s
-    scans, posed from its `pose_topic` (scans without a pose near their stamp are left
-    out)."""
+    A ROS bag is a sequence of its `topic`'s scans, posed from its `pose_topic` (scans
+    without a pose near their stamp are left out)."""
     from disco_cli.bev import polar_bev_batch
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import is_bag, list_scans, read_scan
@@ -209,9 +206,6 @@ def load_training_data(
             groups[str(seq)] = gid
         else:
             poses = _read_poses(seq, scans)
-            if turn_x180:
-                flip = np.diag([1.0, -1.0, -1.0, 1.0])
-                poses = flip @ poses @ flip
             has = np.isfinite(poses[:, 0, 3])
             scans, poses = [s for s, h in zip(scans, has) if h], poses[has]
             if not scans:
@@ -231,8 +225,6 @@ def load_training_data(
         for start in range(0, len(scans), _CHUNK):
             batch = scans[start : start + _CHUNK]
             clouds = [read_scan(p) for p in batch]
-            if turn_x180:
-                clouds = [c * np.array([1, -1, -1, 1], np.float32) for c in clouds]
             n = len(clouds)
             rows = np.arange(row, row + n)
             meta_xy = [xy[start : start + n]]
