@@ -13,7 +13,8 @@ import math
 import os
 import sqlite3
 import sys
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from enum import Enum
 from typing import Any, TypeVar
 
@@ -113,6 +114,14 @@ def progress(transient: bool = False) -> Progress:
         transient=transient,
         disable=not stderr.is_terminal,
     )
+
+
+@contextmanager
+def steps(description: str, total: int) -> Iterator[Callable[[int], None]]:
+    """A transient progress bar of `total` steps (`progress`); yields `advance(k)`."""
+    with progress(transient=True) as bar:
+        task = bar.add_task(description, total=total, rate="")
+        yield lambda k: bar.advance(task, k)
 
 
 def _plain(value: Any) -> Any:

@@ -26,7 +26,14 @@ from disco_cli.database import Database, ModelInfo, ScanBatch
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.localize import Match, PointCache, as_match, refine_matches
 
-__all__ = ["Map", "AddResult", "Interrupted", "QueryResult", "model_for_database"]
+__all__ = [
+    "Map",
+    "AddResult",
+    "Interrupted",
+    "QueryResult",
+    "model_for_database",
+    "open_for_adding",
+]
 
 
 def model_for_database(db: Database, model: Any = None, device: str = "cpu") -> tuple[Any, str]:
@@ -64,6 +71,27 @@ def _load_model(model: Any, device: str) -> Any:
     return load_model(model, device=device) if isinstance(model, (str, Path)) else model
 
 
+def open_for_adding(
+    path: Path, names: list[str], model: Any = "default", *, append: bool = False, device="cpu"
+) -> tuple[Map, int, int]:
+    """`disco build-db`'s map: `path` opened to add the scan files `names` (a new map when
+    there is no file), with how many files they are and how many of them it holds
+    already (by absolute path). A map that holds other scans is refused unless `append`,
+    so that a resumed build never mixes in another."""
+    given = {os.path.abspath(p) for p in names}
+    if not Path(path).exists():
+        return Map.create(path, model, device=device), len(given), 0
+    m = Map.open(path, writable=True, model=model, device=device)
+    stored = {os.path.abspath(p) for p in m.names()}  # an old map's relative paths too
+    if not append and not stored.issubset(given):
+        m.close()
+        raise DatabaseError(
+            path,
+            "exists and holds other scans; pass --append to add to it, or choose another --output",
+        )
+    return m, len(given), len(stored & given)
+
+
 class Interrupted(KeyboardInterrupt):
     """Ctrl-C during `Map.add_files`. Every batch committed before it is stored (one
     transaction each): `added` scans were added by this call; `added` is None when no
@@ -91,6 +119,25 @@ class QueryResult:
     name: str
     matches: list[Match]
     error: DiscoError | None = None
+
+    def rows(
+        self, shown: Callable[[str], str], keys: list[str], verify: bool = False
+    ) -> tuple[list[dict[str, Any]], list[str]]:
+        """`disco query`'s rows of this result (the `keys` of each match, the match's
+        stored name as `shown`) and the errors to report: the query's own, or one per
+        match whose pose could not be estimated (it gets no row). `verify` keeps only
+        the matches whose pose is accepted; a match whose scan is missing keeps its
+        row, with the pose columns empty."""
+        if self.error is not None:
+            return [], [str(self.error)]
+        rows, errors = [], []
+        for mt in self.matches:
+            if mt.T is None and mt.accepted is False:
+                errors.append(f"{shown(mt.name)}: {mt.reason}")
+            elif mt.accepted or not verify:
+                row = {**mt.as_dict(), "query": self.name, "match": shown(mt.name)}
+                rows.append({k: row.get(k) for k in keys})
+        return rows, errors
 
 
 class Map:

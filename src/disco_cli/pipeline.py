@@ -12,7 +12,7 @@ from __future__ import annotations
 import queue
 import threading
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +38,7 @@ __all__ = [
     "file_beside",
     "sequence_times",
     "QueryPoses",
+    "query_paths",
     "collect_scans",
 ]
 
@@ -258,6 +259,23 @@ def stdin_paths() -> Iterator[str]:
             yield line
 
 
+def query_paths(
+    inputs: list[str], scan_format: str | None = None, topic: str | None = None
+) -> tuple[Iterator[str], list[str] | None]:
+    """`disco query`'s scans: folders and bags expanded as for build-db, `-` read from
+    stdin line by line as they come; and their list when it is known up front (None with
+    stdin or a bag, whose scans go one by one, by the frame number or time in the name)."""
+    from disco_cli.readers import is_bag, list_scans
+
+    def expand(a: str) -> list[str]:
+        listed = a != "-" and (is_bag(a) or Path(a).is_dir())
+        return [str(f) for f in list_scans(a, scan_format, topic)] if listed else [a]
+
+    given = [f for a in inputs for f in expand(a)]
+    paths = (p for s in given for p in (stdin_paths() if s == "-" else [s]))
+    return paths, None if "-" in given or any(map(is_bag, inputs)) else given
+
+
 def frame_rows(paths: list[str], n_rows: int, source: str) -> np.ndarray:
     """Which row of a per-frame file (poses, times) belongs to each scan.
 
@@ -362,6 +380,11 @@ class QueryPoses:
         if not np.isfinite(row[:2]).all():
             self.missing += 1
         return row
+
+    def exclusion(self, m: Any, radius: float) -> Callable[[int, str], np.ndarray]:
+        """`Map.query_files`'s `exclude` for map `m`: the query's own scan, and the
+        scans within `radius` m (x, y) of its pose."""
+        return lambda i, p: m.near(self(i, p)[:2], radius, p)
 
 
 def pose_rows(T: np.ndarray) -> np.ndarray:

@@ -24,6 +24,15 @@ from disco_cli.readers import FormatName
 
 PANEL_RUN = "Running"
 PANEL_OUT = "Output"
+PANEL_IN = "Input"
+PANEL_POSE = "Relative pose"
+PANEL_PROTOCOL = "Protocol"
+# --model's help: a model to load, or (commands that open a map) the map's own by default.
+MODEL_NAMES = "default, spectral, scancontext or a checkpoint path."
+MODEL_OF_MAP = (
+    "Model name or checkpoint path; default: the one that built the database (needed "
+    "for checkpoint paths)."
+)
 
 OutputFormatOpt = Annotated[
     Optional[OutputFormat],
@@ -132,13 +141,13 @@ RerankOpt = Annotated[
 ]
 
 
-def apply_rerank(model: object, rerank: int | None) -> None:
-    """Set the model's re-ranking depth when --rerank was given."""
-    if rerank is None:
-        return
-    from disco_cli.search import check_rerank
+def apply_rerank(model: Any, rerank: int | None) -> Any:
+    """Set the model's re-ranking depth when --rerank was given; returns the model."""
+    if rerank is not None:
+        from disco_cli.search import check_rerank
 
-    model.rerank_candidates = check_rerank(model, rerank)  # type: ignore[attr-defined]
+        model.rerank_candidates = check_rerank(model, rerank)
+    return model
 
 
 def opt(*flags: str, help: str, panel: str | None = None, **kw: Any) -> Any:
@@ -237,7 +246,7 @@ ProtocolOpt = Annotated[
         "--protocol",
         help="The DiSCO paper's protocol on a dataset folder: nclt, mulran or oxford "
         "(docs/datasets.md).",
-        rich_help_panel="Protocol",
+        rich_help_panel=PANEL_PROTOCOL,
     ),
 ]
 
@@ -248,6 +257,29 @@ OxfordScaleOpt = Annotated[
         min=0.001,
         help="Metres per unit of PointNetVLAD's normalized Oxford submaps, with --protocol "
         "oxford; default 20 (docs/datasets.md).",
-        rich_help_panel="Protocol",
+        rich_help_panel=PANEL_PROTOCOL,
+    ),
+]
+
+
+# `disco eval` and `disco eval-loops`.
+RadiusOpt = Annotated[
+    float,
+    opt("--radius", min=0.0, help="True match within this many metres.", panel=PANEL_PROTOCOL),
+]
+ReportOpt = Annotated[
+    Optional[Path],
+    opt(
+        "--report",
+        panel=PANEL_OUT,
+        help="Write metrics.json, curves.json, summary.md and PNG plots into this folder.",
+    ),
+]
+MetricsFormatOpt = Annotated[
+    Optional[OutputFormat],
+    opt(
+        "--format",
+        panel=PANEL_OUT,
+        help="table (default on a terminal), tsv (default in a pipe) or jsonl (one object).",
     ),
 ]

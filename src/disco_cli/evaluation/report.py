@@ -128,3 +128,21 @@ def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
             table.add_row(label, format_value(key, value))
         Console(highlight=False).print(table)
     sys.stdout.flush()
+
+
+def model_run(model: Any) -> dict[str, Any]:
+    """What a report's "run" says about the model: its name, fingerprint and re-ranking."""
+    from disco_cli.search import rerank_depth
+
+    return {"model": model.name, "fingerprint": model.fingerprint, "rerank": rerank_depth(model)}
+
+
+def report_and_print(ev: Evaluation, run: dict[str, Any], directory: Path | None, fmt: Any) -> None:
+    """`disco eval`'s ending: the report files into `directory` when given (said on
+    stderr), then the figures on stdout (`print_metrics`)."""
+    from disco_cli.console import stderr
+
+    if directory is not None:
+        written = write_report(directory, ev, run)
+        stderr.print(f"wrote {len(written)} files to {directory}", highlight=False)
+    print_metrics(ev.metrics, fmt, title=f"{run.get('protocol')}: {run.get('model')}")

@@ -19,7 +19,13 @@ import numpy as np
 
 from disco_cli.errors import DatabaseError, PoseFileError
 
-__all__ = ["multi_session", "loop_closure", "exclusion_limits", "posed_scans"]
+__all__ = [
+    "multi_session",
+    "loop_closure",
+    "exclusion_limits",
+    "posed_scans",
+    "posed_times",
+]
 
 
 def posed_scans(
@@ -54,6 +60,29 @@ def posed_scans(
     if not keep.any():
         raise PoseFileError(f"{source}: none of the {len(paths)} scans has a pose")
     return [p for p, k in zip(paths, keep) if k], T[keep]
+
+
+def posed_times(times_file: Any, all_paths: list[Any], paths: list[Any]) -> np.ndarray:
+    """The time (s) of each scan of `paths` (the scans of the sequence `all_paths` that
+    have a pose): from `times_file` (one row per scan, or by frame number), else the
+    header stamps of scans in bags. `PoseFileError` when there are none, or when they go
+    backwards."""
+    from disco_cli.pipeline import frame_rows
+    from disco_cli.poses import read_times
+    from disco_cli.readers.bags import scan_stamps
+
+    t = scan_stamps([str(p) for p in paths])  # scans in a bag carry their header stamp
+    if times_file is not None or not np.isfinite(t).all():
+        if times_file is None:
+            raise PoseFileError("no times: give --times FILE or use --exclude-frames N")
+        t = read_times(times_file)
+        # One row per scan, or by frame number (the KITTI rule), for the scans with a pose.
+        t = t[frame_rows(list(map(str, all_paths)), len(t), str(times_file))]
+        kept = set(paths)
+        t = t[[p in kept for p in all_paths]]
+    if np.any(np.diff(t) < 0):
+        raise PoseFileError(f"{times_file}: times go backwards")
+    return t
 
 
 def multi_session(
