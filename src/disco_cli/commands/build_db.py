@@ -7,7 +7,6 @@ resumes, skipping the scans already stored (by absolute path). The work is
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 from typing import Annotated, Optional
@@ -15,6 +14,8 @@ from typing import Annotated, Optional
 import typer
 
 from disco_cli.commands.options import (
+    MODEL_NAMES,
+    PANEL_IN,
     PANEL_POSES,
     PANEL_RUN,
     CalibOpt,
@@ -33,8 +34,6 @@ from disco_cli.commands.options import (
 )
 from disco_cli.console import fail, handle_errors, progress, stderr, warn
 
-PANEL_IN = "Input"
-
 
 @handle_errors
 def build_db(
@@ -49,9 +48,7 @@ def build_db(
     output: Annotated[
         Path, output_option("The database file to write (map.db).", panel=PANEL_IN)
     ] = Path("map.db"),
-    model: Annotated[
-        str, model_option("default, spectral, scancontext or a checkpoint path.", panel=PANEL_IN)
-    ] = "default",
+    model: Annotated[str, model_option(MODEL_NAMES, panel=PANEL_IN)] = "default",
     poses: Annotated[
         Optional[Path],
         opt(
@@ -106,8 +103,7 @@ def build_db(
     ] = False,
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
-    from disco_cli.errors import DatabaseError
-    from disco_cli.map import Interrupted, Map
+    from disco_cli.map import Interrupted, open_for_adding
     from disco_cli.pipeline import check_device, collect_scans
 
     check_device(device)
@@ -118,27 +114,14 @@ def build_db(
     scans = collect_scans(inputs, poses, times, calib, fmt, pose_opts, warn, topic, pose_topic)
     if not scans.paths:
         raise fail("no scans given")
-    absolute = {os.path.abspath(p) for p in scans.paths}
-    if output.exists():
-        m = Map.open(output, writable=True, model=model, device=device)
-        stored = {os.path.abspath(p) for p in m.names()}  # an old map's relative paths too
-        if not append and not stored.issubset(absolute):
-            m.close()
-            raise DatabaseError(
-                output,
-                "exists and holds other scans; pass --append to add to it, "
-                "or choose another --output",
-            )
-    else:
-        m, stored = Map.create(output, model, device=device), set()
-    if absolute <= stored:
-        stderr.print(f"{output}: all {len(absolute)} scans are in it already")
+    m, given, held = open_for_adding(output, scans.paths, model, append=append, device=device)
+    if held == given:
         m.close()
-        return
+        return stderr.print(f"{output}: all {given} scans are in it already")
 
     start = time.perf_counter()
     with m, progress() as bar:
-        task = bar.add_task("build-db", total=len(absolute - stored), rate="")
+        task = bar.add_task("build-db", total=given - held, rate="")
 
         def advance(n_done: int, written: int) -> None:
             rate = written / max(time.perf_counter() - start, 1e-9)
@@ -160,10 +143,9 @@ def build_db(
             if stop.added is None:
                 stderr.print(f"interrupted: nothing written; {output} was not created")
             else:
-                held = len(stored & absolute) + stop.added
                 stderr.print(
-                    f"interrupted: {output} holds {held} of the {len(absolute)} scans given, "
-                    "safely stored; run the same command again to resume",
+                    f"interrupted: {output} holds {held + stop.added} of the {given} scans "
+                    "given, safely stored; run the same command again to resume",
                     soft_wrap=True,
                 )
             raise typer.Exit(130) from None

@@ -155,17 +155,32 @@ def opt(*flags: str, help: str, panel: str | None = None, **kw: Any) -> Any:
     return typer.Option(*flags, help=help, rich_help_panel=panel, **kw)
 
 
-BatchOpt = Annotated[
-    int, opt("--batch", help="Scans per network batch.", panel=PANEL_RUN, min=1, max=4096)
-]
-TimesOpt = Annotated[
-    Optional[Path],
-    opt(
+def batch_option(help: str = "Scans per network batch.") -> Any:
+    """`--batch N`."""
+    return opt("--batch", help=help, panel=PANEL_RUN, min=1, max=4096)
+
+
+def times_option(panel: str | None = PANEL_RUN) -> Any:
+    """`--times FILE`."""
+    return opt(
         "--times",
         help="Timestamps (s), one per scan; default: times.txt beside the scans.",
-        panel=PANEL_RUN,
-    ),
-]
+        panel=panel,
+    )
+
+
+def poses_option(panel: str | None = None) -> Any:
+    """`--poses FILE`: the poses of every scan given (ground truth, or the map's)."""
+    return opt(
+        "--poses",
+        panel=panel,
+        help="Poses of all scans (KITTI by frame, or by time: --poses-format); default: the "
+        "pose file beside the scans.",
+    )
+
+
+BatchOpt = Annotated[int, batch_option()]
+TimesOpt = Annotated[Optional[Path], times_option()]
 ExcludeFramesOpt = Annotated[
     Optional[int],
     opt(
@@ -281,5 +296,87 @@ MetricsFormatOpt = Annotated[
         "--format",
         panel=PANEL_OUT,
         help="table (default on a terminal), tsv (default in a pipe) or jsonl (one object).",
+    ),
+]
+
+
+# `disco query`: filters on the matches, and their relative pose.
+PANEL_FILTER = "Filters"
+ExcludeRadiusOpt = Annotated[
+    Optional[float],
+    opt(
+        "--exclude-radius",
+        min=0.0,
+        panel=PANEL_FILTER,
+        help="Drop matches whose stored "
+        "pose is within this many metres (x, y) of the query's pose (needs --query-poses).",
+    ),
+]
+MaxDistanceOpt = Annotated[
+    Optional[float],
+    opt(
+        "--max-distance",
+        min=0.0,
+        panel=PANEL_FILTER,
+        help="Drop matches with a distance above this (the `distance` column).",
+    ),
+]
+PoseOpt = Annotated[
+    bool,
+    opt(
+        "--pose",
+        panel=PANEL_POSE,
+        help="Also estimate the full relative pose of each match "
+        "(phase correlation + ICP on the points): yaw_deg becomes the refined yaw, and "
+        "roll_deg, pitch_deg, dx, dy, dz, fitness, accepted are added (JSON lines also carry "
+        "the 4 x 4 T).",
+    ),
+]
+VerifyMatchesOpt = Annotated[
+    bool,
+    opt(
+        "--verify",
+        panel=PANEL_POSE,
+        help="Keep only matches whose relative pose is accepted (implies --pose).",
+    ),
+]
+
+# `disco loops`: which pairs are loops, and their relative pose.
+ThresholdOpt = Annotated[
+    Optional[float],
+    opt(
+        "--threshold",
+        "-t",
+        min=0.0,
+        help="Report pairs with a distance at most this (the `distance` column); default: all.",
+    ),
+]
+VerifyLoopsOpt = Annotated[
+    bool,
+    opt(
+        "--verify",
+        panel=PANEL_POSE,
+        help="Estimate each pair's relative pose (phase "
+        "correlation + ICP) and keep only the accepted ones: yaw_deg becomes the refined "
+        "yaw, roll_deg and pitch_deg are added (JSON lines also carry the 4 x 4 T).",
+    ),
+]
+VerboseLoopsOpt = Annotated[
+    bool,
+    opt(
+        "--verbose",
+        "-v",
+        panel=PANEL_POSE,
+        help="Estimate each pair's relative pose and "
+        "show it (dx, dy, dz, fitness, rmse, accepted, reason), rejected pairs included "
+        "unless --verify.",
+    ),
+]
+LoopFileOpt = Annotated[
+    Optional[Path],
+    output_option(
+        "Also write the loops with their relative poses: .g2o (EDGE_SE3:QUAT, "
+        "accepted loops only), .tum or .csv.",
+        panel=PANEL_OUT,
     ),
 ]

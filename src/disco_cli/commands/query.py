@@ -14,16 +14,22 @@ from typing import Annotated, Optional
 import typer
 
 from disco_cli.commands.options import (
+    MODEL_OF_MAP,
+    PANEL_FILTER,
     CalibOpt,
     DeviceOpt,
+    ExcludeRadiusOpt,
     ExtrinsicOpt,
+    MaxDistanceOpt,
     MaxTimeGapOpt,
     OutputFormatOpt,
+    PoseOpt,
     PosesFormatOpt,
     RerankOpt,
     ScanFormatOpt,
     ScanRootOpt,
     TopicOpt,
+    VerifyMatchesOpt,
     WorkersOpt,
     apply_rerank,
     db_option,
@@ -36,8 +42,6 @@ from disco_cli.console import error, fail, handle_errors, warn
 
 COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
 POSE_COLUMNS = ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "accepted"]
-PANEL_POSE = "Relative pose"
-PANEL_FILTER = "Filters"
 
 
 @handle_errors
@@ -53,16 +57,7 @@ def query(
     db_path: Annotated[Path, db_option("The map database (from disco build-db).")] = Path("map.db"),
     topk: Annotated[int, topk_option("Matches per query.")] = 10,
     fmt: OutputFormatOpt = None,
-    exclude_radius: Annotated[
-        Optional[float],
-        opt(
-            "--exclude-radius",
-            min=0.0,
-            panel=PANEL_FILTER,
-            help="Drop matches whose stored "
-            "pose is within this many metres (x, y) of the query's pose (needs --query-poses).",
-        ),
-    ] = None,
+    exclude_radius: ExcludeRadiusOpt = None,
     query_poses: Annotated[
         Optional[Path],
         opt(
@@ -76,40 +71,10 @@ def query(
     calib: CalibOpt = None,
     extrinsic: ExtrinsicOpt = None,
     max_time_gap: MaxTimeGapOpt = None,
-    max_distance: Annotated[
-        Optional[float],
-        opt(
-            "--max-distance",
-            min=0.0,
-            panel=PANEL_FILTER,
-            help="Drop matches with a distance above this (the `distance` column).",
-        ),
-    ] = None,
-    pose: Annotated[
-        bool,
-        opt(
-            "--pose",
-            panel=PANEL_POSE,
-            help="Also estimate the full relative pose of each match "
-            "(phase correlation + ICP on the points): yaw_deg becomes the refined yaw, and "
-            "roll_deg, pitch_deg, dx, dy, dz, fitness, accepted are added (JSON lines also carry "
-            "the 4 x 4 T).",
-        ),
-    ] = False,
-    verify: Annotated[
-        bool,
-        opt(
-            "--verify",
-            panel=PANEL_POSE,
-            help="Keep only matches whose relative pose is accepted (implies --pose).",
-        ),
-    ] = False,
-    model: Annotated[
-        Optional[str],
-        model_option(
-            "The model; default: the one that built the database (needed for checkpoint paths)."
-        ),
-    ] = None,
+    max_distance: MaxDistanceOpt = None,
+    pose: PoseOpt = False,
+    verify: VerifyMatchesOpt = False,
+    model: Annotated[Optional[str], model_option(MODEL_OF_MAP)] = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     scan_root: ScanRootOpt = None,
@@ -120,8 +85,7 @@ def query(
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
     from disco_cli.map import Map
-    from disco_cli.pipeline import QueryPoses, stdin_paths
-    from disco_cli.readers import is_bag, list_scans
+    from disco_cli.pipeline import QueryPoses, query_paths
 
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --query-poses")
@@ -131,25 +95,15 @@ def query(
     writer = RowWriter(columns, fmt, table_omit=["query"])
     keys = columns + (["T"] if with_pose else [])  # JSON lines carry the whole T
     fmt_name = scan_format.value if scan_format is not None else None
-
-    # A folder or a bag is expanded like build-db's (DIR/velodyne/, a folder of scans).
-    def expand(a: str) -> list[str]:
-        listed = a != "-" and (is_bag(a) or Path(a).is_dir())
-        return [str(f) for f in list_scans(a, fmt_name, topic)] if listed else [a]
-
-    given = [f for a in scans for f in expand(a)]
-    paths = (p for s in given for p in (stdin_paths() if s == "-" else [s]))
-    failed = 0
+    paths, known = query_paths(scans, fmt_name, topic)
+    failed, poses_of, exclude = 0, None, None
     with Map.open(db_path, model=model, device=device, scan_root=scan_root) as m:
         m.on_missing_scan = warn
         apply_rerank(m.model, rerank)
-        exclude, poses_of = None, None
         if exclude_radius is not None:  # the query's own scan, and those near its pose
             opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
-            # Scans in a bag go by the time in their names, scans from stdin one by one.
-            known = None if "-" in given or any(map(is_bag, scans)) else given
             poses_of = QueryPoses(query_poses, opts, known, warn=error)
-            exclude = lambda i, p: m.near(poses_of(i, p)[:2], exclude_radius, p)  # noqa: E731
+            exclude = poses_of.exclusion(m, exclude_radius)
         results = m.query_files(
             paths,
             topk=topk,
@@ -160,22 +114,12 @@ def query(
             scan_format=fmt_name,
         )
         for res in results:
-            if res.error is not None:
-                error(str(res.error))
-                failed += 1
-                continue
-            rows = []
-            for mt in res.matches:
-                if with_pose and mt.T is None and mt.accepted is False:
-                    error(f"{m.shown(mt.name)}: {mt.reason}")
-                    failed += 1
-                    continue
-                if verify and not mt.accepted:
-                    continue
-                # A match whose scan is missing keeps its row, with the pose columns empty.
-                row = {**mt.as_dict(), "query": res.name, "match": m.shown(mt.name)}
-                rows.append({k: row.get(k) for k in keys})
-            writer.write(rows, title=res.name)
+            rows, errors = res.rows(m.shown, keys, verify=verify)
+            for msg in errors:
+                error(msg)
+            failed += len(errors)
+            if res.error is None:
+                writer.write(rows, title=res.name)
     if poses_of is not None and poses_of.missing:
         error(f"{poses_of.missing} queries had no pose: only their own scan was excluded")
     if failed:
