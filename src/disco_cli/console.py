@@ -124,6 +124,19 @@ def steps(description: str, total: int) -> Iterator[Callable[[int], None]]:
         yield lambda k: bar.advance(task, k)
 
 
+def in_blocks(groups: Iterable[list[Any]], size: int) -> Iterator[list[Any]]:
+    """The items of `groups` (one list per input, say), joined `size` groups at a time,
+    so that results print in blocks as they come; empty blocks are skipped."""
+    block: list[Any] = []
+    for i, group in enumerate(groups, 1):
+        block += group
+        if block and i % size == 0:
+            yield block
+            block = []
+    if block:
+        yield block
+
+
 def _plain(value: Any) -> Any:
     """A JSON- and TSV-friendly version of a value (numpy scalars, NaN)."""
     if hasattr(value, "item"):

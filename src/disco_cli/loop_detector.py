@@ -30,7 +30,7 @@ import numpy as np
 from disco_cli.errors import DiscoError
 from disco_cli.localize import PointCache, pose_fields
 
-__all__ = ["Loop", "LoopDetector"]
+__all__ = ["Loop", "LoopDetector", "loop_columns"]
 
 
 @dataclass(frozen=True, eq=False)  # eq would compare the arrays ambiguously
@@ -64,6 +64,16 @@ class Loop:
         row = {"query_index": self.query_index, "query": self.query}
         row.update(match_index=self.match_index, match=self.match, distance=self.distance)
         return {**row, "yaw_deg": self.yaw_deg, **pose_columns(self)}
+
+
+def loop_columns(pose: bool, verbose: bool = False) -> tuple[list[str], list[str]]:
+    """The columns of `disco loops` (with a `pose`, yaw_deg is the refined yaw and roll
+    and pitch are added; `verbose` adds the rest of the pose and its scores), and the
+    keys of its rows (JSON lines also carry `T`)."""
+    columns = ["query_index", "query", "match_index", "match", "distance", "yaw_deg"]
+    columns += ["roll_deg", "pitch_deg"] if pose else []
+    columns += ["dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"] if verbose else []
+    return columns, columns + (["T"] if pose else [])
 
 
 def _check_window(value: Any, name: str, minimum: float) -> Any:

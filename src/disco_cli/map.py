@@ -33,6 +33,7 @@ __all__ = [
     "QueryResult",
     "model_for_database",
     "open_for_adding",
+    "stored_embeddings",
 ]
 
 
@@ -90,6 +91,18 @@ def open_for_adding(
             "exists and holds other scans; pass --append to add to it, or choose another --output",
         )
     return m, len(given), len(stored & given)
+
+
+def stored_embeddings(
+    path: str | Path, names: list[str], model: Any, *, scan_root: Any = None, warn: Any = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`Map.stored(names)` of the map at `path`, which `model` must have built (for
+    `LoopDetector.add_files`'s `stored`); `warn` hears when it holds none of them."""
+    with Map.open(path, model=model, scan_root=scan_root) as m:
+        found = m.stored(names)
+    if not found[0].any():
+        (warn or warnings.warn)(f"{path}: holds none of these scans; embedding them all")
+    return found
 
 
 class Interrupted(KeyboardInterrupt):

@@ -8,37 +8,32 @@ it, as a robot would when it reaches that scan. The work is `LoopDetector.add_fi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
 from disco_cli.commands.options import (
-    PANEL_OUT,
-    PANEL_RUN,
+    MODEL_NAMES,
     BatchOpt,
     DeviceOpt,
     ExcludeFramesOpt,
     ExcludeSecondsOpt,
+    LoopFileOpt,
     OutputFormatOpt,
     RerankOpt,
+    ReuseDbOpt,
     ScanFormatOpt,
     ScanRootOpt,
+    ThresholdOpt,
     TimesOpt,
     TopicOpt,
+    VerboseLoopsOpt,
+    VerifyLoopsOpt,
     WorkersOpt,
-    db_option,
     model_option,
-    opt,
-    output_option,
     topk_option,
 )
-from disco_cli.console import error, fail, handle_errors, progress, stderr, warn
-
-COLUMNS = ["query_index", "query", "match_index", "match", "distance", "yaw_deg"]
-ANGLE_COLUMNS = ["roll_deg", "pitch_deg"]  # with a pose; yaw_deg is then the refined yaw
-POSE_COLUMNS = ["dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"]
-PANEL_POSE = "Relative pose"
-_BLOCK = 64  # query scans whose loops are printed together (one table each)
+from disco_cli.console import error, fail, handle_errors, stderr, warn
 
 
 @handle_errors
@@ -53,58 +48,15 @@ def loops(
     ],
     exclude_frames: ExcludeFramesOpt = None,  # default 50
     exclude_seconds: ExcludeSecondsOpt = None,
-    threshold: Annotated[
-        Optional[float],
-        opt(
-            "--threshold",
-            "-t",
-            min=0.0,
-            help="Report pairs with a distance at most this (the `distance` column); default: all.",
-        ),
-    ] = None,
+    threshold: ThresholdOpt = None,
     topk: Annotated[int, topk_option("Candidates per query scan.", max=1000)] = 1,
-    model: Annotated[
-        str, model_option("default, spectral, scancontext or a checkpoint path.", panel=None)
-    ] = "default",
+    model: Annotated[str, model_option(MODEL_NAMES, panel=None)] = "default",
     fmt: OutputFormatOpt = None,
-    verify: Annotated[
-        bool,
-        opt(
-            "--verify",
-            panel=PANEL_POSE,
-            help="Estimate each pair's relative pose (phase "
-            "correlation + ICP) and keep only the accepted ones: yaw_deg becomes the refined "
-            "yaw, roll_deg and pitch_deg are added (JSON lines also carry the 4 x 4 T).",
-        ),
-    ] = False,
-    verbose: Annotated[
-        bool,
-        opt(
-            "--verbose",
-            "-v",
-            panel=PANEL_POSE,
-            help="Estimate each pair's relative pose and "
-            "show it (dx, dy, dz, fitness, rmse, accepted, reason), rejected pairs included "
-            "unless --verify.",
-        ),
-    ] = False,
-    output: Annotated[
-        Optional[Path],
-        output_option(
-            "Also write the loops with their relative poses: .g2o (EDGE_SE3:QUAT, "
-            "accepted loops only), .tum or .csv.",
-            panel=PANEL_OUT,
-        ),
-    ] = None,
+    verify: VerifyLoopsOpt = False,
+    verbose: VerboseLoopsOpt = False,
+    output: LoopFileOpt = None,
     times: TimesOpt = None,
-    db_path: Annotated[
-        Optional[Path],
-        db_option(
-            "Reuse the signatures of a database built from this sequence (same model); "
-            "scans not in it are embedded.",
-            panel=PANEL_RUN,
-        ),
-    ] = None,
+    db_path: ReuseDbOpt = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     scan_root: ScanRootOpt = None,
@@ -117,10 +69,10 @@ def loops(
     scans at least 50 frames before it)."""
     import numpy as np
 
-    from disco_cli.console import RowWriter
-    from disco_cli.loop_detector import LoopDetector
+    from disco_cli.console import RowWriter, in_blocks, steps
+    from disco_cli.loop_detector import LoopDetector, loop_columns
     from disco_cli.loop_export import check_loop_file, write_loops
-    from disco_cli.map import Map
+    from disco_cli.map import stored_embeddings
     from disco_cli.pipeline import sequence_times
     from disco_cli.readers import list_scans
 
@@ -137,8 +89,7 @@ def loops(
             raise fail(f"{sequence}: --exclude-seconds needs times.txt beside the scans or --times")
         if np.any(np.diff(stamps) < 0):
             warn(f"{sequence}: timestamps are not increasing; frames are taken in file order")
-
-    pose_failures = []
+    pose_failures, found = [], []
     detector = LoopDetector(
         model,
         exclude_frames=None if exclude_seconds is not None else (exclude_frames or 50),
@@ -151,17 +102,12 @@ def loops(
         device=device,
         on_pose_error=lambda msg: (error(msg), pose_failures.append(msg)),
     )
-    columns = COLUMNS + (ANGLE_COLUMNS if with_pose else []) + (POSE_COLUMNS if verbose else [])
+    columns, keys = loop_columns(with_pose, verbose)
     writer = RowWriter(columns, fmt, title=f"loops in {sequence}")
-    keys = columns + (["T"] if with_pose else [])
-    found, block, reuse = [], [], None
+    reuse = None
     if db_path is not None:
-        with Map.open(db_path, model=detector.model, scan_root=scan_root) as m:
-            reuse = m.stored(paths)
-        if not reuse[0].any():
-            warn(f"{db_path}: holds none of these scans; embedding them all")
-    with progress(transient=True) as bar:
-        task = bar.add_task("loops", total=len(paths), rate="")
+        reuse = stored_embeddings(db_path, paths, detector.model, scan_root=scan_root, warn=warn)
+    with steps("loops", len(paths)) as advance:
         stream = detector.add_files(
             paths,
             times=stamps,
@@ -169,14 +115,11 @@ def loops(
             batch=batch,
             workers=workers,
             scan_format=scan_format,
-            on_progress=lambda k: bar.advance(task, k),
+            on_progress=advance,
         )
-        for i, new in enumerate(stream):
-            found += new
-            block += [{k: lp.as_dict()[k] for k in keys} for lp in new]
-            if block and ((i + 1) % _BLOCK == 0 or i + 1 == len(paths)):
-                writer.write(block)
-                block = []
+        for block in in_blocks(stream, 64):  # the loops of 64 query scans in one table
+            found += block
+            writer.write([{k: lp.as_dict()[k] for k in keys} for lp in block])
     if not found:
         writer.write([])  # the header (an empty table), so that "no loop" reads as an answer
     stderr.print(f"{sequence}: {len(found)} loop candidates among {len(paths)} scans")

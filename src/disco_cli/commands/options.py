@@ -380,3 +380,11 @@ LoopFileOpt = Annotated[
         panel=PANEL_OUT,
     ),
 ]
+ReuseDbOpt = Annotated[
+    Optional[Path],
+    db_option(
+        "Reuse the signatures of a database built from this sequence (same model); "
+        "scans not in it are embedded.",
+        panel=PANEL_RUN,
+    ),
+]
