@@ -13,6 +13,7 @@ import math
 import os
 import sqlite3
 import sys
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from enum import Enum
@@ -122,6 +123,21 @@ def steps(description: str, total: int) -> Iterator[Callable[[int], None]]:
     with progress(transient=True) as bar:
         task = bar.add_task(description, total=total, rate="")
         yield lambda k: bar.advance(task, k)
+
+
+@contextmanager
+def rate_bar(description: str, total: int) -> Iterator[Callable[[int, int], None]]:
+    """A progress bar (`progress`) of `total` scans that shows scans per second since it
+    began; yields `update(done, counted)`, the rate being of the `counted` scans."""
+    start = time.perf_counter()
+    with progress() as bar:
+        task = bar.add_task(description, total=total, rate="")
+
+        def update(done: int, counted: int) -> None:
+            rate = counted / max(time.perf_counter() - start, 1e-9)
+            bar.update(task, completed=done, rate=f"{rate:.1f} scans/s")
+
+        yield update
 
 
 def in_blocks(groups: Iterable[list[Any]], size: int) -> Iterator[list[Any]]:

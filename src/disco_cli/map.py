@@ -114,6 +114,16 @@ class Interrupted(KeyboardInterrupt):
         super().__init__()
         self.added = added
 
+    def report(self, path: Any, given: int, held: int) -> str:
+        """`disco build-db`'s line on what is safe: of `given` scans, the map at `path`
+        held `held` before this call."""
+        if self.added is None:
+            return f"interrupted: nothing written; {path} was not created"
+        return (
+            f"interrupted: {path} holds {held + self.added} of the {given} scans given, "
+            "safely stored; run the same command again to resume"
+        )
+
 
 @dataclass
 class AddResult:
@@ -122,6 +132,13 @@ class AddResult:
     written: int = 0  # scans added
     already: int = 0  # scans skipped because the map holds them already
     bad: list[str] | None = None  # unreadable scans skipped (skip_bad=True)
+
+    def summary(self, seconds: float) -> str:
+        """The line "wrote N scans in S s (R scans/s)" for a build that took `seconds`,
+        and how many scans the map held already."""
+        rate = self.written / max(seconds, 1e-9)
+        text = f"wrote {self.written} scans in {seconds:.1f} s ({rate:.1f} scans/s)"
+        return text + (f", {self.already} were in it already" if self.already else "")
 
 
 @dataclass

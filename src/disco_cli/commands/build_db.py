@@ -27,12 +27,15 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     TopicOpt,
     WorkersOpt,
+    batch_option,
     model_option,
     opt,
     output_option,
     pose_options,
+    poses_option,
+    times_option,
 )
-from disco_cli.console import fail, handle_errors, progress, stderr, warn
+from disco_cli.console import fail, handle_errors, rate_bar, stderr, warn
 
 
 @handle_errors
@@ -49,27 +52,12 @@ def build_db(
         Path, output_option("The database file to write (map.db).", panel=PANEL_IN)
     ] = Path("map.db"),
     model: Annotated[str, model_option(MODEL_NAMES, panel=PANEL_IN)] = "default",
-    poses: Annotated[
-        Optional[Path],
-        opt(
-            "--poses",
-            panel=PANEL_POSES,
-            help="Poses of all scans (KITTI by frame, or by time: --poses-format); "
-            "default: the pose file beside each folder's scans.",
-        ),
-    ] = None,
+    poses: Annotated[Optional[Path], poses_option(PANEL_POSES)] = None,
     poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,
     extrinsic: ExtrinsicOpt = None,
     max_time_gap: MaxTimeGapOpt = None,
-    times: Annotated[
-        Optional[Path],
-        opt(
-            "--times",
-            panel=PANEL_IN,
-            help="Timestamps (s), one per scan; default: times.txt beside each folder's scans.",
-        ),
-    ] = None,
+    times: Annotated[Optional[Path], times_option(PANEL_IN)] = None,
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
@@ -81,16 +69,7 @@ def build_db(
             help="Add these scans to an existing database built from other scans (same model).",
         ),
     ] = False,
-    batch: Annotated[
-        int,
-        opt(
-            "--batch",
-            min=1,
-            max=4096,
-            panel=PANEL_RUN,
-            help="Scans per network batch and per transaction.",
-        ),
-    ] = 32,
+    batch: Annotated[int, batch_option("Scans per network batch and per transaction.")] = 32,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     skip_bad: Annotated[
@@ -117,16 +96,11 @@ def build_db(
     m, given, held = open_for_adding(output, scans.paths, model, append=append, device=device)
     if held == given:
         m.close()
-        return stderr.print(f"{output}: all {given} scans are in it already")
+        stderr.print(f"{output}: all {given} scans are in it already")
+        return
 
     start = time.perf_counter()
-    with m, progress() as bar:
-        task = bar.add_task("build-db", total=given - held, rate="")
-
-        def advance(n_done: int, written: int) -> None:
-            rate = written / max(time.perf_counter() - start, 1e-9)
-            bar.update(task, completed=n_done, rate=f"{rate:.1f} scans/s")
-
+    with m, rate_bar("build-db", given - held) as advance:
         try:
             result = m.add_files(
                 scans.paths,
@@ -140,21 +114,10 @@ def build_db(
                 on_skip=lambda exc: warn(f"skipped: {exc}"),
             )
         except Interrupted as stop:  # every committed batch is safe; say so, and how to go on
-            if stop.added is None:
-                stderr.print(f"interrupted: nothing written; {output} was not created")
-            else:
-                stderr.print(
-                    f"interrupted: {output} holds {held + stop.added} of the {given} scans "
-                    "given, safely stored; run the same command again to resume",
-                    soft_wrap=True,
-                )
+            stderr.print(stop.report(output, given, held), soft_wrap=True)
             raise typer.Exit(130) from None
         created = m.database is not None
-    elapsed = time.perf_counter() - start
-    rate = result.written / max(elapsed, 1e-9)
-    msg = f"{output}: wrote {result.written} scans in {elapsed:.1f} s ({rate:.1f} scans/s)"
-    if result.already:
-        msg += f", {result.already} were in it already"
+    msg = f"{output}: {result.summary(time.perf_counter() - start)}"
     if scans.no_pose:
         msg += f", {scans.no_pose} without a pose"
     stderr.print(msg)
