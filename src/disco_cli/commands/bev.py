@@ -9,110 +9,18 @@ from __future__ import annotations
 
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated, Any
 
 import typer
 
 from disco_cli.commands.options import ScanFormatOpt, TopicOpt, model_option, output_option
 from disco_cli.console import fail, handle_errors, stderr, warn
 
-if TYPE_CHECKING:
-    import numpy as np
-
-# The longer side of the sectors x rings picture when --scale is not given.
-_TARGET_WIDTH = 960
-_MAX_SIDE = 4096
-_GREY = (96, 96, 96)
-_WHITE = (255, 255, 255)
-
 
 class BEVMode(str, Enum):
     occupancy = "occupancy"
     density = "density"
     max_height = "max_height"
-
-
-def in_window(points: np.ndarray, config: Any) -> np.ndarray:
-    """Mask of the points that the BEV counts: finite, `min_range <= r < max_range`
-    and `z_min <= z < z_max` (the voxelizer's window, in double precision)."""
-    import numpy as np
-
-    xyz = np.asarray(points[:, :3], dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        r = np.hypot(xyz[:, 0], xyz[:, 1])
-        z = xyz[:, 2]
-        return (
-            np.isfinite(xyz).all(axis=1)
-            & (r >= config.min_range)
-            & (r < config.max_range)
-            & (z >= config.z_min)
-            & (z < config.z_max)
-        )
-
-
-def collapse(bev: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray, str]:
-    """One value in [0, 1] per (ring, sector) cell, the mask of empty cells, and
-    what the top of the colour scale stands for.
-
-    Each column of height layers becomes one number: occupancy counts occupied
-    layers, density sums the layers, max_height takes the top point's height.
-    Values are relative to the scan's largest, so that a scan with low objects
-    still uses the whole colour scale; density is shown on a square-root scale
-    because near rings hold far more points than far ones.
-    """
-    import numpy as np
-
-    if mode == "max_height":
-        column = bev.max(axis=0).astype(np.float64)
-    else:
-        column = bev.sum(axis=0, dtype=np.float64)
-    empty = column <= 0
-    peak = float(column.max())
-    if peak <= 0:
-        return np.zeros_like(column), empty, "empty"
-    if mode == "occupancy":
-        return column / peak, empty, f"{peak:g} of {bev.shape[0]} layers occupied"
-    if mode == "density":
-        return np.sqrt(column / peak), empty, "the densest column, square-root scale"
-    return column / peak, empty, f"{peak:.2f} m above z_min"
-
-
-def rect_image(values: np.ndarray, empty: np.ndarray, scale: int) -> np.ndarray:
-    """RGB picture: rings as rows (nearest at the top), sectors as columns (sector 0,
-    straight ahead, at the left; angles grow to the right), each cell a
-    `scale x scale` block."""
-    from disco_cli.png import colormap, upscale
-
-    return upscale(colormap(values, empty), scale)
-
-
-def polar_image(values: np.ndarray, empty: np.ndarray, config: Any, scale: int) -> np.ndarray:
-    """RGB top-down disc: the sensor at the centre, +x (ahead) up, +y (left) to the
-    left, as seen from above; `2 * rings * scale` pixels across."""
-    import numpy as np
-
-    from disco_cli.png import BACKGROUND, colormap
-
-    rings, sectors = values.shape
-    size = 2 * rings * scale
-    metres_per_px = config.max_range / (size / 2)
-    centre = size / 2
-    # The BEV cell under each pixel centre, by the voxelizer's own formulas.
-    rows, cols = np.mgrid[0:size, 0:size].astype(np.float64) + 0.5
-    x = (centre - rows) * metres_per_px
-    y = (centre - cols) * metres_per_px
-    r = np.hypot(x, y)
-    theta = np.mod(np.arctan2(y, x), 2 * np.pi)
-    ring = np.minimum((r / (config.max_range / rings)).astype(np.int64), rings - 1)
-    sector = np.minimum((theta / (2 * np.pi / sectors)).astype(np.int64), sectors - 1)
-    image = colormap(values[ring, sector], empty[ring, sector])
-    image[(r < config.min_range) | (r >= config.max_range)] = BACKGROUND
-    # Landmarks: the edge of the window as a grey circle, and a white line from
-    # the sensor to min_range pointing ahead (+x).
-    image[np.abs(r - config.max_range) < metres_per_px] = _GREY
-    ahead = (np.abs(y) < metres_per_px) & (x >= 0) & (r < config.min_range)
-    image[ahead] = _WHITE
-    return image
 
 
 def _write(output: Path, save: Any) -> None:
@@ -177,6 +85,7 @@ def bev(
     import numpy as np
 
     from disco_cli.bev import BEVConfig, polar_bev
+    from disco_cli.bev_image import in_window, picture
     from disco_cli.readers import guess_format, is_bag, list_scans, read_scan
 
     if is_bag(scan):
@@ -212,16 +121,7 @@ def bev(
     else:
         from disco_cli.png import write_png
 
-        values, empty, top = collapse(grid, cell_mode)
-        cells_across = 2 * grid.shape[1] if polar else grid.shape[2]
-        if scale is None:
-            scale = max(1, round(_TARGET_WIDTH / cells_across))
-        # Keep the picture (and the memory it takes) within reason for big grids.
-        scale = max(1, min(scale, _MAX_SIDE // cells_across))
-        if polar:
-            image = polar_image(values, empty, config, scale)
-        else:
-            image = rect_image(values, empty, scale)
+        image, top = picture(grid, cell_mode, config, polar, scale)
         _write(output, lambda: write_png(output, image))
         what = (
             f"BEV {shape} ({cell_mode}) as a {image.shape[1]} x {image.shape[0]} "
