@@ -49,14 +49,7 @@ def gt_loops(
     fmt: OutputFormatOpt = None,
 ) -> None:
     """List true revisit pairs (ground truth) within or between sequences."""
-    from disco_cli.poses import (
-        find_pose_file,
-        gt_pairs,
-        gt_pairs_within,
-        pair_distances,
-        read_poses,
-        relative_yaw_deg,
-    )
+    from disco_cli.poses import find_pose_file, read_poses, revisit_pairs
 
     if not seqs:
         raise fail("give at least one sequence folder")
@@ -71,19 +64,9 @@ def gt_loops(
         poses.append(read_poses(found, **opts)[1])
 
     writer = RowWriter(COLUMNS, fmt, digits=3)
-    if len(seqs) == 1:
-        jobs = [(0, 0, gt_pairs_within(poses[0], radius, exclude_frames))]
-    else:
-        jobs = [
-            (q, m, gt_pairs(poses[q], poses[m], radius)) for q in range(len(seqs)) for m in range(q)
-        ]
     total = 0
-    for q, m, pairs in jobs:
-        if len(pairs) == 0:
-            continue
+    for q, m, pairs, dist, yaw in revisit_pairs(poses, radius, exclude_frames):
         total += len(pairs)
-        dist = pair_distances(poses[q], poses[m], pairs)
-        yaw = relative_yaw_deg(poses[m][pairs[:, 1]], poses[q][pairs[:, 0]])
         rows = [
             {
                 "query_seq": str(seqs[q]),

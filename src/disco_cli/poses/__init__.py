@@ -30,7 +30,13 @@ from disco_cli.poses.kitti import (
     write_kitti_poses,
     write_times,
 )
-from disco_cli.poses.revisits import gt_pairs, gt_pairs_within, nearest_distance, pair_distances
+from disco_cli.poses.revisits import (
+    gt_pairs,
+    gt_pairs_within,
+    nearest_distance,
+    pair_distances,
+    revisit_pairs,
+)
 from disco_cli.poses.scans import (
     POSE_FORMATS,
     PoseReport,
@@ -59,6 +65,7 @@ __all__ = [
     "matrix_to_quat",
     "nearest_distance",
     "pair_distances",
+    "revisit_pairs",
     "poses_for_scans",
     "quat_to_matrix",
     "read_calib_tr",

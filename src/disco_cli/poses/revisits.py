@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 
@@ -58,3 +60,26 @@ def nearest_distance(
     m = np.asarray(map_poses, float)[:, :3, 3]
     dist, idx = cKDTree(m).query(q)
     return dist, idx.astype(np.int64)
+
+
+def revisit_pairs(
+    poses: list[np.ndarray], radius: float, exclude_frames: int = 50
+) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+    """The true revisits of sequences (`[N, 4, 4]` poses each): inside the only one
+    (`gt_pairs_within`), or of every later sequence in every earlier one. Yields
+    `(q, m, pairs [M, 2], distance_m [M], yaw_deg [M])` for each (query sequence,
+    match sequence) with revisits; yaw is the query's heading in the match's frame."""
+    from disco_cli.poses.geometry import relative_yaw_deg
+
+    if len(poses) == 1:
+        jobs = [(0, 0, gt_pairs_within(poses[0], radius, exclude_frames))]
+    else:
+        jobs = [
+            (q, m, gt_pairs(poses[q], poses[m], radius))
+            for q in range(len(poses))
+            for m in range(q)
+        ]
+    for q, m, pairs in jobs:
+        if len(pairs):
+            dist = pair_distances(poses[q], poses[m], pairs)
+            yield q, m, pairs, dist, relative_yaw_deg(poses[m][pairs[:, 1]], poses[q][pairs[:, 0]])
