@@ -92,6 +92,8 @@ def test_no_import_cycle_at_module_level() -> None:
 def test_the_api_modules_exist_and_commands_stay_thin() -> None:
     for name in ("map", "localize", "loop_detector"):
         assert (PKG / f"{name}.py").is_file()
+    # Argument parsing, reading inputs, calling the library, writing rows: the
+    # pipelines live in library modules, so each of these stays well under 150 lines.
     for command in ("query", "loops", "build_db", "evaluate", "eval_loops"):
         lines = (PKG / "commands" / f"{command}.py").read_text().count("\n")
-        assert lines < 200, f"commands/{command}.py has {lines} lines"
+        assert lines <= 150, f"commands/{command}.py has {lines} lines"
