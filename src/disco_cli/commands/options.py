@@ -10,6 +10,9 @@ The vocabulary (tests/test_cli_options.py walks every command and holds it):
 
 Flags that every command spells the same but whose help differs per command are
 factories (`model_option(help)`) used as `Annotated[str, model_option("...")]`.
+At the end, the longer declarations of single commands (`query`'s filters, the
+relative-pose flags of `query` and `loops`, `eval`'s report), so that each command
+module reads as its flow: parse, read the inputs, call the library, write rows.
 """
 
 from __future__ import annotations
