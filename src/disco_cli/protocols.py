@@ -132,7 +132,7 @@ PROTOCOLS: dict[str, Protocol] = {
         dataset="Oxford",
         map_sessions=(),  # every test run, in turn
         query_sessions=(),  # every other test run: the submaps inside the test squares
-        train_sessions=(),  # every run but the last: its pointcloud_20m_10overlap submaps
+        train_sessions=(),  # every run but the last: oxford_training_sessions
         radius=25.0,
         topk=25,
         d_pos=10.0,
@@ -152,6 +152,9 @@ PROTOCOLS: dict[str, Protocol] = {
             "the submaps are normalized to [-1, 1] with a scale of their own that is not "
             "stored; disco reads them at --oxford-scale metres per unit (default 20: "
             "docs/formats.md)",
+            "training: PointNetVLAD's split (the 10 m-interval submaps of every run but the "
+            "last, outside the test squares); the locations have no heading, so the yaw loss "
+            "is off (disco)",
         ),
     ),
 }
@@ -474,23 +477,88 @@ TABLE_COLUMNS = ["dataset", "approach", "session", "recall@1", "recall@1%", "auc
 
 @dataclass(frozen=True)
 class TrainingSetup:
-    """What `disco train --protocol` trains on: session folders and the paper's distances."""
+    """What `disco train --protocol` trains on: session folders (or, for Oxford, explicit
+    `disco_cli.training.data.PosedScans`) and the paper's distances. `lambda_yaw`: the yaw
+    loss weight the protocol imposes (None: the command's)."""
 
-    sessions: list[Path]
+    sessions: list[Any]
     d_pos: float
     d_neg: float
     spacing: float
+    lambda_yaw: float | None = None
 
 
-def training_setup(name: str, root: str | Path) -> TrainingSetup:
-    """The paper's training sessions under `root` with its positive/negative distances."""
+# PointNetVLAD's training split: every run but the last in sorted order (44 of 45), its
+# 10 m-interval submaps (generate_training_tuples_baseline.py).
+OXFORD_TRAIN_SCANS = "pointcloud_20m_10overlap"
+OXFORD_TRAIN_LOCATIONS = "pointcloud_locations_20m_10overlap.csv"
+
+
+def oxford_training_sessions(
+    root: str | Path, warn: Callable[[str], None] | None = None
+) -> list[Any]:
+    """PointNetVLAD's Oxford training split under `root` (benchmark_datasets/ or its
+    oxford/): for every run but the last of the sorted run folders, its
+    pointcloud_20m_10overlap submaps that have a row in its locations CSV and lie outside
+    the four test squares, as `PosedScans` of one world (UTM: pooled across runs).
+    Runs without the training split are named in one warning and skipped."""
+    from disco_cli.poses import poses_for_scans
+    from disco_cli.poses.interpolate import EXACT_S
+    from disco_cli.readers import list_scans
+    from disco_cli.training.data import PosedScans
+
+    root = Path(root)
+    if (root / "oxford").is_dir():
+        root = root / "oxford"
+    if not root.is_dir():
+        raise DiscoError(f"{root}: no such folder")
+    csvs = ("pointcloud_locations_20m.csv", OXFORD_TRAIN_LOCATIONS)
+    runs = sorted(d for d in root.iterdir() if any((d / c).is_file() for c in csvs))
+    if len(runs) <= max(OXFORD_TEST_RUNS):
+        raise DiscoError(
+            f"{root}: PointNetVLAD's Oxford training split is every run but the last of its "
+            f"45 run folders; found {len(runs)}"
+        )
+    sessions, missing = [], []
+    for run in runs[:-1]:
+        folder, csv = run / OXFORD_TRAIN_SCANS, run / OXFORD_TRAIN_LOCATIONS
+        if not folder.is_dir() or not csv.is_file():
+            missing.append(run.name)
+            continue
+        scans = list_scans(folder, "oxford")
+        # The CSV is the split's index: a submap is used at its own row's location only.
+        T, _ = poses_for_scans(scans, csv, "oxford", max_time_gap=EXACT_S)
+        keep = np.isfinite(T[:, 0, 3])
+        keep[keep] = ~oxford_in_test_squares(T[keep, 0, 3], T[keep, 1, 3])
+        if keep.any():
+            scans = [s for s, k in zip(scans, keep) if k]
+            sessions.append(PosedScans(run.name, scans, T[keep], str(root), "oxford"))
+    if missing and warn is not None:
+        warn(
+            f"{root}: {len(missing)} of {len(runs) - 1} training runs have no "
+            f"{OXFORD_TRAIN_SCANS}/ and {OXFORD_TRAIN_LOCATIONS} (e.g. {missing[0]}): skipped"
+        )
+    if not sessions:
+        raise DiscoError(
+            f"{root}: no {OXFORD_TRAIN_SCANS} submap outside the test squares in the "
+            f"{len(runs) - 1} training runs"
+        )
+    return sessions
+
+
+def training_setup(
+    name: str, root: str | Path, warn: Callable[[str], None] | None = None
+) -> TrainingSetup:
+    """The paper's training sessions under `root` with its positive/negative distances.
+
+    Oxford's locations are 2D and its submaps carry no heading, so there is no yaw to
+    supervise: its setup turns the yaw (KL) loss off (`lambda_yaw` 0), and the network
+    learns from the quadruplet loss alone, rotation invariance still coming from the
+    random sector rolls of every training BEV."""
     p = _protocol(name)
     if p.every_pair:
-        raise DiscoError(
-            "train --protocol oxford: PointNetVLAD's training split (the "
-            "pointcloud_20m_10overlap submaps of the first 44 runs, outside the test "
-            "squares) is not wired yet (docs/datasets.md)"
-        )
+        sessions = oxford_training_sessions(root, warn)
+        return TrainingSetup(sessions, p.d_pos, p.d_neg, p.train_spacing, lambda_yaw=0.0)
     sessions = []
     for s in p.train_sessions:
         find_session(p, root, s)  # one clear line when it is missing

@@ -8,7 +8,13 @@ from typing import Annotated
 
 import typer
 
-from disco_cli.commands.options import PoseTopicOpt, ProtocolOpt, TopicOpt, output_option
+from disco_cli.commands.options import (
+    OxfordScaleOpt,
+    PoseTopicOpt,
+    ProtocolOpt,
+    TopicOpt,
+    output_option,
+)
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
@@ -109,12 +115,14 @@ def train(
     ] = 0,
     threads: Annotated[int, typer.Option(min=0, help="Voxelizer threads (0: all cores).")] = 0,
     protocol: ProtocolOpt = None,
+    oxford_scale: OxfordScaleOpt = None,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
     from disco_cli.bev import BEVConfig
     from disco_cli.pipeline import check_device
+    from disco_cli.readers import oxford
     from disco_cli.training.data import load_training_data
     from disco_cli.training.loop import TrainOptions
     from disco_cli.training.loop import train as run_training
@@ -126,15 +134,33 @@ def train(
         raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
     if protocol is not None:
         # The paper's training sessions and distances (disco_cli.protocols) replace
-        # DATA, --d-pos, --d-neg and --spacing.
+        # DATA, --d-pos, --d-neg and --spacing (Oxford: --lambda-yaw too).
+        from click.core import ParameterSource
+
+        from disco_cli.console import warn
         from disco_cli.protocols import training_setup
 
         if len(data) != 1:
             raise fail("--protocol takes one dataset folder")
-        setup = training_setup(protocol, data[0])
-        data, d_pos, d_neg, spacing = setup.sessions, setup.d_pos, setup.d_neg, setup.spacing
-        # The provenance records what the protocol chose, as a command that reruns it.
-        ctx.params.update(d_pos=d_pos, d_neg=d_neg, spacing=spacing, protocol=None)
+        setup = training_setup(protocol, data[0], warn)
+        d_pos, d_neg, spacing = setup.d_pos, setup.d_neg, setup.spacing
+        ctx.params.update(d_pos=d_pos, d_neg=d_neg, spacing=spacing)
+        if setup.lambda_yaw is not None:
+            given = ctx.get_parameter_source("lambda_yaw") == ParameterSource.COMMANDLINE
+            if given and lambda_yaw != setup.lambda_yaw:
+                raise fail(f"--lambda-yaw: --protocol {protocol} has no yaw to supervise")
+            lambda_yaw = setup.lambda_yaw
+            ctx.params["lambda_yaw"] = lambda_yaw
+        if all(isinstance(s, Path) for s in setup.sessions):
+            # The provenance records what the protocol chose, as a command that reruns it.
+            data = setup.sessions
+            ctx.params["protocol"] = None
+        else:
+            # A split of submaps, not folders: the command keeps --protocol to rerun it.
+            ctx.params["oxford_scale"] = oxford_scale or oxford.DEFAULT_SCALE
+        sessions = setup.sessions
+    else:
+        sessions = data
     command = _command_line(ctx, data, output)
     bev_config = BEVConfig()
     opts = TrainOptions(
@@ -176,8 +202,9 @@ def train(
         stderr.print(f"{what}: {len(result.anchors)} scans from {len(result.sessions)} sequences")
         return result
 
-    data_set = load(data, "training data", self_supervised)
-    val_set = load(val, "validation data", False) if val else None
+    with oxford.scale(oxford_scale):
+        data_set = load(sessions, "training data", self_supervised)
+        val_set = load(val, "validation data", False) if val else None
 
     with progress() as bar:
         task = bar.add_task("training", total=None, rate="")

@@ -5,6 +5,9 @@ Sequences are KITTI-style folders (`velodyne/` + `poses.txt`, optional `calib.tx
 world and share its frame, so positives are mined across them; scans of different worlds
 are always negatives of each other.
 
+A session may also be given as `PosedScans`: explicit scan files with their poses (a
+dataset split that is not a whole folder, e.g. PointNetVLAD's Oxford training submaps).
+
 Every scan is voxelized once, up front, with `polar_bev_batch`, and kept in memory as
 uint8 (occupancy, counts) so that training is bound by the network, not by I/O.
 
@@ -53,6 +56,19 @@ class TrainData:
         return self.bevs[idx].astype(np.float32)
 
 
+@dataclass
+class PosedScans:
+    """A session given as its scans and their LiDAR poses `[N, 4, 4]`. Sessions with the
+    same `world` share a frame (positives are mined across them); `format` is the scan
+    format for `read_scan` (None: from the file)."""
+
+    name: str
+    scans: list[Path]
+    poses: np.ndarray
+    world: str
+    format: str | None = None
+
+
 def _is_session(folder: Path) -> bool:
     """A dataset session folder: a pose file beside scans (NCLT velodyne_sync/, MulRan
     sensor_data/Ouster/, ...)."""
@@ -65,13 +81,16 @@ def _is_session(folder: Path) -> bool:
         return False
 
 
-def expand_sequences(paths: list[Path]) -> list[Path]:
+def expand_sequences(paths: list[Path | PosedScans]) -> list[Path | PosedScans]:
     """Sequence folders: each path itself if it holds velodyne/ (or is a ROS bag), else its
-    subfolders that do (and the bags in it)."""
+    subfolders that do (and the bags in it); a `PosedScans` stays as it is."""
     from disco_cli.readers import is_bag
 
-    out: list[Path] = []
+    out: list[Path | PosedScans] = []
     for p in paths:
+        if isinstance(p, PosedScans):
+            out.append(p)
+            continue
         p = Path(p)
         if is_bag(p):
             out.append(p)
@@ -155,7 +174,7 @@ def augment_points(
 
 
 def load_training_data(
-    paths: list[Path],
+    paths: list[Path | PosedScans],
     bev_config: Any,
     self_supervised: bool = False,
     spacing: float = 0.0,
@@ -177,13 +196,19 @@ def load_training_data(
 
     seqs = expand_sequences(paths)
     rng = np.random.default_rng(seed)
-    plan: list[tuple[int, int, Path, list[Path], np.ndarray, np.ndarray]] = []
+    plan: list[tuple[int, int, str | None, list[Path], np.ndarray, np.ndarray]] = []
     groups: dict[str, int] = {}
     for sid, seq in enumerate(seqs):
-        scans = list_scans(seq, topic=topic)
+        fmt = seq.format if isinstance(seq, PosedScans) else None
+        scans = list(seq.scans) if isinstance(seq, PosedScans) else list_scans(seq, topic=topic)
         if not scans:
             raise DiscoError(f"{seq}: no scans")
-        if not self_supervised and is_bag(seq):
+        if isinstance(seq, PosedScans) and not self_supervised:
+            x, y, yaw = xy_yaw(np.asarray(seq.poses))
+            xy = np.stack([x, y], axis=1)
+            heading = np.degrees(yaw)
+            gid = groups.setdefault(seq.world, len(groups))
+        elif not self_supervised and is_bag(seq):
             from disco_cli.readers.bags import bag_poses
 
             if pose_topic is None:
@@ -215,16 +240,16 @@ def load_training_data(
             heading = np.degrees(yaw)
             gid = groups.setdefault(str(seq.resolve().parent), len(groups))
         keep = _keep_by_spacing(xy, spacing) if not self_supervised else np.arange(len(scans))
-        plan.append((sid, gid, seq, [scans[i] for i in keep], xy[keep], heading[keep]))
+        plan.append((sid, gid, fmt, [scans[i] for i in keep], xy[keep], heading[keep]))
 
     total = sum(len(p[3]) for p in plan) * (1 + (copies if self_supervised else 0))
     done = 0
     bevs, xys, heads, grp, sess, frm, src = [], [], [], [], [], [], []
     row = 0
-    for sid, gid, _seq, scans, xy, heading in plan:
+    for sid, gid, fmt, scans, xy, heading in plan:
         for start in range(0, len(scans), _CHUNK):
             batch = scans[start : start + _CHUNK]
-            clouds = [read_scan(p) for p in batch]
+            clouds = [read_scan(p, fmt) for p in batch]
             n = len(clouds)
             rows = np.arange(row, row + n)
             meta_xy = [xy[start : start + n]]
@@ -265,7 +290,7 @@ def load_training_data(
         session=np.concatenate(sess),
         frame=np.concatenate(frm),
         source=np.concatenate(src),
-        sessions=[str(s) for s in seqs],
+        sessions=[s.name if isinstance(s, PosedScans) else str(s) for s in seqs],
     )
     # Anchors: original scans (copies are positives only).
     data.anchors = np.flatnonzero(data.source == np.arange(len(data)))
