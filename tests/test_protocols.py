@@ -23,6 +23,8 @@ X = np.diag([1.0, -1.0, -1.0, 1.0])  # 180 degrees about x: z up <-> NCLT's z do
 
 def run(*args) -> tuple[int, str]:
     res = CliRunner().invoke(app, [str(a) for a in args])
+    if res.exception and not isinstance(res.exception, SystemExit):
+        raise res.exception
     return res.exit_code, res.output
 
 
@@ -270,6 +272,31 @@ def pointnetvlad_submap(points: np.ndarray, rng: np.random.Generator) -> np.ndar
     return np.vstack([out[inside], extra])[:4096]
 
 
+# PointNetVLAD's benchmark has 45 run folders; these names sort in this order.
+OXFORD_RUNS = [f"2014-{i // 28 + 5:02d}-{i % 28 + 1:02d}-10-00-00" for i in range(45)]
+
+
+def oxford_run_folders(root: Path) -> list[Path]:
+    """The 45 run folders of a PointNetVLAD Oxford tree, each with a test-split locations
+    CSV holding no submap (a run then gets submaps with `write_oxford_split`)."""
+    folders = []
+    for name in OXFORD_RUNS:
+        (root / name).mkdir(parents=True)
+        (root / name / "pointcloud_locations_20m.csv").write_text("timestamp,northing,easting\n")
+        folders.append(root / name)
+    return folders
+
+
+def write_oxford_split(run: Path, split: str, stamps, submaps, north, east) -> None:
+    """Submaps (float64) and their locations CSV as one split of a run: "20m" (test) or
+    "20m_10overlap" (training)."""
+    (run / f"pointcloud_{split}").mkdir()
+    for t, sub in zip(stamps, submaps):
+        sub.astype("<f8").tofile(run / f"pointcloud_{split}" / f"{t}.bin")
+    ne = np.c_[np.broadcast_to(north, len(stamps)), np.broadcast_to(east, len(stamps))]
+    write_oxford_locations(run / f"pointcloud_locations_{split}.csv", stamps, ne)
+
+
 def test_oxford_protocol_reads_normalized_submaps_in_metres(tmp_path):
     """A miniature PointNetVLAD Oxford tree: 45 run folders (the 23 test runs with
     submaps, the others only their CSV). Run A's submaps lie inside a test square (the
@@ -286,9 +313,9 @@ def test_oxford_protocol_reads_normalized_submaps_in_metres(tmp_path):
     scans = [read_scan(f) for f in files]
     n0, e0 = OXFORD_TEST_CENTRES[0]
     east = e0 - 100.0 + 30.0 * np.arange(len(scans))  # places 30 m apart
-    runs = [f"2014-{i // 28 + 5:02d}-{i % 28 + 1:02d}-10-00-00" for i in range(45)]
     root = tmp_path / "benchmark_datasets" / "oxford"
-    test_runs = [runs[i] for i in OXFORD_TEST_RUNS]
+    folders = oxford_run_folders(root)
+    test_runs = [OXFORD_RUNS[i] for i in OXFORD_TEST_RUNS]
     query_run = test_runs[0]
     contents: dict[str, list[np.ndarray]] = {}
     # C holds the scans of places 4-7 at one another's locations: fewer true matches.
@@ -297,20 +324,14 @@ def test_oxford_protocol_reads_normalized_submaps_in_metres(tmp_path):
         rng = np.random.default_rng(100 + seed)
         contents[name] = [pointnetvlad_submap(scans[i], rng) for i in order[name]]
     which = {}
-    for k, folder in enumerate(runs):
-        (root / folder).mkdir(parents=True)
-        csv = root / folder / "pointcloud_locations_20m.csv"
-        if folder not in test_runs:
-            csv.write_text("timestamp,northing,easting\n")
+    for k, folder in enumerate(folders):
+        if folder.name not in test_runs:
             continue
-        name = "A" if folder == query_run else "BC"[k % 2]
-        which[folder] = name
+        name = "A" if folder.name == query_run else "BC"[k % 2]
+        which[folder.name] = name
         north = n0 + (140.0 if name == "A" else 155.0)  # in / just outside the square
         stamps = 1400000000000000 + 10**9 * k + 10**6 * np.arange(len(scans))
-        (root / folder / "pointcloud_20m").mkdir()
-        for t, sub in zip(stamps, contents[name]):
-            sub.astype("<f8").tofile(root / folder / "pointcloud_20m" / f"{t}.bin")
-        write_oxford_locations(csv, stamps, np.c_[np.full(len(scans), north), east])
+        write_oxford_split(folder, "20m", stamps, contents[name], north, east)
     assert set(which.values()) == {"A", "B", "C"}
 
     code, out = run(
@@ -356,6 +377,82 @@ def test_oxford_protocol_reads_normalized_submaps_in_metres(tmp_path):
     code, out = run("eval", "--protocol", "oxford", root, "--model", "spectral",
                     "--oxford-scale", "1")  # fmt: skip
     assert code == 1 and "no points in range" in out and "Traceback" not in out
-    # PointNetVLAD's training split is not wired yet: one line that says so.
-    code, out = run("train", root, "--protocol", "oxford", "-o", tmp_path / "ox.pt")
-    assert code == 1 and "not wired yet" in out and "Traceback" not in out
+
+
+def test_train_protocol_oxford_uses_pointnetvlad_training_split(tmp_path):
+    """`train --protocol oxford` trains on PointNetVLAD's training split: the
+    pointcloud_20m_10overlap submaps listed in each run's locations CSV, for every run but
+    the last (sorted), without those inside the four test squares, pooled across runs;
+    10 m / 50 m, and no yaw loss (the locations have no heading)."""
+    import torch
+
+    from disco_cli.protocols import OXFORD_TEST_CENTRES, training_setup
+    from disco_cli.readers import read_scan
+
+    files = sorted((SAMPLES / "00" / "velodyne").glob("*.bin"))[:8]
+    scans = [read_scan(f) for f in files]
+    n0, e0 = OXFORD_TEST_CENTRES[0]
+    # Eight places around the first test square (150 m half-width): three inside it, five
+    # outside it (60 m or more apart, all far from the other three squares).
+    offsets = np.array(
+        [(140, -100), (-145, -40), (0, 140), (156, -100), (160, -40), (165, 20), (-160, 80),
+         (0, 160)], float
+    )  # fmt: skip
+    root = tmp_path / "benchmark_datasets" / "oxford"
+    folders = oxford_run_folders(root)
+    # Runs 0, 1 and 5 (a test run: PointNetVLAD trains on those too, outside the squares)
+    # hold the places a few metres apart (positives across runs); the last run (44) holds
+    # them too but is not in the split.
+    expected: dict[Path, tuple[float, float]] = {}
+    for j, k in enumerate((0, 1, 5, 44)):
+        rng = np.random.default_rng(200 + k)
+        subs = [pointnetvlad_submap(p, rng) for p in scans]
+        north = n0 + offsets[:, 0] + j
+        east = e0 + offsets[:, 1] + 2 * j
+        stamps = 1400000000000000 + 10**9 * k + 10**6 * np.arange(len(subs))
+        write_oxford_split(folders[k], "20m_10overlap", stamps, subs, north, east)
+        # A submap without a row in the CSV is not in the split.
+        subs[0].astype("<f8").tofile(folders[k] / "pointcloud_20m_10overlap" / "1399999999.bin")
+        if k == 44:
+            continue
+        for t, n, e in zip(stamps, north, east):
+            # Square 0 only: the test's places lie hundreds of metres from the other three.
+            if not (abs(n - n0) < 150 and abs(e - e0) < 150):
+                path = folders[k] / "pointcloud_20m_10overlap" / f"{t}.bin"
+                expected[path] = (n, e)
+    assert len(expected) == 3 * 5
+    # Run 1's test-split submaps are not training data either.
+    rng = np.random.default_rng(9)
+    subs = [pointnetvlad_submap(p, rng) for p in scans[:3]]
+    write_oxford_split(folders[1], "20m", 1500000000000000 + np.arange(3), subs, n0 + 400, e0)
+
+    setup = training_setup("oxford", tmp_path / "benchmark_datasets")
+    assert (setup.d_pos, setup.d_neg, setup.lambda_yaw) == (10.0, 50.0, 0.0)
+    assert [s.name for s in setup.sessions] == [OXFORD_RUNS[k] for k in (0, 1, 5)]
+    got = {p: tuple(T[:2, 3]) for s in setup.sessions for p, T in zip(s.scans, s.poses)}
+    assert set(got) == set(expected)
+    for path, (n, e) in expected.items():
+        assert got[path] == pytest.approx((n, e), abs=1e-6)
+    assert len({s.world for s in setup.sessions}) == 1  # pooled: positives across runs
+
+    out = tmp_path / "ox.pt"
+    code, text = run(
+        "train", tmp_path / "benchmark_datasets", "--protocol", "oxford", "-o", out,
+        "--epochs", "1", "--steps", "1", "--batch", "2", "--negatives", "2", "--width", "2",
+    )  # fmt: skip
+    assert code == 0, text
+    assert f"training data: {len(expected)} scans from 3 sequences" in text
+    assert text.count("skipped") == 1 and "41 of 44 training runs" in text
+    ckpt = torch.load(out, weights_only=True)
+    opts = ckpt["train_state"]["options"]
+    assert (opts["d_pos"], opts["d_neg"], opts["lambda_yaw"]) == (10.0, 50.0, 0.0)
+    command = ckpt["command"]
+    assert "--protocol oxford" in command and "--oxford-scale 20.0" in command
+    assert "--d-pos 10.0 --d-neg 50.0" in command and "--lambda-yaw 0.0" in command
+
+    # The yaw loss cannot be asked for, and a tree without its 45 runs is named.
+    code, text = run("train", root, "--protocol", "oxford", "-o", tmp_path / "b.pt",
+                     "--lambda-yaw", "0.1")  # fmt: skip
+    assert code == 1 and "--lambda-yaw" in text and "Traceback" not in text
+    code, text = run("train", folders[0], "--protocol", "oxford", "-o", tmp_path / "c.pt")
+    assert code == 1 and "found 0" in text and "Traceback" not in text

@@ -135,8 +135,6 @@ def train(
     if protocol is not None:
         # The paper's training sessions and distances (disco_cli.protocols) replace
         # DATA, --d-pos, --d-neg and --spacing (Oxford: --lambda-yaw too).
-        from click.core import ParameterSource
-
         from disco_cli.console import warn
         from disco_cli.protocols import training_setup
 
@@ -146,7 +144,8 @@ def train(
         d_pos, d_neg, spacing = setup.d_pos, setup.d_neg, setup.spacing
         ctx.params.update(d_pos=d_pos, d_neg=d_neg, spacing=spacing)
         if setup.lambda_yaw is not None:
-            given = ctx.get_parameter_source("lambda_yaw") == ParameterSource.COMMANDLINE
+            source = ctx.get_parameter_source("lambda_yaw")
+            given = getattr(source, "name", "") == "COMMANDLINE"
             if given and lambda_yaw != setup.lambda_yaw:
                 raise fail(f"--lambda-yaw: --protocol {protocol} has no yaw to supervise")
             lambda_yaw = setup.lambda_yaw
