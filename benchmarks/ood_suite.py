@@ -233,9 +233,7 @@ class RealTransform:
         elif self.kind == "occluded":
             pts = occlude_wedge(pts, float(self.wedges[i]), 90.0)
         out = pts.astype(np.float32, copy=True)
-        out[:, :3] = (pts[:, :3].astype(np.float64) @ rz(self.yaws[i])[:3, :3].T).astype(
-            np.float32
-        )
+        out[:, :3] = (pts[:, :3].astype(np.float64) @ rz(self.yaws[i])[:3, :3].T).astype(np.float32)
         return out
 
 
@@ -353,7 +351,8 @@ def f2(v: float) -> str:
 def metric_table(title: str, groups: list[tuple[str, dict[str, list[dict]]]]) -> list[str]:
     """Rows (group, model): queries with a match, R@1, R@5, R@1%, yaw mean / median."""
     lines = [
-        f"| {title} | model | queries | Recall@1 | Recall@5 | Recall@1% | yaw err mean / median (deg) |",
+        f"| {title} | model | queries | Recall@1 | Recall@5 | Recall@1% "
+        "| yaw err mean / median (deg) |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
     for label, by_model in groups:
@@ -430,7 +429,8 @@ def target_lines(worlds, rows, real_rows, models) -> list[str]:
         ok = d["r1"] >= 0.85 and d["r1"] >= s["r1"] + 0.15
         out.append(
             f"| 30 % change, 32 beams, offset <= 1.5 m: default R@1 >= 0.85 and >= spectral + 0.15 "
-            f"| {f3(d['r1'])} vs spectral {f3(s['r1'])} ({d['n']} queries) | {'yes' if ok else 'no'} |"
+            f"| {f3(d['r1'])} vs spectral {f3(s['r1'])} ({d['n']} queries) "
+            f"| {'yes' if ok else 'no'} |"
         )
     h30 = [w for w in worlds if w.group == "hard" and w.change == 0.30]
     if h30:
@@ -558,7 +558,10 @@ def main(argv: list[str] | None = None) -> int:
                 ],
             )
             lines.append("")
-        lines += [f"**{title}, all beams: Recall@1 (queries) by distance to the nearest map scan**", ""]
+        lines += [
+            f"**{title}, all beams: Recall@1 (queries) by distance to the nearest map scan**",
+            "",
+        ]
         lines += distance_table(title, gw, rows, keys, sorted({w.change for w in gw}))
         lines.append("")
     if real_rows:
@@ -586,9 +589,7 @@ def main(argv: list[str] | None = None) -> int:
         begin, end = f"<!-- ood-{mark}:begin -->", f"<!-- ood-{mark}:end -->"
         body = doc.read_text()
         if begin in body:
-            body = re.sub(
-                f"{begin}.*?{end}", lambda _: f"{begin}\n{text}{end}", body, flags=re.S
-            )
+            body = re.sub(f"{begin}.*?{end}", lambda _: f"{begin}\n{text}{end}", body, flags=re.S)
             doc.write_text(body)
             print(f"updated {doc}", file=sys.stderr)
     return 0
