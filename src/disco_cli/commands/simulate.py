@@ -23,6 +23,32 @@ class SensorName(str, Enum):
     os1_64 = "os1-64"
 
 
+class Style(str, Enum):
+    grid = "grid"
+    suburban = "suburban"
+    industrial = "industrial"
+    park = "park"
+    parking = "parking"
+
+
+class Terrain(str, Enum):
+    flat = "flat"
+    varied = "varied"
+
+
+def _range(text: str) -> tuple[float, float]:
+    """`LO,HI` or one value, as a range of two floats."""
+    try:
+        parts = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise typer.BadParameter(f"{text!r} is not a number or LO,HI") from None
+    if len(parts) == 1:
+        parts *= 2
+    if len(parts) != 2 or parts[0] > parts[1]:
+        raise typer.BadParameter(f"{text!r} is not LO,HI with LO <= HI")
+    return parts[0], parts[1]
+
+
 @handle_errors
 def simulate(
     out: Annotated[
@@ -76,6 +102,72 @@ def simulate(
             "fired (default: deskewed, every ray from the scan's pose).",
         ),
     ] = False,
+    style: Annotated[
+        Optional[Style],
+        typer.Option(
+            "--style",
+            help="Town style: grid (mixed streets, the default), suburban, industrial, "
+            "park or parking.",
+            rich_help_panel="World",
+        ),
+    ] = None,
+    terrain: Annotated[
+        Optional[Terrain],
+        typer.Option(
+            "--terrain",
+            help="flat (default) or varied: crowned roads, high kerbs, hills.",
+            rich_help_panel="World",
+        ),
+    ] = None,
+    change: Annotated[
+        Optional[float],
+        typer.Option(
+            "--change",
+            min=0.0,
+            max=1.0,
+            help="Share of each class of objects (parked cars, trees, hedges, fences, "
+            "street furniture; buildings a fifth of it) that differs between session 00 "
+            "and each later one (default: the classic draw).",
+            rich_help_panel="World",
+        ),
+    ] = None,
+    robot_height: Annotated[
+        Optional[str],
+        typer.Option(
+            "--robot-height",
+            metavar="LO,HI",
+            help="Later sessions: sensor mount height above the ground, drawn in LO..HI m.",
+            rich_help_panel="Later sessions' robots",
+        ),
+    ] = None,
+    robot_tilt: Annotated[
+        float,
+        typer.Option(
+            "--robot-tilt",
+            min=0.0,
+            max=10.0,
+            help="Later sessions: the mount's roll and pitch, each drawn within +-DEG.",
+            rich_help_panel="Later sessions' robots",
+        ),
+    ] = 0.0,
+    robot_offset: Annotated[
+        Optional[float],
+        typer.Option(
+            "--robot-offset",
+            min=0.0,
+            help="Later sessions: drive up to this far (m) sideways from session 00's line.",
+            rich_help_panel="Later sessions' robots",
+        ),
+    ] = None,
+    robot_sensor: Annotated[
+        Optional[str],
+        typer.Option(
+            "--robot-sensor",
+            help="Later sessions' sensor: a --sensor name, uniform-N or hdl64like-N "
+            "(N = 16..128 beams), or random (16/32/64/128 beams, either layout).",
+            rich_help_panel="Later sessions' robots",
+        ),
+    ] = None,
     threads: Annotated[
         int, typer.Option("--threads", min=0, help="Ray-casting threads (0: all cores).")
     ] = 0,
@@ -84,7 +176,9 @@ def simulate(
     ] = False,
 ) -> None:
     """Simulate a LiDAR driving through a procedural town, in several sessions."""
-    from disco_cli.simulator import TownParams
+    from dataclasses import replace
+
+    from disco_cli.simulator import ChangeParams, RobotParams, TownParams
     from disco_cli.simulator import simulate as run
 
     if frames is not None and length_m is not None:
@@ -92,6 +186,23 @@ def simulate(
     if out.exists() and (out / "world.json").exists() and not force:
         raise fail(f"{out}: already holds a simulated world; use --force to overwrite it")
     params = TownParams.load(town) if town is not None else None
+    if style is not None or terrain is not None or change is not None:
+        params = params or TownParams()
+        if style is not None:
+            params = replace(params, style=style.value)
+        if terrain is not None:
+            params = replace(params, terrain=terrain.value)
+        if change is not None:  # the town file's own per-class shares stay
+            base = params.change or ChangeParams()
+            params = replace(params, change=replace(base, fraction=float(change)))
+    robot = None
+    if robot_height or robot_tilt or robot_offset is not None or robot_sensor:
+        robot = RobotParams(
+            height_m=_range(robot_height) if robot_height else None,
+            tilt_deg=float(robot_tilt),
+            offset_m=robot_offset,
+            sensor=robot_sensor,
+        )
     total = sessions * (frames if frames is not None else int((length_m or 400.0) / step_m))
     with progress() as bar:
         task = bar.add_task("simulating", total=total, rate="")
@@ -112,6 +223,7 @@ def simulate(
             motion_distortion=motion_distortion,
             params=params,
             on_scan=report,
+            robot=robot,
         )
     n = meta["sessions"][0]["frames"]
     stderr.print(

@@ -1,38 +1,26 @@
 """The synthetic LiDAR world: a procedural town, sensor models and driving sessions.
 
-`simulate(out, ...)` writes KITTI-style sessions `out/00`, `out/01`, ... of one
-town (scans, poses, times) and `out/world.json` with every parameter, so that the
-same call regenerates the same bytes. `scan(world, pose, sensor, ...)` casts one
-scan, for tests and experiments.
-
-Ray casting runs in C++ (`disco_cli._core.RaycastWorld`, threads, GIL released);
-noise, dropout and intensity are applied here with NumPy, seeded per scan.
+The code lives in modules named for their job: `session` (driving sessions, ray
+casting, noise, writing the files), `world` (the town: `layout`, `scenery` and
+`changes` between and within sessions), `routes` (where the car drives) and
+`sensors` (beam patterns).
 """
 
 from __future__ import annotations
 
-import json
-import os
-from collections import deque
-from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, replace
-from pathlib import Path
-
-import numpy as np
-
-from disco_cli.errors import DiscoError
-from disco_cli.simulator.routes import (
-    RoadGraph,
-    lane_path,
-    loop_route,
-    loop_stations,
-    open_stations,
-    revisit_route,
-    sensor_poses,
-)
+from disco_cli.simulator.params import ChangeParams
 from disco_cli.simulator.sensors import SENSORS, Sensor, get_sensor
-from disco_cli.simulator.world import SessionWorld, Town, TownParams
+from disco_cli.simulator.session import (
+    RobotParams,
+    SimulatedSession,
+    cast,
+    finish_scan,
+    plan_sessions,
+    scan,
+    simulate,
+    sweep_poses,
+)
+from disco_cli.simulator.world import Town, TownParams
 
 __all__ = [
     "simulate",
@@ -43,320 +31,10 @@ __all__ = [
     "finish_scan",
     "Town",
     "TownParams",
+    "ChangeParams",
+    "RobotParams",
     "Sensor",
     "SENSORS",
     "get_sensor",
     "SimulatedSession",
 ]
-
-FORMAT = "disco-simulate/1"
-
-
-@dataclass
-class SimulatedSession:
-    name: str
-    poses: np.ndarray  # [N, 4, 4] sensor -> world
-    times: np.ndarray  # [N] s
-    route: list[int]  # junctions driven through
-    closed: bool
-    offset_m: float  # right of the centre line
-
-
-def _scan_seed(seed: int, session: int, frame: int) -> int:
-    return int(np.random.SeedSequence([seed, 7, session, frame]).generate_state(1, np.uint64)[0])
-
-
-def cast(
-    world: SessionWorld,
-    poses: np.ndarray,
-    sensor: Sensor,
-    seeds: np.ndarray,
-    threads: int = 1,
-    poses_end: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Raw ray casting of `B` scans: ranges `[B, R]` (0: no return), hit ids, |cos incidence|.
-
-    With `poses_end`, the sensor moves from `poses` to `poses_end` during each sweep
-    (see `Sensor.fractions`); ranges are then as a raw sensor measures them, each in
-    the sensor frame of its own firing time.
-    """
-    poses = np.ascontiguousarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-    seeds = np.ascontiguousarray(seeds, dtype=np.uint64).reshape(-1)
-    if poses_end is None:
-        return world.caster.cast_scans(poses, sensor.directions(), sensor.max_range, seeds, threads)
-    poses_end = np.ascontiguousarray(poses_end, dtype=np.float64).reshape(-1, 4, 4)
-    return world.caster.cast_scans(
-        poses, sensor.directions(), sensor.max_range, seeds, threads, poses_end, sensor.fractions()
-    )
-
-
-def sweep_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sensor poses at the start and the end of each sweep, `([N, 4, 4], [N, 4, 4])`.
-
-    A scan's pose is the pose half-way through its sweep; the sweep runs from half
-    way from the previous scan's pose to half way to the next one (extrapolated at
-    the ends of a session).
-    """
-    from scipy.spatial.transform import Rotation
-
-    def blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
-        out = np.tile(np.eye(4), (len(a), 1, 1))
-        rel = Rotation.from_matrix(np.swapaxes(a[:, :3, :3], 1, 2) @ b[:, :3, :3])
-        out[:, :3, :3] = a[:, :3, :3] @ Rotation.from_rotvec(w * rel.as_rotvec()).as_matrix()
-        out[:, :3, 3] = a[:, :3, 3] + w * (b[:, :3, 3] - a[:, :3, 3])
-        return out
-
-    poses = np.asarray(poses, float)
-    if len(poses) < 2:
-        return poses.copy(), poses.copy()
-    prev = np.concatenate([blend(poses[:1], poses[1:2], -1.0), poses[:-1]])
-    nxt = np.concatenate([poses[1:], blend(poses[-1:], poses[-2:-1], -1.0)])
-    return blend(poses, prev, 0.5), blend(poses, nxt, 0.5)
-
-
-def finish_scan(
-    rng: np.random.Generator,
-    sensor: Sensor,
-    dirs: np.ndarray,
-    pose: np.ndarray,
-    rng_range: np.ndarray,
-    ids: np.ndarray,
-    cosi: np.ndarray,
-    world: SessionWorld,
-    town: Town | None,
-) -> np.ndarray:
-    """Noise, dropout and intensity for one cast scan: KITTI points `[N, 4]` float32."""
-    from disco_cli import _core
-
-    hit = (ids != _core.RAYCAST_MISS) & (rng_range >= sensor.min_range)
-    r = rng_range[hit].astype(np.float64)
-    idx = ids[hit]
-    d = dirs[hit].astype(np.float64)
-    cos_i = cosi[hit].astype(np.float64)
-    refl = np.empty(len(r))
-    drop = np.zeros(len(r))
-    obj = idx >= 0
-    refl[obj] = world.reflectivity[idx[obj]]
-    drop[obj] = world.dropout[idx[obj]]
-    ground = ~obj
-    if ground.any():
-        if town is None:
-            refl[ground] = 0.15
-        else:
-            local = d[ground] * r[ground, None]
-            xy = local @ pose[:2, :3].T + pose[:2, 3]
-            refl[ground] = town.ground_reflectivity(xy)
-    # Texture: real surfaces are not uniform.
-    refl = np.clip(refl * rng.lognormal(0.0, 0.2, len(r)), 0.0, 1.0)
-    # Lost returns: a base rate, the material's own, grazing angles, dark far targets.
-    rel = r / sensor.max_range
-    p_lost = sensor.dropout + drop + 0.3 * np.clip(0.08 - cos_i, 0, None) / 0.08
-    p_lost += 0.6 * rel**3 * (1.0 - refl)
-    keep = rng.random(len(r)) >= p_lost
-    noisy = r + rng.normal(0.0, sensor.range_noise, len(r)) * (1.0 + rel)
-    intensity = refl * (0.55 + 0.45 * cos_i) * (1.0 - 0.3 * rel) + rng.normal(0, 0.01, len(r))
-    points = np.empty((int(keep.sum()), 4), np.float32)
-    points[:, :3] = d[keep] * noisy[keep, None]
-    points[:, 3] = np.clip(intensity[keep], 0.0, 1.0)
-    return points
-
-
-def scan(
-    world: SessionWorld,
-    pose: np.ndarray,
-    sensor: Sensor | str = "hdl32",
-    seed: int = 0,
-    town: Town | None = None,
-    t: float | None = None,
-) -> np.ndarray:
-    """One simulated scan from sensor pose `pose` (4 x 4, sensor -> world): `[N, 4]` float32.
-
-    With `t`, cars and people are where they are at that time; without, none move.
-    """
-    sensor = get_sensor(sensor) if isinstance(sensor, str) else sensor
-    pose = np.asarray(pose, float)
-    if t is not None:
-        world = world.at(t, pose[:2, 3])
-    ranges, ids, cosi = cast(world, pose, sensor, np.array([seed], np.uint64))
-    rng = np.random.default_rng([seed, 11])
-    return finish_scan(
-        rng, sensor, sensor.directions(), pose, ranges[0], ids[0], cosi[0], world, town
-    )
-
-
-def plan_sessions(
-    town: Town, sensor: Sensor, sessions: int, frames: int, step_m: float, seed: int
-) -> list[SimulatedSession]:
-    """Routes and sensor poses of every session (no ray casting yet).
-
-    Session 00 drives a closed loop a little shorter than the session (so its last
-    scans revisit its first ones); the others revisit part of that loop, odd ones in
-    the opposite direction, then drive on into other streets.
-    """
-    graph = RoadGraph(town)
-    target = frames * step_m
-    rng = np.random.default_rng([seed, 6])
-    base = loop_route(graph, rng, target - max(3 * step_m, 0.1 * target))
-    plans = []
-    for k in range(sessions):
-        srng = np.random.default_rng([seed, 8, k])
-        offset = float(srng.uniform(0.3, 1.5))
-        if k == 0:
-            route, closed = base, True
-            line, s = lane_path(town.nodes, route, offset, closed)
-            stations, lateral = loop_stations(srng, frames, step_m, float(s[-1]))
-        else:
-            # Longer than needed: the smoothed line is a little shorter than the route.
-            route = revisit_route(graph, srng, base, target * 1.2 + 60, reverse=bool(k % 2))
-            closed = False
-            line, s = lane_path(town.nodes, route, offset, closed)
-            phase = float(srng.uniform(0.2, 0.8)) * step_m + 10.0
-            stations, lateral = open_stations(srng, frames, step_m, phase)
-        poses = sensor_poses(town, line, s, closed, stations, lateral, sensor.mount_height, srng)
-        times = np.arange(frames) / sensor.rate_hz
-        plans.append(SimulatedSession(f"{k:02d}", poses, times, route, closed, offset))
-    return plans
-
-
-def simulate(
-    out: str | Path,
-    sessions: int = 2,
-    frames: int | None = None,
-    length_m: float | None = None,
-    step_m: float = 1.0,
-    sensor: str = "hdl32",
-    seed: int = 0,
-    threads: int = 0,
-    azimuth_step_deg: float | None = None,
-    motion_distortion: bool = False,
-    params: TownParams | None = None,
-    on_scan: Callable[[int, int], None] | None = None,
-) -> dict:
-    """Write `sessions` KITTI-style sessions of one town under `out`; returns world.json's dict.
-
-    Session length: `frames` scans, or `length_m` metres (default 400 m), `step_m` apart.
-    `motion_distortion`: scans as a raw sensor gives them, each ray measured from where
-    the sensor was when it fired (the pose is that of the forward ray); otherwise every
-    ray leaves from the scan's pose, as after deskewing. `on_scan(done, total)` reports
-    progress.
-    """
-    from disco_cli.poses import write_kitti_poses, write_times
-
-    if sessions < 1:
-        raise DiscoError("--sessions must be at least 1")
-    if step_m <= 0:
-        raise DiscoError("--step-m must be positive")
-    if frames is not None and length_m is not None:
-        raise DiscoError("give --frames or --length-m, not both")
-    if frames is None:
-        frames = int((length_m if length_m is not None else 400.0) / step_m)
-    if frames < 1:
-        raise DiscoError("a session needs at least one frame")
-    if params is not None:
-        params.check()
-    spec = get_sensor(sensor)
-    if azimuth_step_deg is not None:
-        if not 0.01 <= azimuth_step_deg <= 5.0:
-            raise DiscoError("--azimuth-step must be within 0.01..5 degrees")
-        spec = replace(spec, azimuth_step_deg=float(azimuth_step_deg))
-    town = Town(seed, params)
-    plans = plan_sessions(town, spec, sessions, frames, step_m, seed)
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    dirs = spec.directions()
-    total, done = sessions * frames, 0
-    workers = threads if threads > 0 else (os.cpu_count() or 1)
-    town.ground_reflectivity(np.zeros((1, 2)))  # paint the ground before the workers start
-    # Each scan sees the movers at its own time, so each gets its own world (cheap to
-    # build); scans are cast in worker threads (C++, GIL released) ahead of NumPy
-    # finishing them here, in order.
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for k, plan in enumerate(plans):
-            world = town.session_world(k)
-            folder = out / plan.name
-            (folder / "velodyne").mkdir(parents=True, exist_ok=True)
-            starts, ends = sweep_poses(plan.poses) if motion_distortion else (plan.poses, None)
-
-            def submit(
-                i: int,
-                world: SessionWorld = world,
-                k: int = k,
-                plan: SimulatedSession = plan,
-                starts: np.ndarray = starts,
-                ends: np.ndarray | None = ends,
-            ) -> tuple[SessionWorld, Future]:
-                w = world.at(float(plan.times[i]), plan.poses[i, :2, 3])
-                seeds = np.array([_scan_seed(seed, k, i)], np.uint64)
-                end = None if ends is None else ends[i]
-                return w, pool.submit(cast, w, starts[i], spec, seeds, 1, end)
-
-            queue = deque(submit(i) for i in range(min(2 * workers, frames)))
-            for i in range(frames):
-                w, future = queue.popleft()
-                if i + len(queue) + 1 < frames:
-                    queue.append(submit(i + len(queue) + 1))
-                ranges, ids, cosi = future.result()
-                rng = np.random.default_rng([seed, 9, k, i])
-                pts = finish_scan(
-                    rng, spec, dirs, plan.poses[i], ranges[0], ids[0], cosi[0], w, town
-                )
-                pts.tofile(folder / "velodyne" / f"{i:06d}.bin")
-                done += 1
-                if on_scan is not None:
-                    on_scan(done, total)
-            write_kitti_poses(folder / "poses.txt", plan.poses)
-            write_times(folder / "times.txt", plan.times)
-
-    meta = {
-        "format": FORMAT,
-        "command": _command(
-            sessions,
-            frames,
-            step_m,
-            sensor,
-            seed,
-            azimuth_step_deg,
-            motion_distortion,
-            params is not None and params != TownParams(),
-        ),
-        "seed": int(seed),
-        "sessions": [
-            {
-                "name": p.name,
-                "frames": frames,
-                "closed_loop": p.closed,
-                "offset_right_m": round(p.offset_m, 4),
-                "route_junctions": [int(n) for n in p.route],
-            }
-            for p in plans
-        ],
-        "step_m": step_m,
-        "motion_distortion": bool(motion_distortion),
-        "rate_hz": spec.rate_hz,
-        "sensor": spec.to_dict(),
-        "town": town.describe(),
-    }
-    (out / "world.json").write_text(json.dumps(meta, indent=2) + "\n")
-    return meta
-
-
-def _command(
-    sessions: int,
-    frames: int,
-    step_m: float,
-    sensor: str,
-    seed: int,
-    azimuth_step_deg: float | None,
-    motion_distortion: bool,
-    custom_town: bool,
-) -> str:
-    cmd = (
-        f"disco simulate OUT --sessions {sessions} --frames {frames} --step-m {step_m:g} "
-        f"--sensor {sensor} --seed {seed}"
-    )
-    if azimuth_step_deg is not None:
-        cmd += f" --azimuth-step {azimuth_step_deg:g}"
-    if custom_town:  # the town's parameters are in this very file
-        cmd += " --town OUT/world.json"
-    return cmd + (" --motion-distortion" if motion_distortion else "")

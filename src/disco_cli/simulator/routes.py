@@ -285,7 +285,7 @@ def sensor_poses(
     poses = np.tile(np.eye(4), (frames, 1, 1))
     for i in range(frames):
         R = _rz(heading[i]) @ _ry(pitch[i]) @ _rx(roll[i])
-        ground = np.array([x[i], y[i], town.ground_z(x[i], y[i])])
+        ground = np.array([x[i], y[i], town.surface_z(x[i], y[i])])
         poses[i, :3, :3] = R
         poses[i, :3, 3] = ground + R @ np.array([0.0, 0.0, mount_height])
     return poses

@@ -120,8 +120,46 @@ SENSORS: dict[str, Sensor] = {
 }
 
 
+LAYOUTS = ("uniform", "hdl64like")
+BEAMS = (16, 128)  # the fewest and the most beams of a made-up sensor
+
+
+def made_sensor(layout: str, beams: int) -> Sensor:
+    """A sensor of `beams` beams: `uniform` spreads them evenly over +15..-25 deg;
+    `hdl64like` puts half over +2..-8.33 deg and half over -8.83..-24.9 deg, as the
+    HDL-64E does (dense near the horizon)."""
+    if layout not in LAYOUTS or not BEAMS[0] <= beams <= BEAMS[1]:
+        raise DiscoError(
+            f"a made-up sensor needs a layout of {', '.join(LAYOUTS)} and "
+            f"{BEAMS[0]}-{BEAMS[1]} beams, not {layout}-{beams}"
+        )
+    if layout == "uniform":
+        elevations = _even(15.0, -25.0, beams)
+    else:
+        upper = beams // 2
+        elevations = _even(2.0, -8.33, upper) + _even(-8.83, -24.9, beams - upper)
+    step = 0.2 if beams <= 16 else 0.3 if beams <= 48 else 0.35
+    return Sensor(
+        name=f"{layout}-{beams}",
+        elevations_deg=elevations,
+        azimuth_step_deg=step,
+        max_range=100.0 if beams <= 32 else 120.0,
+        min_range=1.0,
+        range_noise=0.02,
+        dropout=0.01,
+        mount_height=1.8,
+    )
+
+
 def get_sensor(name: str) -> Sensor:
-    try:
+    """A named sensor (`SENSORS`), or a made-up one: `uniform-N` or `hdl64like-N`
+    (N beams, 16-128; see `made_sensor`)."""
+    if name in SENSORS:
         return SENSORS[name]
-    except KeyError:
-        raise DiscoError(f"unknown sensor {name!r}; choose one of {', '.join(SENSORS)}") from None
+    layout, _, beams = name.rpartition("-")
+    if layout in LAYOUTS and beams.isdigit():
+        return made_sensor(layout, int(beams))
+    raise DiscoError(
+        f"unknown sensor {name!r}; choose one of {', '.join(SENSORS)}, "
+        "uniform-N or hdl64like-N (N = 16..128 beams)"
+    )
