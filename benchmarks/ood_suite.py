@@ -477,7 +477,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--realdata", type=Path, default=ROOT.parent / "shared" / "realdata")
     ap.add_argument("--disco", default=str(ROOT / ".venv" / "bin" / "disco"))
     ap.add_argument("--threads", type=int, default=2, help="torch and voxelizer threads")
-    ap.add_argument("--only", default="", help="only worlds whose name contains this")
+    ap.add_argument(
+        "--only", default="", help="only worlds whose name contains one of these (comma-separated)"
+    )
     ap.add_argument("--no-real", action="store_true", help="skip the real scans")
     ap.add_argument(
         "--update-docs", action="store_true", help="write the tables into docs/results.md"
@@ -496,7 +498,8 @@ def main(argv: list[str] | None = None) -> int:
     keys = list(loaded)
     caps = simulator_options(args.disco)
     worlds, notes = plan_worlds(args.quick, caps)
-    worlds = [w for w in worlds if args.only in w.name]
+    only = [o for o in args.only.split(",") if o] or [""]
+    worlds = [w for w in worlds if any(o in w.name for o in only)]
     out = args.out / ("quick" if args.quick else "full")
 
     rows: dict[tuple[str, str], list[dict]] = {}
