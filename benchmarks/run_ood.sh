@@ -6,7 +6,7 @@
 # distance to the nearest map scan; tables in $OUT/{quick,full}/tables.md.
 #
 #   benchmarks/run_ood.sh --quick                       # a few minutes: one style, 32 beams
-#   benchmarks/run_ood.sh                               # every world (about 30-40 minutes)
+#   benchmarks/run_ood.sh                               # every world (56; hdl64 costs most)
 #   benchmarks/run_ood.sh --quick --models default spectral run/candidate.pt
 #   benchmarks/run_ood.sh --update-docs                 # tables into docs/results.md
 #
