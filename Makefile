@@ -11,7 +11,7 @@ SAMPLES := data/samples
 OUT := out/demo
 MODEL ?= default
 
-.PHONY: demo test install install-test dev bench clean
+.PHONY: demo test install install-test dev bench clean check-aarch64
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,31 @@ test: install-test
 
 bench: install
 	$(PY) benchmarks/bench_voxelizer.py
+
+# The C++ core on 64-bit ARM: tests/cpp/check_core built natively and with Debian's
+# aarch64 cross compiler, the latter run under qemu-user; the two outputs (BEV hashes
+# at every kernel level, other core results, a checksum) must be equal. Installs
+# g++-aarch64-linux-gnu and qemu-user with apt-get when missing (needs root).
+CHECK := build/check
+CHECK_EIGEN = $(firstword $(wildcard $(VENV)/lib/python3*/site-packages/cmeel.prefix/include/eigen3) \
+  $(wildcard /usr/include/eigen3))
+check-aarch64:
+	@if ! command -v aarch64-linux-gnu-g++ >/dev/null || ! command -v qemu-aarch64 >/dev/null \
+	  || ! command -v cmake >/dev/null || [ -z "$(CHECK_EIGEN)" ]; then \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+	    g++-aarch64-linux-gnu qemu-user cmake $(if $(CHECK_EIGEN),,libeigen3-dev) >/dev/null; fi
+	cmake -S tests/cpp -B $(CHECK)/native -DEIGEN3_INCLUDE_DIR="$(or $(CHECK_EIGEN),/usr/include/eigen3)" >/dev/null
+	cmake --build $(CHECK)/native -j 2
+	cmake -S tests/cpp -B $(CHECK)/aarch64 -DCMAKE_TOOLCHAIN_FILE=$(CURDIR)/tests/cpp/toolchain-aarch64.cmake \
+	  -DEIGEN3_INCLUDE_DIR="$(or $(CHECK_EIGEN),/usr/include/eigen3)" >/dev/null
+	cmake --build $(CHECK)/aarch64 -j 2
+	$(CHECK)/native/check_core > $(CHECK)/native.txt
+	qemu-aarch64 -L /usr/aarch64-linux-gnu $(CHECK)/aarch64/check_core > $(CHECK)/aarch64.txt
+	grep '^#' $(CHECK)/native.txt $(CHECK)/aarch64.txt
+	grep -v '^#' $(CHECK)/native.txt > $(CHECK)/native.cmp
+	grep -v '^#' $(CHECK)/aarch64.txt > $(CHECK)/aarch64.cmp
+	diff $(CHECK)/native.cmp $(CHECK)/aarch64.cmp
+	@echo "check-aarch64: all $$(grep -c . $(CHECK)/aarch64.cmp) lines equal ($$(tail -1 $(CHECK)/aarch64.cmp))"
 
 clean:
 	rm -rf build dist out $(VENV)

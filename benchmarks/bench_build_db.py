@@ -14,7 +14,6 @@ folder first (30k points each: boxes and poles around the sensor). Measured:
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import subprocess
 import sys
@@ -23,34 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_query import synthetic_scan  # noqa: E402
-
-
-def model_arg(name: str, tmp: Path) -> tuple[str, str]:
-    """The --model argument to use, and what it is."""
-    from disco_cli.model import DEFAULT_WEIGHTS
-
-    if name != "default" or DEFAULT_WEIGHTS.is_file():
-        return name, name
-    from disco_cli.bev import BEVConfig
-    from disco_cli.model.checkpoint import save_checkpoint
-    from disco_cli.model.disco import build_net, default_model_config
-
-    bev = BEVConfig()
-    cfg = default_model_config(bev.heights)
-    path = tmp / "untrained-default.pt"
-    save_checkpoint(
-        path,
-        {
-            "state_dict": build_net(cfg).state_dict(),
-            "bev_config": bev.to_dict(),
-            "model_config": cfg,
-            "command": "bench_build_db",
-        },
-    )
-    return str(path), "default architecture, untrained weights (no shipped weights yet)"
+from _common import model_arg, print_header, synthetic_scan
 
 
 def run_cli(scans: Path, out: Path, model: str, workers: int, batch: int) -> tuple[float, float]:
@@ -130,7 +102,8 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
-    print(f"cores: {os.cpu_count()}, torch threads: {torch.get_num_threads()}")
+    print_header("bench_build_db")
+    print(f"torch threads: {torch.get_num_threads()}")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         model, what = model_arg(args.model, tmp)

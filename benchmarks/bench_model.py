@@ -19,14 +19,12 @@ Run: `.venv/bin/python benchmarks/bench_model.py [--widths 8 16 64] [--threads N
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from _common import median_wall_cpu_ms as median_ms
+from _common import print_header
 
 from disco_cli.bev import BEVConfig, polar_bev, polar_bev_batch
 from disco_cli.model import DEFAULT_WEIGHTS, load_model
@@ -36,19 +34,6 @@ from disco_cli.readers import list_scans, read_scan
 REPO = Path(__file__).resolve().parent.parent
 KITTI = REPO.parent / "shared" / "realdata" / "kitti00" / "velodyne" / "000000.bin"
 SAMPLES = REPO / "data" / "samples" / "00"
-
-
-def median_ms(fn, repeat: int, warmup: int = 2) -> tuple[float, float]:
-    """Median wall and CPU (all threads of this process) milliseconds of fn()."""
-    for _ in range(warmup):
-        fn()
-    wall, cpu = [], []
-    for _ in range(repeat):
-        t, c = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - t)
-        cpu.append(time.process_time() - c)
-    return 1000.0 * statistics.median(wall), 1000.0 * statistics.median(cpu)
 
 
 def exhaustive_yaw(query: np.ndarray, matches: np.ndarray) -> np.ndarray:
@@ -136,6 +121,7 @@ def main() -> None:
         "--models", nargs="*", help="--accuracy: model names or checkpoints (spectral, default)"
     )
     args = ap.parse_args()
+    print_header("bench_model")
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.accuracy:
@@ -147,10 +133,7 @@ def main() -> None:
     bev = polar_bev(points, config)
     rng = np.random.default_rng(0)
     bevs = np.stack([np.roll(bev, int(k), axis=-1) for k in rng.integers(0, 120, args.batch)])
-    print(
-        f"# bench_model: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-        f"torch {torch.__version__} on {torch.get_num_threads()} threads"
-    )
+    print(f"# torch {torch.__version__} on {torch.get_num_threads()} threads")
     print(
         f"# scan {scan_path.name}: {len(points)} points; batch {args.batch}; "
         f"medians of {args.repeat}"

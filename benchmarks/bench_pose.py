@@ -20,13 +20,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
+from _common import median_wall_cpu_ms, print_header
 
 from disco_cli import _core
 from disco_cli.relative_pose import PoseConfig, _icp_config, estimate_relative_pose
@@ -129,14 +126,7 @@ def baseline_icp(
 
 def measure(fn, repeats: int) -> tuple[float, float]:
     """Median wall and CPU milliseconds of fn() (after one warm-up call)."""
-    fn()
-    wall, cpu = [], []
-    for _ in range(repeats):
-        w0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - w0)
-        cpu.append(time.process_time() - c0)
-    return 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu))
+    return median_wall_cpu_ms(fn, repeats, warmup=1)
 
 
 def pose_error(T_true: np.ndarray, T: np.ndarray) -> tuple[float, float]:
@@ -264,6 +254,7 @@ def main() -> None:
         help="print fitness/rmse of correct and wrong pairs instead of timings",
     )
     args = parser.parse_args()
+    print_header("bench_pose")
     rng = np.random.default_rng(0)
     config = PoseConfig()
     if args.calibrate:
@@ -279,10 +270,7 @@ def main() -> None:
     else:
         match, source = synthetic_street(rng), "synthetic street (realdata absent)"
         other = synthetic_street(np.random.default_rng(99))
-    print(
-        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-        f"Python {sys.version.split()[0]}; data: {source}"
-    )
+    print(f"data: {source}")
 
     rows = []
     walls, cpus, base_walls, icp_walls, errors = [], [], [], [], []

@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import resource
 import subprocess
 import sys
@@ -23,10 +22,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-
-def median_ms(ts: list[float]) -> float:
-    return float(np.median(ts)) * 1e3
+from _common import median_of_ms as median_ms
+from _common import model_arg, print_header, synthetic_scan
 
 
 def rss_mib() -> float:
@@ -35,21 +32,6 @@ def rss_mib() -> float:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
     return float("nan")
-
-
-def synthetic_scan(seed: int, n: int = 30000) -> np.ndarray:
-    """Points on random boxes and a ground ring around the sensor (float32 N x 4)."""
-    rng = np.random.default_rng(seed)
-    boxes = 60
-    r = rng.uniform(4.0, 60.0, boxes)
-    a = rng.uniform(0.0, 2 * np.pi, boxes)
-    centre = np.stack([r * np.cos(a), r * np.sin(a)], 1)
-    size = rng.uniform(0.5, 6.0, (boxes, 2))
-    height = rng.uniform(0.5, 8.0, boxes)
-    k = rng.integers(0, boxes, n)
-    xy = centre[k] + (rng.random((n, 2)) - 0.5) * size[k]
-    z = rng.random(n) * height[k] - 1.7
-    return np.column_stack([xy, z, rng.random(n)]).astype(np.float32)
 
 
 def bench_search(n: int, dim: int, reps: int) -> dict:
@@ -319,6 +301,7 @@ def main() -> None:
         help="only measure the yaw cost of float16 features on two sessions",
     )
     args = ap.parse_args()
+    print_header("bench_query")
     if args.yaw_f16:
         with tempfile.TemporaryDirectory() as tmp:
             y = bench_yaw_f16(args.model, *args.yaw_f16, Path(tmp))
@@ -330,7 +313,6 @@ def main() -> None:
             f"/ {y['mean16']:.3f} deg"
         )
         return
-    print(f"cores: {os.cpu_count()}, numpy {np.__version__}, load average {os.getloadavg()[0]:.1f}")
 
     for n in (10_000, args.n_search):
         r = bench_search(n, args.dim, 30)
@@ -347,8 +329,6 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         # `default` without shipped weights: the same architecture, untrained (same cost).
-        from bench_build_db import model_arg
-
         model, what = model_arg(args.model, Path(tmp))
         s = bench_stream(model, args.n_map, args.queries, Path(tmp))
         print(

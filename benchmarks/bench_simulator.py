@@ -15,15 +15,12 @@
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
 import time
 
 import numpy as np
-
-
-def median_ms(ts: list[float]) -> float:
-    return float(np.median(ts)) * 1e3
+from _common import median_of_ms as median_ms
+from _common import print_header
 
 
 def main() -> None:
@@ -36,6 +33,7 @@ def main() -> None:
     from disco_cli.simulator import cast, finish_scan, get_sensor, plan_sessions, simulate
     from disco_cli.simulator.world import Town
 
+    print_header("bench_simulator")
     sensor = get_sensor("hdl32")
     town = Town(args.seed)
     plan = plan_sessions(town, sensor, 1, args.scans, 2.0, args.seed)[0]
@@ -44,8 +42,7 @@ def main() -> None:
     town.ground_reflectivity(np.zeros((1, 2)))  # paint the ground once, outside the timing
     print(
         f"town: {len(town.streets)} streets, {world.caster.size} primitives, "
-        f"grid {world.caster.grid_shape}; sensor {sensor.name}: {sensor.rays} rays per scan; "
-        f"{os.cpu_count()} cores"
+        f"grid {world.caster.grid_shape}; sensor {sensor.name}: {sensor.rays} rays per scan"
     )
 
     # 1. Ray casting alone, one thread, against one big cell.

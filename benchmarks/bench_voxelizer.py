@@ -10,18 +10,15 @@ Prints medians and ratios. Run: `.venv/bin/python benchmarks/bench_voxelizer.py`
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
-from pathlib import Path
 
 import numpy as np
+from _common import REALDATA, interleaved_medians_ms, print_header
 
 from disco_cli import _core
 from disco_cli.bev import BEVConfig, polar_bev, polar_bev_batch
 
-REPO = Path(__file__).resolve().parent.parent
-KITTI = REPO.parent / "shared" / "realdata" / "kitti00" / "velodyne"
+KITTI = REALDATA / "kitti00" / "velodyne"
 
 
 def numpy_bev(points: np.ndarray, config: BEVConfig) -> np.ndarray:
@@ -95,27 +92,14 @@ def load_scans(rng: np.random.Generator) -> tuple[list[np.ndarray], str]:
     return scans, "synthetic 64-beam scans (../shared/realdata absent)"
 
 
-def median_ms(fn, repeats: int, warmup: int = 3, cpu: bool = False):
-    """Median wall time of `fn` in ms; with cpu=True also the median process CPU time
-    (all threads), which shows the work done apart from waiting for a busy machine."""
-    for _ in range(warmup):
-        fn()
-    times, cpu_times = [], []
-    for _ in range(repeats):
-        c0 = time.process_time_ns()
-        t0 = time.perf_counter_ns()
-        fn()
-        times.append(time.perf_counter_ns() - t0)
-        cpu_times.append(time.process_time_ns() - c0)
-    wall = float(np.median(times)) / 1e6
-    return (wall, float(np.median(cpu_times)) / 1e6) if cpu else wall
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=300, help="timed calls per C++ measurement")
+    parser.add_argument(
+        "--repeats", type=int, default=300, help="timed calls on the 30k scan (a third on the full)"
+    )
     parser.add_argument("--batch", type=int, default=32, help="scans per batch call")
     args = parser.parse_args()
+    print_header("bench_voxelizer")
 
     rng = np.random.default_rng(0)
     scans, source = load_scans(rng)
@@ -129,37 +113,52 @@ def main() -> None:
         differ = int(np.count_nonzero(baseline(full, config) != polar_bev(full, config)))
         assert differ <= 5, f"{baseline.__name__} and C++ differ in {differ} cells"
 
-    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, load average {load}"
-    print(f"machine: {machine}; data: {source}")
+    print(f"data: {source}")
+    # Rounds of 10 calls of each contender in turn (NumPy included), so all see the
+    # same load; NumPy float64 is slow, so the full scan gets a third of the rounds.
+    rounds = {"30k": max(3, args.repeats // 10), "full": max(3, args.repeats // 30)}
     print(
-        f"grid {config.shape}, mode {config.mode}; medians of {args.repeats} calls (C++), "
-        f"{max(10, args.repeats // 10)} (NumPy)"
+        f"grid {config.shape}, mode {config.mode}; medians of {10 * rounds['30k']} calls "
+        f"(30k) and {10 * rounds['full']} (full scan) of each, in rounds of 10 calls of "
+        "each in turn"
     )
-    levels = {3: "AVX-512", 2: "AVX2+FMA", 1: "SSE2", 0: "scalar"}
     best = _core._bev_kernel_level()
-    for name, pts in (("30k", small), (f"{len(full) // 1000}k HDL-64", full)):
-        numpy_ms = median_ms(lambda p=pts: numpy_bev(p, config), max(10, args.repeats // 10))
-        plain_ms = median_ms(
-            lambda p=pts: numpy_bev_float64(p, config), max(10, args.repeats // 10)
-        )
+    kernel_name = _core._bev_kernel_name
+
+    def at_level(level: int, pts: np.ndarray, cfg: BEVConfig = config):
+        def run():
+            _core._set_bev_kernel_level(level)
+            return polar_bev(pts, cfg)
+
+        return run
+
+    for name, pts, n_rounds in (
+        ("30k", small, rounds["30k"]),
+        (f"{len(full) // 1000}k HDL-64", full, rounds["full"]),
+    ):
+        contenders = {
+            "numpy float64": lambda p=pts: numpy_bev_float64(p, config),
+            "numpy tuned": lambda p=pts: numpy_bev(p, config),
+        }
+        # Every kernel this CPU has, forced in turn, then the other modes on the best.
+        for level in range(best, -1, -1):
+            contenders[kernel_name(level)] = at_level(level, pts)
+        for mode in ("density", "max_height"):
+            contenders[mode] = at_level(best, pts, BEVConfig(mode=mode))
+        ms = interleaved_medians_ms(contenders, n_rounds, warmup=3)
+        _core._set_bev_kernel_level(best)
+        numpy_ms, plain_ms = ms["numpy tuned"], ms["numpy float64"]
         print(f"\n{name} points ({len(pts)}), float32 N x 4:")
         print(f"  NumPy float64 (plain)   {plain_ms:8.3f} ms")
         print(f"  NumPy float32 (tuned)   {numpy_ms:8.3f} ms")
-        for level in (3, 2, 1, 0):
-            _core._set_bev_kernel_level(level)
-            if _core._bev_kernel_level() != level:
-                continue
-            ms = median_ms(lambda p=pts: polar_bev(p, config), args.repeats)
+        for level in range(best, -1, -1):
+            t = ms[kernel_name(level)]
             print(
-                f"  C++ {levels[level]:<20s}{ms:8.3f} ms   {numpy_ms / ms:5.1f}x tuned NumPy, "
-                f"{plain_ms / ms:5.1f}x plain"
+                f"  C++ {kernel_name(level):<20s}{t:8.3f} ms   {numpy_ms / t:5.1f}x tuned NumPy, "
+                f"{plain_ms / t:5.1f}x plain"
             )
-        _core._set_bev_kernel_level(3)
         for mode in ("density", "max_height"):
-            cfg = BEVConfig(mode=mode)
-            ms = median_ms(lambda p=pts, c=cfg: polar_bev(p, c), args.repeats)
-            print(f"  C++ {levels[best]}, {mode:<10s}{ms:8.3f} ms")
+            print(f"  C++ {kernel_name(best)}, {mode:<10s}{ms[mode]:8.3f} ms")
 
     batch = [scans[i % len(scans)] for i in range(args.batch)]
     reps = max(5, args.repeats // 3)
@@ -178,10 +177,10 @@ def main() -> None:
     print(f"\nbatch of {args.batch} full scans, {reps} calls each, alternating:")
     rate = args.batch * 1e3
     for threads in (1, 2):
-        med, best = float(np.median(wall[threads])), min(wall[threads])
+        med, fastest = float(np.median(wall[threads])), min(wall[threads])
         print(
             f"  {threads} thread{'s' if threads > 1 else ' '}  median {med:7.2f} ms "
-            f"({rate / med:5.0f} scans/s), min {best:7.2f} ms ({rate / best:5.0f} scans/s), "
+            f"({rate / med:5.0f} scans/s), min {fastest:7.2f} ms ({rate / fastest:5.0f} scans/s), "
             f"CPU {float(np.median(cpu[threads])):6.2f} ms"
         )
     speedup_median = np.median(wall[1]) / np.median(wall[2])

@@ -25,3 +25,18 @@ def samples() -> Path:
     if not SAMPLES.is_dir() or not any(SAMPLES.iterdir()):
         pytest.skip("data/samples is empty")
     return SAMPLES
+
+
+@pytest.fixture(scope="session")
+def samples_spectral_db(samples: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A map database of data/samples/00 (spectral model, absolute input paths), built
+    once per session. Tests must not write to it: copy it first."""
+    from typer.testing import CliRunner
+
+    from disco_cli.cli import app
+
+    out = tmp_path_factory.mktemp("samples_db") / "s00.db"
+    args = ["build-db", str(samples / "00"), "-o", str(out), "-m", "spectral"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    return out

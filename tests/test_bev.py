@@ -8,6 +8,7 @@ here is for identical arrays, with no tolerance and no excluded points.
 from __future__ import annotations
 
 import math
+import platform
 import tracemalloc
 
 import numpy as np
@@ -67,7 +68,10 @@ def reference_bev(points: np.ndarray, config: BEVConfig) -> np.ndarray:
     return out
 
 
-@pytest.fixture(params=[3, 2, 1, 0], ids=["avx512", "avx2", "sse2", "scalar"])
+# Every level up to the CPU's best is forced in turn, so that an AVX-512 machine also
+# checks the AVX2, SSE2 and plain kernels, and an aarch64 one NEON and plain. Levels
+# above the CPU's best are skipped: nothing here needs AVX-512.
+@pytest.fixture(params=[3, 2, 1, 0], ids=["level3", "level2", "level1", "plain"])
 def kernel(request):
     """Run a test on each fast-path kernel the CPU has (they must agree exactly)."""
     previous = _core._set_bev_kernel_level(request.param)
@@ -75,6 +79,34 @@ def kernel(request):
         if _core._bev_kernel_level() != request.param:
             pytest.skip(f"this CPU or build has no kernel level {request.param}")
         yield request.param
+    finally:
+        _core._set_bev_kernel_level(previous)
+
+
+def test_every_level_below_the_best_can_be_forced_and_says_which_kernel_ran():
+    """The names follow the machine (x86-64: plain, sse2, avx2, avx512; aarch64: plain,
+    neon), capping gives each lower level in turn, and the name in use follows the cap."""
+    machine = platform.machine().lower()
+    expected = (
+        ["plain", "sse2", "avx2", "avx512"]
+        if machine in ("x86_64", "amd64")
+        else ["plain", "neon"]
+        if machine in ("aarch64", "arm64")
+        else ["plain"]
+    )
+    previous = _core._set_bev_kernel_level(3)
+    try:
+        best = _core._bev_kernel_level()
+        assert 0 <= best < len(expected)
+        if machine in ("x86_64", "amd64", "aarch64", "arm64"):
+            assert best >= 1  # SSE2 and NEON are part of these architectures
+        names = [_core._bev_kernel_name(level) for level in range(4)]
+        assert names[: best + 1] == expected[: best + 1]
+        assert all(name == "" for name in names[best + 1 :])
+        for level in range(best, -1, -1):
+            _core._set_bev_kernel_level(level)
+            assert _core._bev_kernel_level() == level
+            assert _core._bev_kernel_name() == expected[level]
     finally:
         _core._set_bev_kernel_level(previous)
 

@@ -90,7 +90,7 @@ def test_npy_output_is_the_bev_of_the_points(scan: Path, tmp_path: Path) -> None
     from disco_cli.bev import BEVConfig, polar_bev
 
     out = tmp_path / "out" / "bev.npy"
-    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "--mode", "occupancy"])
+    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "--bev-mode", "occupancy"])
     assert result.exit_code == 0, result.output
     grid = np.load(out)
     config = BEVConfig(mode="occupancy")
@@ -110,7 +110,7 @@ def test_npy_output_follows_the_mode(scan: Path, tmp_path: Path, mode: str) -> N
     from disco_cli.bev import BEVConfig, polar_bev
 
     out = tmp_path / f"{mode}.npy"
-    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "-m", mode])
+    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "--bev-mode", mode])
     assert result.exit_code == 0, result.output
     points = np.concatenate([INSIDE, OUTSIDE])
     np.testing.assert_array_equal(np.load(out), polar_bev(points, BEVConfig(mode=mode)))
@@ -138,7 +138,9 @@ def test_png_shows_the_occupied_cells(scan: Path, tmp_path: Path) -> None:
 
     c = BEVConfig(mode="occupancy")
     out = tmp_path / "bev.png"
-    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "-m", "occupancy", "-s", "3"])
+    result = runner.invoke(
+        app, ["bev", str(scan), "-o", str(out), "--bev-mode", "occupancy", "-s", "3"]
+    )
     assert result.exit_code == 0, result.output
     image = decode_png(out.read_bytes())
     assert image.shape == (c.rings * 3, c.sectors * 3, 3)
@@ -157,7 +159,7 @@ def test_polar_png_puts_points_where_they_are(scan: Path, tmp_path: Path) -> Non
     c = BEVConfig(mode="occupancy")
     out = tmp_path / "polar.png"
     result = runner.invoke(
-        app, ["bev", str(scan), "-o", str(out), "--polar", "-s", "4", "-m", "occupancy"]
+        app, ["bev", str(scan), "-o", str(out), "--polar", "-s", "4", "--bev-mode", "occupancy"]
     )
     assert result.exit_code == 0, result.output
     image = decode_png(out.read_bytes())
@@ -224,7 +226,9 @@ def test_real_scan_bev(realdata: Path, tmp_path: Path) -> None:
 
     scan = realdata / "kitti00" / "velodyne" / "000000.bin"
     out = tmp_path / "real.png"
-    result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "-s", "2", "-m", "occupancy"])
+    result = runner.invoke(
+        app, ["bev", str(scan), "-o", str(out), "-s", "2", "--bev-mode", "occupancy"]
+    )
     assert result.exit_code == 0, result.output
     points = np.fromfile(scan, np.float32).reshape(-1, 4)
     c = BEVConfig(mode="occupancy")

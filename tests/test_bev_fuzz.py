@@ -12,6 +12,7 @@ from hypothesis import strategies as st  # noqa: E402
 from hypothesis.extra import numpy as hnp  # noqa: E402
 from test_bev import reference_bev  # noqa: E402
 
+from disco_cli import _core  # noqa: E402
 from disco_cli.bev import (  # noqa: E402
     MODES,
     BEVConfig,
@@ -86,9 +87,14 @@ def check_well_formed(bev: np.ndarray, config: BEVConfig) -> None:
 
 
 @FUZZ
-@given(points=scans(), config=configs)
-def test_any_float_scan_gives_the_reference_bev(points, config):
-    bev = polar_bev(points, config)
+@given(points=scans(), config=configs, level=st.integers(0, 3))
+def test_any_float_scan_gives_the_reference_bev(points, config, level):
+    """On every kernel level this CPU has (a level above its best runs the best)."""
+    previous = _core._set_bev_kernel_level(level)
+    try:
+        bev = polar_bev(points, config)
+    finally:
+        _core._set_bev_kernel_level(previous)
     check_well_formed(bev, config)
     expected = reference_bev(points, config)
     assert np.array_equal(bev, expected), np.argwhere(bev != expected)[:5].tolist()

@@ -263,12 +263,15 @@ def test_resume_after_kill(tmp_path: Path, sig: signal.Signals) -> None:
     proc.send_signal(sig)
     code = proc.wait(timeout=60)
     err = proc.stderr.read().decode()
-    if sig == signal.SIGINT:  # Ctrl-C: exit 130, no traceback
+    if sig == signal.SIGINT:  # Ctrl-C: exit 130, no traceback, what is safe and what next
         assert code == 130 and "Traceback" not in err, err
+        assert "safely stored; run the same command again to resume" in err, err
     with Database.open(out) as db:
         assert db.check() == []
         done = db.paths()
     assert 0 < len(done) < n, "the build was not interrupted mid-way"
+    if sig == signal.SIGINT:
+        assert f"holds {len(done)} of the {n} scans given" in err, err
     assert done == [str(scans / f"{i:06d}.bin") for i in range(len(done))]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
@@ -606,10 +609,10 @@ def test_loops_finds_the_revisit(tmp_path: Path) -> None:
 def test_info_and_check(map_db: Path, tmp_path: Path) -> None:
     code, out, err = run("info", str(map_db), "--check", "--format", "jsonl")
     assert code == 0, err
-    fields = {r["field"]: r["value"] for r in jsonl(out)}
+    (fields,) = jsonl(out)
     assert fields["scans"] == N_SCENES and fields["model"] == "spectral"
     assert fields["poses"] == "yes" and fields["check"] == "ok"
-    assert json.loads(fields["bev_config"])
+    assert fields["bev_config"]["rings"] > 0
     broken = tmp_path / "broken.db"
     broken.write_bytes(map_db.read_bytes())
     with sqlite3.connect(broken) as conn:
@@ -702,13 +705,22 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     assert code == 0, err
     rows = jsonl(out)
     assert rows, "no verified loops in data/samples/00"
-    assert set(rows[0]) == {"query_index", "query", "match_index", "match", "distance", "yaw_deg"}
+    # With a pose, yaw_deg is the refined yaw of T; roll, pitch and the full T come along.
+    base = {"query_index", "query", "match_index", "match", "distance", "yaw_deg"}
+    assert set(rows[0]) == base | {"roll_deg", "pitch_deg", "T"}
+    for r in rows:
+        T = np.array(r["T"])
+        assert T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])
+        assert abs(r["yaw_deg"] - _yaw_of(T)) < 1e-9
+        assert abs(r["pitch_deg"] - np.degrees(np.arcsin(-T[2, 0]))) < 1e-6
+        assert abs(r["roll_deg"] - np.degrees(np.arctan2(T[2, 1], T[2, 2]))) < 1e-9
     edges = [ln.split() for ln in (tmp_path / "loops.g2o").read_text().splitlines()]
     assert len(edges) == len(rows)
     for e, r in zip(edges, rows):
         assert e[0] == "EDGE_SE3:QUAT" and len(e) == 3 + 7 + 21
         assert (int(e[1]), int(e[2])) == (r["match_index"], r["query_index"])
         t, q = np.array(e[3:6], float), np.array(e[6:10], float)
+        np.testing.assert_allclose(t, np.array(r["T"])[:3, 3], atol=1e-6)  # the same pose
         T = _gt_relative(samples, ("00", r["query_index"]), ("00", r["match_index"]))
         assert np.linalg.norm(t - T[:3, 3]) < 0.3
         assert abs(np.linalg.norm(q) - 1.0) < 1e-6

@@ -183,3 +183,80 @@ def test_meta_holds_configs_as_json(tmp_path: Path) -> None:
     assert json.loads(meta["model_config"]) == INFO.model_config
     assert meta["model_name"] == "spectral" and meta["fingerprint"] == "abc123"
     assert mode == "wal"
+
+
+# -- damaged files: one DatabaseError naming the file, the file left as it was ---------
+
+
+def _made(tmp_path: Path, n: int = 40) -> Path:
+    path = tmp_path / "m.db"
+    db = Database.create(path, INFO, _batch(0, n, np.random.default_rng(0), dim=512))
+    db.close()
+    return path
+
+
+def test_a_cut_file_is_named_as_cut(tmp_path: Path) -> None:
+    path = _made(tmp_path)
+    data = path.read_bytes()
+    page = int.from_bytes(data[16:18], "big")
+    assert len(data) % page == 0 and len(data) > 4 * page
+    cuts = {
+        len(data) - 100: "not a whole number of",  # the issue's `head -c -100`
+        len(data) - page: f"header says {len(data) // page} pages",
+        page: f"header says {len(data) // page} pages",
+        60: "shorter than the SQLite header",
+        10: "shorter than the SQLite header",
+    }
+    for cut, words in cuts.items():
+        path.write_bytes(data[:cut])
+        for writable in (False, True):
+            with pytest.raises(DatabaseError, match=words) as err:
+                Database.open(path, writable=writable)
+            assert str(err.value).startswith(f"{path}: ") and "\n" not in str(err.value)
+            assert path.read_bytes() == data[:cut]
+            assert sorted(p.name for p in tmp_path.iterdir()) == ["m.db"]
+
+
+def test_damage_anywhere_is_found_on_opening_and_writing_leaves_it_alone(tmp_path: Path) -> None:
+    path = _made(tmp_path)
+    data = bytearray(path.read_bytes())
+    page = int.from_bytes(data[16:18], "big")
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as conn:
+        root = conn.execute("SELECT rootpage FROM sqlite_master WHERE name='scans'").fetchone()[0]
+    data[(root - 1) * page] = 0xFF  # no b-tree page has this type
+    path.write_bytes(bytes(data))
+    for writable in (False, True):
+        with pytest.raises(DatabaseError, match="corrupt database") as err:
+            Database.open(path, writable=writable)
+        assert "\n" not in str(err.value)
+        assert path.read_bytes() == bytes(data)
+    # Without the check, the damage surfaces on the first read: a DatabaseError still.
+    db = Database.open(path, verify=False)
+    with pytest.raises(DatabaseError, match="corrupt or unreadable"):
+        db.paths()
+    db.close()
+
+
+def test_a_stray_sqlite_error_is_one_line() -> None:
+    import typer
+
+    from disco_cli.console import handle_errors
+
+    @handle_errors
+    def command() -> None:
+        raise sqlite3.DatabaseError("database disk image is malformed")
+
+    with pytest.raises(typer.Exit) as exit_:
+        command()
+    assert exit_.value.exit_code == 1
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
+def test_a_damaged_signature_stops_the_search_with_its_scan(tmp_path: Path, value: float) -> None:
+    path = _made(tmp_path, n=5)
+    sig = np.ones(512, np.float32)
+    sig[7] = value  # 1e30 is finite, but its square overflows float32
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE scans SET signature = ? WHERE id = 4", (sig.tobytes(),))
+    with Database.open(path) as db, pytest.raises(DatabaseError, match="scan 4: signature"):
+        db.signatures()

@@ -67,6 +67,8 @@ def test_nclt_round_trip_with_scale_and_offset(tmp_path: Path) -> None:
     metres = np.array(
         [[0.0, 0.0, 0.0], [1.0, -1.0, 0.005], [-100.0, 227.675, 5.0]], dtype=np.float64
     )
+    # NCLT's z-down frame, returned turned 180 degrees about x: (x, -y, -z).
+    metres *= [1.0, -1.0, -1.0]
     path = folder / "1326030975726043.bin"
     path.write_bytes(b"".join(struct.pack("<HHHBB", *r) for r in raw))
     assert guess_format(path) == "nclt"
@@ -80,6 +82,27 @@ def test_nclt_round_trip_with_scale_and_offset(tmp_path: Path) -> None:
     other.write_bytes(path.read_bytes() + b"\0" * 8)
     assert guess_format(other) == "kitti"
     np.testing.assert_allclose(read_scan(other, format="nclt")[:3, :3], metres, atol=1e-5)
+
+
+def test_nclt_z_down_ground_reads_back_below_the_sensor(tmp_path: Path) -> None:
+    """A ground plane 2 m below the Velodyne is z = +2 in NCLT's z-down frame; the reader
+    returns it at z = -2 (within NCLT's 5 mm grid), and a wall 10 m ahead and 3 m to the
+    right (NCLT: x forward, y right) comes back at y = -3 (z up: y left)."""
+    rng = np.random.default_rng(3)
+    ground = np.c_[rng.uniform(-30, 30, (500, 2)), np.full(500, 2.0)]
+    wall = np.c_[np.full(50, 10.0), np.full(50, 3.0), rng.uniform(-5.0, 1.0, 50)]
+    ned = np.vstack([ground, wall])  # NCLT's z-down Velodyne frame
+    raw = np.round((ned + 100.0) / 0.005).astype("<u2")
+    rec = np.zeros(len(raw), dtype=[("x", "<u2"), ("y", "<u2"), ("z", "<u2"), ("i", "u1"),
+                                    ("l", "u1")])  # fmt: skip
+    rec["x"], rec["y"], rec["z"] = raw.T
+    folder = tmp_path / "velodyne_sync"
+    folder.mkdir()
+    rec.tofile(folder / "1326030975726043.bin")
+    pts = read_scan(folder / "1326030975726043.bin")
+    np.testing.assert_allclose(pts[:500, 2], -2.0, atol=0.003)
+    np.testing.assert_allclose(pts[500:, :2], np.tile([10.0, -3.0], (50, 1)), atol=0.003)
+    np.testing.assert_allclose(pts[:, 0], ned[:, 0], atol=0.003)  # x stays forward
 
 
 # -- NumPy ---------------------------------------------------------------------

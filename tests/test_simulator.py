@@ -386,7 +386,7 @@ def test_gt_loops_lists_exactly_the_pairs_within_the_radius(samples):
         ["gt-loops", str(samples / "00"), str(samples / "01"), "--radius", "3", "--format", "tsv"],
     )
     assert res.exit_code == 0, res.output
-    lines = res.output.strip().splitlines()
+    lines = res.stdout.strip().splitlines()
     assert lines[0].split("\t") == [
         "query_seq",
         "query",
@@ -405,7 +405,7 @@ def test_gt_loops_lists_exactly_the_pairs_within_the_radius(samples):
     res = runner.invoke(
         app, ["gt-loops", str(samples / "00"), "--exclude-frames", "5", "--format", "jsonl"]
     )
-    rows = [json.loads(line) for line in res.output.strip().splitlines()]
+    rows = [json.loads(line) for line in res.stdout.strip().splitlines()]
     assert rows and all(r["query"] - r["match"] >= 5 and r["distance_m"] <= 3 for r in rows)
 
 

@@ -310,8 +310,15 @@ def test_train_command_writes_a_loadable_checkpoint_and_resumes(world, tmp_path,
     # An existing output is not overwritten by accident: one error line, exit 1.
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 1 and "--resume" in again.output and "Traceback" not in again.output
+    # The per-epoch summary numbers epochs as the progress lines do (1 of 1), not from 0.
+    summary = [ln for ln in result.stderr.splitlines() if "seconds=" in ln]
+    assert len(summary) == 1 and summary[0].startswith("epoch 1/1 "), result.stderr
+    assert "epoch=" not in result.stderr
     more = CliRunner().invoke(app, args[:5] + ["2"] + args[6:] + ["--resume"])
     assert more.exit_code == 0, more.output
+    summary = [ln for ln in more.stderr.splitlines() if "seconds=" in ln]
+    assert len(summary) == 1 and summary[0].startswith("epoch 2/2 "), more.stderr
+    assert "after epoch 1" in more.stderr
     assert len(torch.load(out, weights_only=True)["metrics"]["history"]) == 2
 
 

@@ -105,9 +105,13 @@ PYBIND11_MODULE(_core, m) {
             },
             py::arg("scans"), py::arg("config"), py::arg("threads") = 0,
             "[B, layers, rings, sectors] float32 BEVs, scans spread over threads (0: all cores)");
-        // For tests and benchmarks: cap the SIMD kernel (3 AVX-512, 2 AVX2, 1 SSE2, 0 plain).
+        // For tests and benchmarks: cap the SIMD kernel (x86-64: 3 AVX-512, 2 AVX2, 1 SSE2;
+        // aarch64: 1 NEON; 0 plain) and name it.
         m.def("_set_bev_kernel_level", &disco::set_bev_kernel_level, py::arg("cap"));
         m.def("_bev_kernel_level", &disco::bev_kernel_level);
+        m.def("_bev_kernel_name", &disco::bev_kernel_name, py::arg("level") = -1,
+              "the kernel of `level` (-1: the one in use): avx512, avx2, sse2, neon, plain; "
+              "'' where this CPU has no such level");
     }
 
     // --- simulator ray casting (src/cpp/disco/raycast.*) ---

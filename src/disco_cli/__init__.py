@@ -1,7 +1,10 @@
 """disco: LiDAR loop closure with DiSCO rotation-invariant signatures and yaw.
 
-The public API is imported lazily so that `import disco_cli` (and `disco --help`)
-stays fast: torch and the compiled core load only when first used.
+The library API (docs/python.md): `Map` (a map database: add scans, localize scans
+against it as `Match`es), `LoopDetector` (online loop closure, returning `Loop`s),
+`load_model`, `read_scan`, the voxelizer, and the `DiscoError` kinds it raises. It is
+imported lazily so that `import disco_cli` (and `disco --help`) stays fast: torch and
+the compiled core load only when first used.
 """
 
 from __future__ import annotations
@@ -20,8 +23,18 @@ _LAZY = {
     "polar_bev": "disco_cli.bev",
     "polar_bev_batch": "disco_cli.bev",
     "read_scan": "disco_cli.readers",
+    "list_scans": "disco_cli.readers",
+    "load_model": "disco_cli.model",
+    "signature": "disco_cli.pipeline",
+    "Map": "disco_cli.map",
+    "Match": "disco_cli.localize",
+    "LoopDetector": "disco_cli.loop_detector",
+    "Loop": "disco_cli.loop_detector",
     "DiscoError": "disco_cli.errors",
     "ScanReadError": "disco_cli.errors",
+    "DatabaseError": "disco_cli.errors",
+    "ModelError": "disco_cli.errors",
+    "PoseFileError": "disco_cli.errors",
 }
 
 __all__ = ["__version__", *_LAZY]

@@ -17,6 +17,7 @@ import typer
 from disco_cli.commands import (
     bev,
     build_db,
+    eval_loops,
     evaluate,
     gt_loops,
     info,
@@ -44,7 +45,7 @@ app.command("info", rich_help_panel="Map")(info.info)
 app.command("query", rich_help_panel="Localize")(query.query)
 app.command("loops", rich_help_panel="Localize")(loops.loops)
 app.command("eval", rich_help_panel="Evaluate")(evaluate.evaluate)
-app.command("eval-loops", rich_help_panel="Evaluate")(evaluate.evaluate_loops)
+app.command("eval-loops", rich_help_panel="Evaluate")(eval_loops.evaluate_loops)
 app.command("bev", rich_help_panel="Inspect")(bev.bev)
 app.command("train", rich_help_panel="Model")(train.train)
 

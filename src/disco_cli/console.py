@@ -10,6 +10,8 @@ from __future__ import annotations
 import functools
 import json
 import math
+import os
+import sqlite3
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from enum import Enum
@@ -17,6 +19,7 @@ from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -48,12 +51,13 @@ def resolve_format(fmt: OutputFormat | None) -> OutputFormat:
 
 
 def error(message: str) -> None:
-    """Print one error line on stderr."""
-    stderr.print(f"[bold red]error:[/] {message}", soft_wrap=True)
+    """Print one error line on stderr (the message as is: brackets in a path or an
+    SQLite message are not markup)."""
+    stderr.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
 
 
 def warn(message: str) -> None:
-    stderr.print(f"[yellow]warning:[/] {message}", soft_wrap=True)
+    stderr.print(f"[yellow]warning:[/] {escape(message)}", soft_wrap=True)
 
 
 def fail(message: str, code: int = 1) -> typer.Exit:
@@ -62,8 +66,25 @@ def fail(message: str, code: int = 1) -> typer.Exit:
     return typer.Exit(code)
 
 
+def stdout_closed() -> typer.Exit:
+    """The reader of our stdout went away (`disco query ... | head`): a normal end, exit 0.
+
+    stdout is pointed at /dev/null first, so that the interpreter's last flush of
+    what is still buffered neither fails nor prints "Broken pipe" at exit.
+    """
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass  # no real file descriptor (a test runner's stdout): nothing to protect
+    return typer.Exit(0)
+
+
 def handle_errors(func: F) -> F:
-    """Turn a DiscoError (bad input) into one error line and exit status 1."""
+    """Turn a DiscoError (bad input) into one error line and exit status 1; a closed
+    stdout into a quiet exit 0; an SQLite error that escaped the database layer into
+    one line too (the last resort: `disco_cli.database` names the file itself)."""
 
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -71,6 +92,10 @@ def handle_errors(func: F) -> F:
             return func(*args, **kwargs)
         except DiscoError as exc:
             raise fail(str(exc)) from None
+        except BrokenPipeError:
+            raise stdout_closed() from None
+        except sqlite3.DatabaseError as exc:
+            raise fail(f"database error: {exc}") from None
 
     return wrapper  # type: ignore[return-value]
 

@@ -1,8 +1,8 @@
 """Loop closures written for pose-graph tools: g2o edges, TUM-style lines, CSV.
 
-A loop is a query scan i and an earlier match scan j with the relative pose
-T_match<-query (from `relative_pose.estimate_relative_pose`): a point p in the
-query's frame is T p in the match's frame.
+A loop (`loop_detector.Loop`) is a query scan i and an earlier match scan j with the
+relative pose T_match<-query (from `relative_pose.estimate_relative_pose`): a point p
+in the query's frame is T p in the match's frame.
 
 - `.g2o`: one `EDGE_SE3:QUAT j i x y z qx qy qz qw` line per loop (from vertex j, the
   match, to vertex i, the query; vertex ids are the scans' 0-based sequence indices),
@@ -10,41 +10,28 @@ query's frame is T p in the match's frame.
   (`relative_pose.information_matrix`: scaled by the fitness).
 - `.tum`: `t_query t_match x y z qx qy qz qw`, one loop per line, the times in
   seconds (the sequence index when no times are known), after a `#` header line.
-- `.csv`: a header and one row per loop with indices, paths, match distance,
-  place-recognition yaw, the relative pose (translation and quaternion), fitness,
-  rmse, accepted and the rejection reason.
+- `.csv`: a header and one row per loop with indices, paths, match distance, the
+  refined yaw, roll and pitch (degrees, of T), the relative pose (translation and
+  quaternion), fitness, rmse, accepted and the rejection reason.
 """
 
 from __future__ import annotations
 
 import csv
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from disco_cli.errors import DiscoError
 
-__all__ = ["Loop", "FORMATS", "quaternion", "write_loops"]
+if TYPE_CHECKING:
+    from disco_cli.loop_detector import Loop
+
+__all__ = ["FORMATS", "check_loop_file", "quaternion", "write_loops"]
 
 FORMATS = (".g2o", ".tum", ".csv")
-
-
-@dataclass
-class Loop:
-    """One detected loop closure and its relative pose."""
-
-    query_index: int
-    match_index: int
-    query: str
-    match: str
-    distance: float
-    yaw_deg: float
-    pose: Any  # RelativePose
-    query_time: float = float("nan")
-    match_time: float = float("nan")
 
 
 def quaternion(R: np.ndarray) -> np.ndarray:
@@ -75,8 +62,15 @@ def _fmt(v: float) -> str:
     return f"{float(v) + 0.0:.9g}"
 
 
-def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
-    """Write `loops` in the format named by `path`'s extension (.g2o, .tum, .csv)."""
+def check_loop_file(path: str | Path) -> None:
+    """`DiscoError` unless `path` names a loop file type (checked before the work)."""
+    if Path(path).suffix.lower() not in FORMATS:
+        raise DiscoError(f"{path}: unknown loop file type; use {', '.join(FORMATS)}")
+
+
+def write_loops(path: str | Path, loops: Sequence[Loop]) -> int:
+    """Write `loops` in the format named by `path`'s extension (.g2o, .tum, .csv);
+    `.g2o` takes only the accepted ones. Returns how many were written."""
     from disco_cli.relative_pose import information_matrix
 
     path = Path(path)
@@ -87,11 +81,12 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
         )
     lines: list[str] = []
     if ext == ".g2o":
+        loops = [lp for lp in loops if lp.accepted]  # a rejected loop is no constraint
         iu = np.triu_indices(6)
         for lp in loops:
-            T = np.asarray(lp.pose.T)
+            T = np.asarray(lp.T)
             q = quaternion(T[:3, :3])
-            info = information_matrix(lp.pose)[iu]
+            info = information_matrix(lp)[iu]
             fields = [
                 "EDGE_SE3:QUAT",
                 str(lp.match_index),
@@ -104,7 +99,7 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
     elif ext == ".tum":
         lines.append("# t_query t_match x y z qx qy qz qw  (T_match<-query)")
         for lp in loops:
-            T = np.asarray(lp.pose.T)
+            T = np.asarray(lp.T)
             tq = lp.query_time if np.isfinite(lp.query_time) else lp.query_index
             tm = lp.match_time if np.isfinite(lp.match_time) else lp.match_index
             lines.append(
@@ -129,6 +124,8 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
                         "match",
                         "distance",
                         "yaw_deg",
+                        "roll_deg",
+                        "pitch_deg",
                         "x",
                         "y",
                         "z",
@@ -143,7 +140,7 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
                     ]
                 )
                 for lp in loops:
-                    T = np.asarray(lp.pose.T)
+                    T = np.asarray(lp.T)
                     w.writerow(
                         [
                             lp.query_index,
@@ -152,15 +149,18 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> None:
                             lp.match,
                             _fmt(lp.distance),
                             _fmt(lp.yaw_deg),
+                            _fmt(lp.roll_deg),
+                            _fmt(lp.pitch_deg),
                             *map(_fmt, T[:3, 3]),
                             *map(_fmt, quaternion(T[:3, :3])),
-                            _fmt(lp.pose.fitness),
-                            _fmt(lp.pose.rmse),
-                            str(bool(lp.pose.accepted)).lower(),
-                            lp.pose.reason,
+                            _fmt(lp.fitness),
+                            _fmt(lp.rmse),
+                            str(bool(lp.accepted)).lower(),
+                            lp.reason,
                         ]
                     )
         else:
             path.write_text("".join(line + "\n" for line in lines))
     except OSError as exc:
         raise DiscoError(f"{path}: cannot write ({exc.strerror or exc})") from None
+    return len(loops)

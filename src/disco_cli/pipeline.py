@@ -11,16 +11,35 @@ from __future__ import annotations
 
 import queue
 import threading
+import warnings
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from disco_cli.errors import DiscoError, ScanReadError
 
-__all__ = ["Loaded", "Embedded", "load_stream", "embed_stream", "load_bev"]
+__all__ = [
+    "Loaded",
+    "Embedded",
+    "load_stream",
+    "embed_stream",
+    "load_bev",
+    "scan_bev",
+    "array_points",
+    "embed_one",
+    "embed_paths",
+    "signature",
+    "ScanList",
+    "scan_paths",
+    "file_beside",
+    "sequence_times",
+    "QueryPoses",
+    "collect_scans",
+]
 
 _END = object()
 
@@ -55,19 +74,72 @@ def load_bev(path: str, bev_config: Any, scan_format: str | None = None) -> np.n
 def _load_points_bev(
     path: str, bev_config: Any, scan_format: str | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    from disco_cli.bev import polar_bev
     from disco_cli.readers import read_scan
 
     points = read_scan(path, scan_format)
+    return points, scan_bev(points, bev_config, path)
+
+
+def scan_bev(points: np.ndarray, bev_config: Any, name: str) -> np.ndarray:
+    """The polar BEV of a scan's points; `ScanReadError` naming `name` when it holds no
+    point inside the BEV's range."""
+    from disco_cli.bev import polar_bev
+
     try:
         bev = polar_bev(points, bev_config)
     except DiscoError:
         raise
     except (ValueError, TypeError) as exc:
-        raise ScanReadError(path, f"cannot voxelize ({exc})") from None
+        raise ScanReadError(name, f"cannot voxelize ({exc})") from None
     if not np.any(bev):
-        raise ScanReadError(path, f"no points in range ({len(points)} points, none in the BEV)")
-    return points, bev
+        raise ScanReadError(name, f"no points in range ({len(points)} points, none in the BEV)")
+    return bev
+
+
+def array_points(points: Any, name: str) -> np.ndarray:
+    """Points handed over as an array (the library API), checked as an .npy scan file
+    would be: float32 `N x 4`, rows without finite x, y, z dropped; `ScanReadError`
+    naming `name` with the same reason an .npy file of that array gets."""
+    from disco_cli.readers.npy import from_array
+
+    if not isinstance(points, np.ndarray):
+        try:
+            points = np.asarray(points)
+        except (TypeError, ValueError) as exc:
+            raise ScanReadError(name, f"not a numeric array ({exc})") from None
+    return from_array(points, name)
+
+
+def embed_one(points: np.ndarray, model: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """`(signature [D], features [...])` of one scan's points."""
+    bev = scan_bev(points, model.bev_config, name)
+    out = _embed([Loaded(0, name, bev=bev)], model)
+    return out.signatures[0], out.features[0]
+
+
+def embed_paths(
+    paths: list[str],
+    model: Any,
+    scan_format: str | None = None,
+    batch: int = 32,
+    workers: int = 2,
+    on_progress: Any = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`(signatures [N, D], features [N, ...])` of scan files, in order; the first
+    unreadable one raises its `ScanReadError`. `on_progress(k)` after each batch of k."""
+    sigs, feats = [], []
+    loaded = load_stream(map(str, paths), model.bev_config, workers, scan_format=scan_format)
+    try:
+        for out in embed_stream(loaded, model, batch):
+            if out.errors:
+                raise out.errors[0].error  # type: ignore[misc]
+            sigs.append(out.signatures)
+            feats.append(out.features)
+            if on_progress is not None:
+                on_progress(len(out.items))
+    finally:
+        loaded.close()  # type: ignore[attr-defined]
+    return np.concatenate(sigs), np.concatenate(feats)
 
 
 def _load_one(
@@ -210,6 +282,88 @@ def frame_rows(paths: list[str], n_rows: int, source: str) -> np.ndarray:
     return np.asarray(rows, dtype=np.int64)
 
 
+def scan_paths(
+    inputs: list[Any], scan_format: str | None = None, topic: str | None = None
+) -> list[Path]:
+    """The scan files of every input (files, folders or bags), in order; `ScanReadError`
+    when there are none."""
+    from disco_cli.readers import list_scans
+
+    paths: list[Path] = []
+    for item in inputs:
+        paths += list_scans(item, format=scan_format, topic=topic)
+    if not paths:
+        raise ScanReadError(", ".join(map(str, inputs)), "no scans found")
+    return paths
+
+
+def file_beside(inputs: list[Path], given: Path | None, name: str | None = None) -> Path | None:
+    """`given`, else NAME (default: the pose file, `disco_cli.poses.find_pose_file`) beside
+    the scans when a single folder was given."""
+    if given is not None:
+        return given
+    if len(inputs) != 1 or not inputs[0].is_dir():
+        return None
+    if name is None:
+        from disco_cli.poses import find_pose_file
+
+        return find_pose_file(inputs[0])
+    return inputs[0] / name if (inputs[0] / name).is_file() else None
+
+
+def sequence_times(folder: Any, paths: list[str], times_file: Any = None) -> np.ndarray | None:
+    """The time (s) of each scan of a sequence: from `times_file`, else the header stamps
+    of scans in a bag, else `times.txt` in `folder`, by row or frame number
+    (`frame_rows`); None when there is none of these."""
+    from pathlib import Path
+
+    from disco_cli.poses import read_times
+    from disco_cli.readers.bags import scan_stamps
+
+    stamps = scan_stamps(paths) if times_file is None else None
+    if stamps is not None and np.isfinite(stamps).all():
+        return stamps
+    folder = Path(folder)
+    times_file = times_file or (folder / "times.txt" if folder.is_dir() else None)
+    if times_file is None or not Path(times_file).is_file():
+        return None
+    t = read_times(times_file)
+    return t[frame_rows(paths, len(t), str(times_file))]
+
+
+class QueryPoses:
+    """The pose rows (x, y, z, yaw; NaN when unknown) of query scans from a pose file
+    (`disco_cli.poses.ScanPoser`): for scans known up front (`paths`) KITTI's "row i for
+    scan i" applies when their count is the file's; scans streamed (stdin) go one by one,
+    by frame number or time. `missing` counts the queries without a pose; `warn` hears of
+    them (once when streamed)."""
+
+    def __init__(self, poses_file: Any, pose_opts: dict, paths: list[str] | None, warn: Any):
+        from disco_cli.poses import ScanPoser
+
+        self.poser = ScanPoser(poses_file, **pose_opts)
+        self.warn = warn
+        self.missing = 0
+        self.rows = None
+        if paths is not None:
+            T, report = self.poser.poses(list(paths))
+            self.rows = pose_rows(T)
+            if report.warning():
+                warn(report.warning())
+
+    def __call__(self, index: int, path: str) -> np.ndarray:
+        if self.rows is not None:
+            row = self.rows[index]
+        else:
+            T, report = self.poser.poses([path])
+            row = pose_rows(T)[0]
+            if report.missing and not self.missing:
+                self.warn(report.warning())
+        if not np.isfinite(row[:2]).all():
+            self.missing += 1
+        return row
+
+
 def pose_rows(T: np.ndarray) -> np.ndarray:
     """`[N, 4, 4]` poses as `[N, 4]` rows of x, y, z, yaw (radians)."""
     from disco_cli.poses import xy_yaw
@@ -227,3 +381,104 @@ def check_device(device: str) -> None:
 
         if not torch.cuda.is_available():
             raise DiscoError("--device cuda: torch sees no CUDA device here; use --device cpu")
+
+
+def signature(model: Any, points: Any, name: str = "points") -> tuple[np.ndarray, np.ndarray]:
+    """`(signature [D], features [...])` of one scan (an N x 3 or N x 4 array) under a
+    model from `load_model`, for those who keep signatures in their own storage:
+    compare signatures by Euclidean distance, and `model.yaw(features_q, features_m[None])`
+    gives the yaw between two scans."""
+    return embed_one(array_points(points, name), model, name)
+
+
+@dataclass
+class ScanList:
+    """The scans of a build in input order, with pose rows and times (NaN = unknown)."""
+
+    paths: list[str]
+    poses: np.ndarray  # [N, 4] x, y, z, yaw
+    times: np.ndarray  # [N]
+    no_pose: int = 0  # scans a pose file was given for that got no pose
+
+
+def collect_scans(
+    inputs: list[str],
+    poses_file: Path | None,
+    times_file: Path | None,
+    calib: str | None,
+    scan_format: str | None = None,
+    pose_opts: dict | None = None,
+    warn: Any = None,
+    topic: str | None = None,
+    pose_topic: str | None = None,
+) -> ScanList:
+    """Expand folders, files and `-` (stdin) into one list of scans.
+
+    A folder with a pose file (`disco_cli.poses.find_pose_file`) and `times.txt` beside
+    its scans brings them along unless `--poses` / `--times` are given; those cover all
+    scans. Poses come from `disco_cli.poses.ScanPoser`; scans left without one are
+    named in one `warn` per pose file and counted in `ScanList.no_pose`.
+    Scans in a bag are timed by their header stamps, and posed from the bag's
+    `pose_topic` when given (by time, like a pose file).
+    """
+    import numpy as np
+
+    from disco_cli.poses import ScanPoser, find_pose_file, read_times
+    from disco_cli.readers import list_scans
+    from disco_cli.readers.bags import scan_stamps
+
+    opts = dict(pose_opts or {})
+    opts.setdefault("calib", "auto" if calib is None else calib)
+    paths: list[str] = []
+    poses: list[np.ndarray] = []
+    times: list[np.ndarray] = []
+    seen: set[str] = set()
+    no_pose = 0
+
+    def lidar_rows(group: list[str], pose_file: Path) -> np.ndarray:
+        nonlocal no_pose
+        T, report = ScanPoser(pose_file, **opts).poses(group)
+        if report.warning():
+            (warn or warnings.warn)(report.warning())
+        no_pose += report.missing
+        return pose_rows(T)
+
+    for item in inputs:
+        if item == "-":
+            group = list(stdin_paths())
+        else:
+            group = [str(p) for p in list_scans(item, scan_format, topic)]
+        group = [p for p in dict.fromkeys(group) if p not in seen]
+        seen.update(group)
+        n = len(group)
+        p_rows, t_rows = np.full((n, 4), np.nan), scan_stamps(group)
+        folder = Path(item)
+        if item != "-" and folder.is_dir() and group:
+            beside = find_pose_file(folder) if poses_file is None else None
+            if beside is not None:
+                p_rows = lidar_rows(group, beside)
+            if times_file is None and (folder / "times.txt").is_file():
+                t = read_times(folder / "times.txt")
+                t_rows = t[frame_rows(group, len(t), str(folder / "times.txt"))]
+        paths += group
+        poses.append(p_rows)
+        times.append(t_rows)
+    all_poses = np.concatenate(poses) if poses else np.empty((0, 4))
+    all_times = np.concatenate(times) if times else np.empty(0)
+    if poses_file is not None:
+        all_poses = lidar_rows(paths, poses_file)
+    if times_file is not None:
+        t = read_times(times_file)
+        all_times = t[frame_rows(paths, len(t), str(times_file))]
+    if pose_topic is not None:
+        from disco_cli.readers.bags import bag_poses
+
+        T, missing = bag_poses(paths, pose_topic, opts.get("max_time_gap"), opts.get("extrinsic"))
+        if missing:
+            (warn or warnings.warn)(
+                f"{pose_topic}: {len(missing)} of {len(paths)} scans have no pose near their "
+                f"stamp (e.g. {missing[0]}); they are left without one"
+            )
+        no_pose += len(missing)
+        all_poses = pose_rows(T)
+    return ScanList(paths, all_poses, all_times, no_pose)

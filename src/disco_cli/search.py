@@ -23,7 +23,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SignatureIndex", "Match", "brute_force_topk", "match_queries"]
+__all__ = [
+    "SignatureIndex",
+    "Match",
+    "brute_force_topk",
+    "match_queries",
+    "check_rerank",
+    "rerank_depth",
+]
 
 _EPS32 = float(np.finfo(np.float32).eps)
 # Cap on the [rows, queries] float32 distance block, in elements (64 MiB).
@@ -61,11 +68,36 @@ class SignatureIndex:
         self._max_norm = float(np.sqrt(self.sq_norms.max())) if len(self.matrix) else 0.0
         self.threads = threads if threads > 0 else min(4, os.cpu_count() or 1)
         self._codes: _Int8Codes | None = None
+        self._spare: tuple[np.ndarray, np.ndarray] | None = None  # growth room (append)
         if len(self.matrix) >= max(int8_min_rows, 1) and _Int8Codes.available():
             self._codes = _Int8Codes(self.matrix, sq64)
 
     def __len__(self) -> int:
         return len(self.matrix)
+
+    def append(self, signatures: np.ndarray) -> None:
+        """Add rows at the end (online loop detection grows its index one scan at a
+        time). Storage doubles as it grows; the int8 pre-scan is dropped, since its codes
+        cover a fixed set of rows (results are the same exact ones without it)."""
+        new = np.ascontiguousarray(np.atleast_2d(np.asarray(signatures)), dtype=np.float32)
+        if new.ndim != 2 or new.shape[1] != self.dim:
+            raise ValueError(f"signatures must be [B, {self.dim}], got {new.shape}")
+        sq64 = np.einsum("ij,ij->i", new, new, dtype=np.float64)
+        if not np.isfinite(sq64).all():
+            raise ValueError("signatures must be finite")
+        n, need = len(self.matrix), len(self.matrix) + len(new)
+        if self._spare is None or need > len(self._spare[0]):
+            cap = max(need, 2 * n, 64)
+            mat = np.empty((cap, self.dim), np.float32)
+            sq = np.empty(cap, np.float32)
+            mat[:n], sq[:n] = self.matrix, self.sq_norms
+            self._spare = (mat, sq)
+        mat, sq = self._spare
+        mat[n:need], sq[n:need] = new, sq64
+        self.matrix, self.sq_norms = mat[:need], sq[:need]
+        if len(new):
+            self._max_norm = max(self._max_norm, float(np.sqrt(sq64.max())))
+        self._codes = None
 
     @property
     def dim(self) -> int:
@@ -253,6 +285,20 @@ class Match:
     pose: np.ndarray  # x, y, z, yaw (rad) of the match, NaN where unknown
 
 
+def check_rerank(model: Any, rerank: int) -> int:
+    """`rerank` when the model can re-rank that many candidates; `DiscoError` otherwise."""
+    rerank = int(rerank)
+    if rerank < 0:
+        from disco_cli.errors import DiscoError
+
+        raise DiscoError(f"rerank must be >= 0, not {rerank}")
+    if rerank > 0 and not hasattr(model, "rerank"):
+        from disco_cli.errors import DiscoError
+
+        raise DiscoError(f"model {getattr(model, 'name', '?')} cannot re-rank; use --rerank 0")
+    return rerank
+
+
 def rerank_depth(model: Any) -> int:
     """How many nearest signatures the model re-ranks (0: none)."""
     return int(getattr(model, "rerank_candidates", 0) or 0)
@@ -269,11 +315,13 @@ def match_queries(
     limit: Sequence[int] | np.ndarray | None = None,
     exclude: np.ndarray | None = None,
     max_distance: float | None = None,
+    rerank: int | None = None,
 ) -> list[list[Match]]:
     """Top-k matches of each query with their yaw: signature search, then the model's
     `rerank` hook when it asks for one (DiSCO, Scan Context), then yaw from the stored
-    features of the top rows only. `db` is a `Database` (anything with `rows(ids)`)."""
-    rerank_n = rerank_depth(model)
+    features of the top rows only. `db` is a `Database` (anything with `rows(ids)`).
+    `rerank` overrides the model's re-ranking depth."""
+    rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
     wide = max(k, rerank_n) if rerank_n > 0 else k
     rows, dists = index.search(signatures, wide, limit=limit, exclude=exclude)
     out: list[list[Match]] = []

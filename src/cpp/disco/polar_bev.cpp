@@ -27,6 +27,10 @@
 #define DISCO_BEV_AVX2 1
 #endif
 #endif
+#if defined(__aarch64__) && defined(__ARM_NEON)
+#include <arm_neon.h>
+#define DISCO_BEV_NEON 1  // Advanced SIMD is part of every aarch64 CPU
+#endif
 
 namespace disco {
 
@@ -117,57 +121,121 @@ int32_t exact_cell(double x, double y, double z, const Binning& b) {
 }
 
 // One index axis of the fast path: `a` is the value in index units, n the cell count.
-// ok: a is inside (0, n) and at least `margin` from every integer, so floor(a)
-// is the exact index; returns floor(a) clamped into [0, n - 1].
-inline int fast_index(float a, float n, float margin, bool& ok) {
-    // NaN -> 0; the top clamp keeps the (discarded) cell index of a lane that is not
-    // ok inside int range.
-    const float clamped = std::min(a > 0.0f ? a : 0.0f, n - 1.0f);
-    const int i = static_cast<int>(clamped);
-    const float frac = a - static_cast<float>(i);
-    ok = (a < n) & (frac > margin) & (frac < 1.0f - margin);
+// Returns i = trunc(a clamped into [-1, n]) as float (the clamp keeps the conversion
+// defined), and sets ok where frac = a - i lies in (margin, 1 - margin): then, for
+// a < n, i is the exact index. A negative or NaN `a` is never ok; an `a` above n may
+// be, and the caller's drop test (which wins over ok) covers it. Selects only (no
+// std::min, no branches), so that compilers vectorize the loop that inlines it.
+inline float fast_index(float a, float n, float margin, bool& ok) {
+    float c = a > -1.0f ? a : -1.0f;
+    c = c < n ? c : n;
+    const float i = static_cast<float>(static_cast<int32_t>(c));
+    const float frac = a - i;
+    ok = (frac > margin) & (frac < 1.0f - margin);
     return i;
 }
 
 // Fast path over one chunk of deinterleaved coordinates: a cell index, kDrop or
-// kExact per point. Branch-free so that the compiler vectorizes it.
-void fast_codes(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
-                int32_t* codes) {
+// kExact per point. The plain kernel (level 0) and the tail of every SIMD kernel:
+// portable C++ that GCC and Clang vectorize for the baseline of any target (SSE2,
+// NEON), with the same polynomial and margins as the intrinsics kernels.
+//
+// Two passes over the chunk, each a short chain of dependent operations: in one
+// loop, the chain from a point's coordinates to its code is long enough that the
+// CPU's scheduler fills with waiting work and its units idle. The first pass
+// overwrites xs, ys, zs with the coordinates in index units (ring, sector, height).
+// `Small`: the grid has < 2^24 cells, so the cell index can be formed in float
+// (cheaper than 32-bit integer products, which SSE2 lacks).
+template <bool Small>
+void fast_codes_plain(float* __restrict xs, float* __restrict ys, float* __restrict zs, int n,
+                      const Binning& bin, int32_t* __restrict codes) {
     const float half_pi = static_cast<float>(kPi / 2.0);
     const float pi = static_cast<float>(kPi);
     const float two_pi = static_cast<float>(kTwoPi);
-    const float sectors_f = static_cast<float>(b.sectors);
+    // Locals, so that the loops hold them in registers (codes might alias `bin`).
+    const float ring_scale = bin.ring_scale, sector_scale = bin.sector_scale;
+    const float height_scale = bin.height_scale, z_min = bin.z_min_f;
     for (int i = 0; i < n; ++i) {
         const float x = xs[i];
         const float y = ys[i];
         const float z = zs[i];
-        const float a_ring = std::sqrt(x * x + y * y) * b.ring_scale;
-        const float a_height = (z - b.z_min_f) * b.height_scale;
-
-        // atan2 by octant: t = min/max in [0, 1], atan(t) by polynomial, then unfold.
+        // atan2 by octant: t = min/max in [0, 1], atan(t) by polynomial (Estrin, as the
+        // SIMD kernels), then unfold.
         const float ax = std::fabs(x);
         const float ay = std::fabs(y);
-        const float t = std::min(ax, ay) / std::max(ax, ay);
+        const bool steep = ay > ax;
+        const float t = (steep ? ax : ay) / (steep ? ay : ax);
         const float u = t * t;
-        const float p =
-            (((((((kA6 * u + kA5) * u + kA4) * u + kA3) * u + kA2) * u + kA1) * u) + kA0) * t;
-        float theta = ay > ax ? half_pi - p : p;
-        theta = x < 0.0f ? pi - theta : theta;
-        theta = y < 0.0f ? two_pi - theta : theta;
-        const float a_sector = theta * b.sector_scale;
-
-        bool ok_ring, ok_sector, ok_height;
-        const int ring = fast_index(a_ring, b.rings_f, b.ring_margin, ok_ring);
-        const int sector = fast_index(a_sector, sectors_f, b.sector_margin, ok_sector);
-        const int height = fast_index(a_height, b.heights_f, b.height_margin, ok_height);
-        ok_ring &= a_ring > b.ring_min + b.ring_margin;
-
-        const bool drop = (a_ring < b.ring_min - b.ring_margin) |
-                          (a_ring > b.rings_f + b.ring_margin) | (a_height < -b.height_margin) |
-                          (a_height > b.heights_f + b.height_margin);
-        const int32_t cell = (height * b.rings + ring) * b.sectors + sector;
-        codes[i] = (ok_ring & ok_sector & ok_height) ? cell : (drop ? kDrop : kExact);
+        const float u2 = u * u;
+        const float u4 = u2 * u2;
+        const float q01 = kA1 * u + kA0;
+        const float q23 = kA3 * u + kA2;
+        const float q456 = kA6 * u2 + (kA5 * u + kA4);
+        const float p = (q456 * u4 + (q23 * u2 + q01)) * t;
+        // Unfold as offset + (+-value): selects of constants and a sign flip, which
+        // compilers if-convert (GCC will not if-convert "c ? k - v : v", as the
+        // subtraction might trap). k + (-v) is exactly k - v, and 0 + v is v.
+        const float theta1 = (steep ? half_pi : 0.0f) + (steep ? -p : p);
+        const bool left = x < 0.0f;
+        const float theta2 = (left ? pi : 0.0f) + (left ? -theta1 : theta1);
+        const bool below = y < 0.0f;
+        const float theta = (below ? two_pi : 0.0f) + (below ? -theta2 : theta2);
+        xs[i] = std::sqrt(x * x + y * y) * ring_scale;
+        ys[i] = theta * sector_scale;
+        zs[i] = (z - z_min) * height_scale;
     }
+
+    const float rings_f = bin.rings_f, heights_f = bin.heights_f;
+    const float sectors_f = static_cast<float>(bin.sectors);
+    const float ring_margin = bin.ring_margin, sector_margin = bin.sector_margin;
+    const float height_margin = bin.height_margin;
+    const float ring_lo = bin.ring_min - ring_margin, ring_hi = bin.ring_min + ring_margin;
+    const float ring_out = rings_f + ring_margin, height_out = heights_f + height_margin;
+    const auto rings = static_cast<uint32_t>(bin.rings);
+    const auto sectors = static_cast<uint32_t>(bin.sectors);
+    for (int i = 0; i < n; ++i) {
+        const float a_ring = xs[i];
+        const float a_sector = ys[i];
+        const float a_height = zs[i];
+        // A drop wins over ok, so no axis needs a test against its top edge: a value
+        // at n or within the margin above it is not ok, and beyond that it is dropped
+        // (theta <= 2 pi up to float error, so a_sector is never beyond it).
+        bool ok_ring, ok_sector, ok_height;
+        const float ring = fast_index(a_ring, rings_f, ring_margin, ok_ring);
+        const float sector = fast_index(a_sector, sectors_f, sector_margin, ok_sector);
+        const float height = fast_index(a_height, heights_f, height_margin, ok_height);
+        const bool ok = ok_ring & ok_sector & ok_height & (a_ring > ring_hi);
+        const bool drop = (a_ring < ring_lo) | (a_ring > ring_out) | (a_height < -height_margin) |
+                          (a_height > height_out);
+        int32_t cell;
+        if constexpr (Small) {
+            cell = static_cast<int32_t>((height * rings_f + ring) * sectors_f + sector);
+        } else {
+            // Unsigned: a lane that is not ok may hold -1 or n, and must not overflow.
+            const auto h = static_cast<uint32_t>(static_cast<int32_t>(height));
+            const auto r = static_cast<uint32_t>(static_cast<int32_t>(ring));
+            const auto s = static_cast<uint32_t>(static_cast<int32_t>(sector));
+            cell = static_cast<int32_t>((h * rings + r) * sectors + s);
+        }
+        // ok ? cell : kExact, then kDrop (all ones) where surely outside, by masks:
+        // a select here would let GCC move the conversion into a branch, which it
+        // then will not vectorize.
+        const int32_t ok_mask = -static_cast<int32_t>(ok);
+        const int32_t drop_mask = -static_cast<int32_t>(drop);
+        codes[i] = (cell & ok_mask) | (kExact & ~ok_mask) | drop_mask;
+    }
+}
+
+// The tails of the SIMD kernels: fewer than 16 points, always on a small grid.
+void fast_codes(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
+                int32_t* codes) {
+    float x[16], y[16], z[16];
+    for (int i = 0; i < n; ++i) {
+        x[i] = xs[i];
+        y[i] = ys[i];
+        z[i] = zs[i];
+    }
+    fast_codes_plain<true>(x, y, z, n, b, codes);
 }
 
 #if DISCO_BEV_SSE2
@@ -546,6 +614,119 @@ DISCO_AVX512 void fast_codes_xyzw16(const float* rows, int n, const Binning& b, 
 #endif
 #endif
 
+#if DISCO_BEV_NEON
+// Four points at once with aarch64 Advanced SIMD (NEON): the arithmetic of codes8
+// (FMA, truncation by rounding toward zero, no clamps, a drop wins over ok), with
+// the cell index formed in float (exact below 2^24 cells).
+struct BinningNeon {
+    float32x4_t ring_scale, sector_scale, height_scale, z_min;
+    float32x4_t ring_lo, ring_hi, ring_max_out, height_lo_out, height_max_out;
+    float32x4_t rings, sectors;
+    float32x4_t ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin,
+        height_margin_hi;
+
+    explicit BinningNeon(const Binning& b)
+        : ring_scale(vdupq_n_f32(b.ring_scale)),
+          sector_scale(vdupq_n_f32(b.sector_scale)),
+          height_scale(vdupq_n_f32(b.height_scale)),
+          z_min(vdupq_n_f32(b.z_min_f)),
+          ring_lo(vdupq_n_f32(b.ring_min - b.ring_margin)),
+          ring_hi(vdupq_n_f32(b.ring_min + b.ring_margin)),
+          ring_max_out(vdupq_n_f32(b.rings_f + b.ring_margin)),
+          height_lo_out(vdupq_n_f32(-b.height_margin)),
+          height_max_out(vdupq_n_f32(b.heights_f + b.height_margin)),
+          rings(vdupq_n_f32(b.rings_f)),
+          sectors(vdupq_n_f32(static_cast<float>(b.sectors))),
+          ring_margin(vdupq_n_f32(b.ring_margin)),
+          ring_margin_hi(vdupq_n_f32(1.0f - b.ring_margin)),
+          sector_margin(vdupq_n_f32(b.sector_margin)),
+          sector_margin_hi(vdupq_n_f32(1.0f - b.sector_margin)),
+          height_margin(vdupq_n_f32(b.height_margin)),
+          height_margin_hi(vdupq_n_f32(1.0f - b.height_margin)) {}
+};
+
+// trunc(a) and the lanes where it is certainly the index (NaN, Inf and huge values
+// give frac NaN or 0: not ok).
+inline float32x4_t index_neon(float32x4_t a, float32x4_t margin, float32x4_t margin_hi,
+                              uint32x4_t& ok) {
+    const float32x4_t i = vrndq_f32(a);
+    const float32x4_t frac = vsubq_f32(a, i);
+    ok = vandq_u32(vcgtq_f32(frac, margin), vcltq_f32(frac, margin_hi));
+    return i;
+}
+
+inline int32x4_t codes_neon(float32x4_t x, float32x4_t y, float32x4_t z, const BinningNeon& s) {
+    const float32x4_t zero = vdupq_n_f32(0.0f);
+    const float32x4_t r2 = vfmaq_f32(vmulq_f32(y, y), x, x);
+    const float32x4_t a_ring = vmulq_f32(vsqrtq_f32(r2), s.ring_scale);
+    const float32x4_t a_height = vmulq_f32(vsubq_f32(z, s.z_min), s.height_scale);
+
+    const float32x4_t ax = vabsq_f32(x);
+    const float32x4_t ay = vabsq_f32(y);
+    const float32x4_t t = vdivq_f32(vminq_f32(ax, ay), vmaxq_f32(ax, ay));
+    const float32x4_t u = vmulq_f32(t, t);
+    const float32x4_t u2 = vmulq_f32(u, u);
+    const float32x4_t u4 = vmulq_f32(u2, u2);
+    const float32x4_t q01 = vfmaq_f32(vdupq_n_f32(kA0), vdupq_n_f32(kA1), u);
+    const float32x4_t q23 = vfmaq_f32(vdupq_n_f32(kA2), vdupq_n_f32(kA3), u);
+    const float32x4_t q45 = vfmaq_f32(vdupq_n_f32(kA4), vdupq_n_f32(kA5), u);
+    const float32x4_t q456 = vfmaq_f32(q45, vdupq_n_f32(kA6), u2);
+    const float32x4_t q0123 = vfmaq_f32(q01, q23, u2);
+    const float32x4_t p = vmulq_f32(vfmaq_f32(q0123, q456, u4), t);
+    float32x4_t theta =
+        vbslq_f32(vcgtq_f32(ay, ax), vsubq_f32(vdupq_n_f32(static_cast<float>(kPi / 2.0)), p), p);
+    theta = vbslq_f32(vcltq_f32(x, zero),
+                      vsubq_f32(vdupq_n_f32(static_cast<float>(kPi)), theta), theta);
+    theta = vbslq_f32(vcltq_f32(y, zero),
+                      vsubq_f32(vdupq_n_f32(static_cast<float>(kTwoPi)), theta), theta);
+    const float32x4_t a_sector = vmulq_f32(theta, s.sector_scale);
+
+    uint32x4_t ok_ring, ok_sector, ok_height;
+    const float32x4_t ring = index_neon(a_ring, s.ring_margin, s.ring_margin_hi, ok_ring);
+    const float32x4_t sector =
+        index_neon(a_sector, s.sector_margin, s.sector_margin_hi, ok_sector);
+    const float32x4_t height =
+        index_neon(a_height, s.height_margin, s.height_margin_hi, ok_height);
+    const uint32x4_t ok = vandq_u32(vandq_u32(ok_ring, vcgtq_f32(a_ring, s.ring_hi)),
+                                    vandq_u32(ok_sector, ok_height));
+    const uint32x4_t drop =
+        vorrq_u32(vorrq_u32(vcltq_f32(a_ring, s.ring_lo), vcgtq_f32(a_ring, s.ring_max_out)),
+                  vorrq_u32(vcltq_f32(a_height, s.height_lo_out),
+                            vcgtq_f32(a_height, s.height_max_out)));
+    const float32x4_t cell_f = vfmaq_f32(sector, vfmaq_f32(ring, height, s.rings), s.sectors);
+    const int32x4_t cell = vcvtq_s32_f32(cell_f);
+    // ok ? cell : kExact, then kDrop (all ones) wherever surely outside.
+    const int32x4_t code = vbslq_s32(ok, cell, vdupq_n_s32(kExact));
+    return vorrq_s32(code, vreinterpretq_s32_u32(drop));
+}
+
+void fast_codes_neon(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
+                     int32_t* codes) {
+    const BinningNeon s(b);
+    int i = 0;
+    for (; i + 4 <= n; i += 4) {
+        vst1q_s32(codes + i, codes_neon(vld1q_f32(xs + i), vld1q_f32(ys + i), vld1q_f32(zs + i), s));
+    }
+    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
+}
+
+// Packed x, y, z, w float rows: one de-interleaving load (LD4) per four points.
+void fast_codes_xyzw_neon(const float* rows, int n, const Binning& b, int32_t* codes) {
+    const BinningNeon s(b);
+    int i = 0;
+    for (; i + 8 <= n; i += 8) {  // two independent groups in flight
+        const float32x4x4_t p = vld4q_f32(rows + 4 * i);
+        const float32x4x4_t q = vld4q_f32(rows + 4 * i + 16);
+        vst1q_s32(codes + i, codes_neon(p.val[0], p.val[1], p.val[2], s));
+        vst1q_s32(codes + i + 4, codes_neon(q.val[0], q.val[1], q.val[2], s));
+    }
+    for (; i < n; ++i) {
+        const float* r = rows + 4 * i;
+        fast_codes(r, r + 1, r + 2, 1, b, codes + i);
+    }
+}
+#endif
+
 // Which fast-path kernel runs: the best the CPU has, capped by set_bev_kernel_level.
 std::atomic<int> g_level_cap{3};
 
@@ -556,7 +737,7 @@ int detected_level() {
                                  ? 2
                                  : 1;
     return level;
-#elif DISCO_BEV_SSE2
+#elif DISCO_BEV_SSE2 || DISCO_BEV_NEON
     return 1;
 #else
     return 0;
@@ -565,8 +746,8 @@ int detected_level() {
 
 // Stage 1 for one chunk: codes[i] for rows row[0 .. m).
 template <typename T>
-void chunk_codes(int level, const T* row, Eigen::Index rs, Eigen::Index cs, int m, const Binning& b,
-                 float* xs, float* ys, float* zs, int32_t* codes) {
+void chunk_codes(int level, bool small, const T* row, Eigen::Index rs, Eigen::Index cs, int m,
+                 const Binning& b, float* xs, float* ys, float* zs, int32_t* codes) {
     if constexpr (std::is_same_v<T, float>) {
         if (rs == 4 && cs == 1 && level >= 1) {
             const float* rows = row;
@@ -577,12 +758,30 @@ void chunk_codes(int level, const T* row, Eigen::Index rs, Eigen::Index cs, int 
 #if DISCO_BEV_SSE2
             return fast_codes_xyzw(rows, m, b, SimdBinning(b), codes);
 #endif
+#if DISCO_BEV_NEON
+            return fast_codes_xyzw_neon(rows, m, b, codes);
+#endif
         }
     }
-    for (int i = 0; i < m; ++i, row += rs) {
-        xs[i] = static_cast<float>(row[0]);
-        ys[i] = static_cast<float>(row[cs]);
-        zs[i] = static_cast<float>(row[2 * cs]);
+    if (rs == 4 && cs == 1) {
+        // The KITTI layout with constant strides, so the compiler vectorizes the copy.
+        for (int i = 0; i < m; ++i) {
+            xs[i] = static_cast<float>(row[4 * i]);
+            ys[i] = static_cast<float>(row[4 * i + 1]);
+            zs[i] = static_cast<float>(row[4 * i + 2]);
+        }
+    } else if (rs == 3 && cs == 1) {
+        for (int i = 0; i < m; ++i) {
+            xs[i] = static_cast<float>(row[3 * i]);
+            ys[i] = static_cast<float>(row[3 * i + 1]);
+            zs[i] = static_cast<float>(row[3 * i + 2]);
+        }
+    } else {
+        for (int i = 0; i < m; ++i, row += rs) {
+            xs[i] = static_cast<float>(row[0]);
+            ys[i] = static_cast<float>(row[cs]);
+            zs[i] = static_cast<float>(row[2 * cs]);
+        }
     }
 #if DISCO_BEV_AVX2
     if (level == 3) return fast_codes_simd16(xs, ys, zs, m, b, codes);
@@ -591,7 +790,11 @@ void chunk_codes(int level, const T* row, Eigen::Index rs, Eigen::Index cs, int 
 #if DISCO_BEV_SSE2
     if (level == 1) return fast_codes_simd(xs, ys, zs, m, b, SimdBinning(b), codes);
 #endif
-    fast_codes(xs, ys, zs, m, b, codes);
+#if DISCO_BEV_NEON
+    if (level == 1) return fast_codes_neon(xs, ys, zs, m, b, codes);
+#endif
+    if (small) return fast_codes_plain<true>(xs, ys, zs, m, b, codes);
+    fast_codes_plain<false>(xs, ys, zs, m, b, codes);
 }
 
 template <BEVMode Mode, typename T>
@@ -628,7 +831,7 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     for (Eigen::Index start = 0; start < n; start += kChunk) {
         const int m = static_cast<int>(std::min<Eigen::Index>(kChunk, n - start));
         const T* row = base + start * rs;
-        chunk_codes(level, row, rs, cs, m, b, xs, ys, zs, codes);
+        chunk_codes(level, small, row, rs, cs, m, b, xs, ys, zs, codes);
         row = base + start * rs;
         if constexpr (Mode == BEVMode::kOccupancy) {
             for (int i = 0; i < m; ++i, row += rs) {
@@ -717,6 +920,27 @@ int set_bev_kernel_level(int cap) {
 }
 
 int bev_kernel_level() { return std::min(detected_level(), g_level_cap.load()); }
+
+const char* bev_kernel_name(int level) {
+    if (level < 0) level = bev_kernel_level();
+    if (level > detected_level()) return "";
+    switch (level) {
+        case 0:
+            return "plain";
+        case 1:
+#if DISCO_BEV_NEON
+            return "neon";
+#else
+            return "sse2";
+#endif
+        case 2:
+            return "avx2";
+        case 3:
+            return "avx512";
+        default:
+            return "";
+    }
+}
 
 void polar_bev(const BEVPointsView<float>& points, const BEVConfig& config, float* out) {
     polar_bev_impl(points, config, out);

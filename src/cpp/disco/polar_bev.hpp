@@ -64,11 +64,17 @@ void polar_bev(const BEVPointsView<double>& points, const BEVConfig& config, flo
 void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig& config,
                      float* out, int threads = 0);
 
-// The fast-path kernel in use: 3 AVX-512F, 2 AVX2+FMA (both chosen at run time when
-// the CPU has them), 1 SSE2, 0 plain C++. Every kernel gives identical BEVs; capping
-// the level lets tests check each one and benchmarks compare them. Returns the
-// previous cap.
+// The fast-path kernel in use. x86-64: 3 AVX-512F, 2 AVX2+FMA (both chosen at run
+// time when the CPU has them), 1 SSE2 (the x86-64 baseline); aarch64: 1 NEON (part of
+// every aarch64 CPU); everywhere: 0 plain, portable C++ that the compiler vectorizes.
+// Every kernel gives identical BEVs; capping the level lets tests check each one and
+// benchmarks compare them. set_bev_kernel_level returns the previous cap. Grids of
+// 2^24 cells or more always use the plain kernel (the others form the cell index in
+// float).
 int set_bev_kernel_level(int cap);
 int bev_kernel_level();
+// "avx512", "avx2", "sse2", "neon" or "plain": the kernel of `level` on this build and
+// CPU (-1: the level in use); "" for a level that does not exist here.
+const char* bev_kernel_name(int level = -1);
 
 }  // namespace disco

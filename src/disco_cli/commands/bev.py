@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from disco_cli.commands.options import ScanFormatOpt, TopicOpt, model_option, output_option
 from disco_cli.console import fail, handle_errors, stderr, warn
-from disco_cli.readers import FormatName
 
 if TYPE_CHECKING:
     import numpy as np
@@ -126,20 +126,20 @@ def _write(output: Path, save: Any) -> None:
 
 @handle_errors
 def bev(
-    scan: Annotated[Path, typer.Argument(help="The scan file (.bin, .npy, .pcd, .ply).")],
-    output: Annotated[
+    scan: Annotated[
         Path,
-        typer.Option(
-            "--output", "-o", help="Where to write: .png for a picture, .npy for the raw array."
+        typer.Argument(
+            help="The scan file (.bin, .npy, .pcd, .ply), a scan in a ROS bag "
+            "(BAG#TOPIC@STAMP_NS), or a bag (its first scan)."
         ),
     ],
-    format: Annotated[
-        FormatName | None,
-        typer.Option("--format", "-f", help="Scan format; default: from the extension and folder."),
-    ] = None,
+    output: Annotated[
+        Path, output_option("Where to write: .png for a picture, .npy for the raw array.")
+    ],
+    scan_format: ScanFormatOpt = None,
     mode: Annotated[
         BEVMode | None,
-        typer.Option("--mode", "-m", help="What each cell holds; default: the BEV config's."),
+        typer.Option("--bev-mode", help="What each cell holds; default: the BEV config's."),
     ] = None,
     scale: Annotated[
         int | None,
@@ -157,12 +157,13 @@ def bev(
     ] = False,
     model: Annotated[
         str | None,
-        typer.Option(
-            "--model",
-            help="Use this model's BEV config (a name such as spectral, or a checkpoint), "
+        model_option(
+            "Use this model's BEV config (a name such as spectral, or a checkpoint), "
             "to see what it sees; default: the built-in BEV config.",
+            panel=None,
         ),
     ] = None,
+    topic: TopicOpt = None,
 ) -> None:
     """Write the polar BEV of one scan: check that your data is read correctly."""
     suffix = output.suffix.lower()
@@ -176,10 +177,12 @@ def bev(
     import numpy as np
 
     from disco_cli.bev import BEVConfig, polar_bev
-    from disco_cli.readers import guess_format, read_scan
+    from disco_cli.readers import guess_format, is_bag, list_scans, read_scan
 
-    points = read_scan(scan, format=format)
-    fmt = format.value if format else guess_format(scan)
+    if is_bag(scan):
+        scan = list_scans(scan, topic=topic)[0]
+    points = read_scan(scan, format=scan_format)
+    fmt = scan_format.value if scan_format else guess_format(scan)
     if model is not None:
         from disco_cli.model import load_model
 

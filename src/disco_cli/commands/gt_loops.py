@@ -12,8 +12,14 @@ from typing import Annotated
 
 import typer
 
-from disco_cli.commands.options import OutputFormatOpt
-from disco_cli.console import RowWriter, fail, handle_errors
+from disco_cli.commands.options import (
+    CalibOpt,
+    ExtrinsicOpt,
+    OutputFormatOpt,
+    PosesFormatOpt,
+    pose_options,
+)
+from disco_cli.console import RowWriter, fail, handle_errors, stderr
 
 COLUMNS = ["query_seq", "query", "match_seq", "match", "distance_m", "yaw_deg"]
 
@@ -23,7 +29,9 @@ def gt_loops(
     seqs: Annotated[
         list[Path],
         typer.Argument(
-            help="KITTI-style folders, each with poses.txt.", exists=True, file_okay=False
+            help="Sequence folders, each with its pose file (poses.txt, global_pose.csv, ...).",
+            exists=True,
+            file_okay=False,
         ),
     ],
     radius: Annotated[float, typer.Option("--radius", min=0.0, help="Revisit radius (m).")] = 3.0,
@@ -35,32 +43,32 @@ def gt_loops(
             help="Within one sequence: pair frames at least this far apart.",
         ),
     ] = 50,
-    calib: Annotated[
-        bool,
-        typer.Option(
-            "--calib/--no-calib", help="Use a calib.txt beside poses.txt (KITTI camera poses)."
-        ),
-    ] = True,
+    poses_format: PosesFormatOpt = None,
+    calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
     fmt: OutputFormatOpt = None,
 ) -> None:
     """List true revisit pairs (ground truth) within or between sequences."""
     from disco_cli.poses import (
+        find_pose_file,
         gt_pairs,
         gt_pairs_within,
         pair_distances,
-        read_kitti_poses,
+        read_poses,
         relative_yaw_deg,
     )
 
     if not seqs:
         raise fail("give at least one sequence folder")
+    opts = pose_options(poses_format, calib, extrinsic, None)
+    del opts["max_time_gap"]
     poses = []
     for seq in seqs:
-        if not (seq / "poses.txt").is_file():
-            raise fail(f"{seq}: no poses.txt")
-        c = seq / "calib.txt"
-        use = c if calib and c.is_file() else None
-        poses.append(read_kitti_poses(seq / "poses.txt", calib=use))
+        found = find_pose_file(seq)
+        if found is None:
+            raise fail(f"{seq}: no poses.txt (nor global_pose.csv, groundtruth_*.csv)")
+        # Every row of the pose file, in the LiDAR's frame; indices are the file's rows.
+        poses.append(read_poses(found, **opts)[1])
 
     writer = RowWriter(COLUMNS, fmt, digits=3)
     if len(seqs) == 1:
@@ -69,9 +77,11 @@ def gt_loops(
         jobs = [
             (q, m, gt_pairs(poses[q], poses[m], radius)) for q in range(len(seqs)) for m in range(q)
         ]
+    total = 0
     for q, m, pairs in jobs:
         if len(pairs) == 0:
             continue
+        total += len(pairs)
         dist = pair_distances(poses[q], poses[m], pairs)
         yaw = relative_yaw_deg(poses[m][pairs[:, 1]], poses[q][pairs[:, 0]])
         rows = [
@@ -86,3 +96,6 @@ def gt_loops(
             for (i, j), d, y in zip(pairs, dist, yaw)
         ]
         writer.write(rows, title=f"{seqs[q]} -> {seqs[m]}: {len(rows)} revisit pairs")
+    if total == 0:
+        writer.write([])  # the header: "no revisit" is an answer too
+    stderr.print(f"{total} revisit pairs within {radius:g} m", soft_wrap=True)

@@ -35,7 +35,7 @@ def info(
     """Show a map database's scans, model, configuration and size."""
     import json
 
-    from disco_cli.console import RowWriter
+    from disco_cli.console import OutputFormat, RowWriter, resolve_format
     from disco_cli.database import Database
 
     with Database.open(db_path) as db:
@@ -56,9 +56,14 @@ def info(
         problems = db.check() if check else []
         if check:
             rows.append(("check", "ok" if not problems else f"{len(problems)} problems"))
-    RowWriter(["field", "value"], fmt, title=str(db_path)).write(
-        {"field": k, "value": v} for k, v in rows
-    )
+    if resolve_format(fmt) is OutputFormat.jsonl:
+        # One object: the fields as keys, the configurations as objects rather than text.
+        record = {k: json.loads(v) if k.endswith("_config") else v for k, v in rows}
+        RowWriter(list(record), fmt).write([record])
+    else:
+        RowWriter(["field", "value"], fmt, title=str(db_path)).write(
+            {"field": k, "value": v} for k, v in rows
+        )
     for p in problems[:20]:
         stderr.print(f"[bold red]problem:[/] {db_path}: {p}", soft_wrap=True)
     if len(problems) > 20:

@@ -1,8 +1,21 @@
-"""Options that several commands share, declared once so that they read the same everywhere."""
+"""Options that several commands share, declared once so that they read the same everywhere.
+
+The vocabulary (tests/test_cli_options.py walks every command and holds it):
+
+- `--format`: the OUTPUT format of result rows (table, tsv, jsonl); nothing else.
+- `--scan-format`: the INPUT scan format (kitti, nclt, npy, pcd, ply).
+- `-m` is `--model`, `-d` is `--db`, `-k` is `--topk`, `-o` is `--output`: a short
+  flag means one thing in every command.
+- `--calib FILE|none`: a KITTI calib.txt; `none` switches off the one beside poses.txt.
+
+Flags that every command spells the same but whose help differs per command are
+factories (`model_option(help)`) used as `Annotated[str, model_option("...")]`.
+"""
 
 from __future__ import annotations
 
-from typing import Annotated, Optional
+from pathlib import Path
+from typing import Annotated, Any, Optional
 
 import typer
 
@@ -21,12 +34,77 @@ OutputFormatOpt = Annotated[
     ),
 ]
 
+
+def model_option(help: str, panel: str | None = PANEL_RUN) -> Any:
+    """`--model/-m NAME|PATH`."""
+    return typer.Option("--model", "-m", help=help, rich_help_panel=panel)
+
+
+def db_option(help: str, panel: str | None = None) -> Any:
+    """`--db/-d FILE`: a map database."""
+    return typer.Option("--db", "-d", help=help, rich_help_panel=panel)
+
+
+def topk_option(help: str, max: int = 10000, panel: str | None = None) -> Any:
+    """`--topk/-k N`."""
+    return typer.Option("--topk", "-k", min=1, max=max, help=help, rich_help_panel=panel)
+
+
+def output_option(help: str, panel: str | None = None) -> Any:
+    """`--output/-o FILE`: a file the command writes (its type from the suffix)."""
+    return typer.Option("--output", "-o", help=help, rich_help_panel=panel)
+
+
+def calib_option(help: str, panel: str | None = None) -> Any:
+    """`--calib FILE|none`."""
+    return typer.Option("--calib", metavar="FILE|none", help=help, rich_help_panel=panel)
+
+
+def calib_file(given: Path | None, poses_file: Path | None) -> Path | None:
+    """The calib.txt to apply: `--calib FILE`, none for `--calib none`, else the
+    calib.txt beside the poses file when there is one."""
+    if given is not None:
+        return None if str(given).lower() == "none" else given
+    if poses_file is not None:
+        beside = Path(poses_file).parent / "calib.txt"
+        if beside.is_file():
+            return beside
+    return None
+
+
 ScanFormatOpt = Annotated[
     Optional[FormatName],
     typer.Option(
         "--scan-format",
         help="Scan format; default: from the extension and folder.",
         rich_help_panel=PANEL_RUN,
+    ),
+]
+ScanRootOpt = Annotated[
+    Optional[Path],
+    typer.Option(
+        "--scan-root",
+        file_okay=False,
+        help="Where the database's scans are now, when neither their stored absolute "
+        "path nor their path relative to the database finds them (a map mounted elsewhere).",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
+TopicOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--topic",
+        help="ROS bags: the sensor_msgs/PointCloud2 topic to read; default: the bag's only one.",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
+PoseTopicOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--pose-topic",
+        help="ROS bags: the scans' poses from this nav_msgs/Odometry or "
+        "geometry_msgs/PoseStamped topic of the bag, interpolated at each scan's stamp.",
+        rich_help_panel="Poses",
     ),
 ]
 WorkersOpt = Annotated[
@@ -58,8 +136,118 @@ def apply_rerank(model: object, rerank: int | None) -> None:
     """Set the model's re-ranking depth when --rerank was given."""
     if rerank is None:
         return
-    if rerank > 0 and not hasattr(model, "rerank"):
-        from disco_cli.errors import DiscoError
+    from disco_cli.search import check_rerank
 
-        raise DiscoError(f"model {getattr(model, 'name', '?')} cannot re-rank; use --rerank 0")
-    model.rerank_candidates = rerank  # type: ignore[attr-defined]
+    model.rerank_candidates = check_rerank(model, rerank)  # type: ignore[attr-defined]
+
+
+def opt(*flags: str, help: str, panel: str | None = None, **kw: Any) -> Any:
+    """A typer.Option declared in one call: flags, help text, help panel."""
+    return typer.Option(*flags, help=help, rich_help_panel=panel, **kw)
+
+
+BatchOpt = Annotated[
+    int, opt("--batch", help="Scans per network batch.", panel=PANEL_RUN, min=1, max=4096)
+]
+TimesOpt = Annotated[
+    Optional[Path],
+    opt(
+        "--times",
+        help="Timestamps (s), one per scan; default: times.txt beside the scans.",
+        panel=PANEL_RUN,
+    ),
+]
+ExcludeFramesOpt = Annotated[
+    Optional[int],
+    opt(
+        "--exclude-frames",
+        min=1,
+        help="Search only scans at least this many frames before the query.",
+    ),
+]
+ExcludeSecondsOpt = Annotated[
+    Optional[float],
+    opt(
+        "--exclude-seconds",
+        min=0.0,
+        help="Search only scans at least this many seconds before the query (needs times).",
+    ),
+]
+
+
+# Pose files: one vocabulary for every command that reads poses (docs/formats.md, "Pose files").
+PANEL_POSES = "Poses"
+PosesFormatOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--poses-format",
+        help="kitti, tum, nclt, mulran, oxford or kitti360; default: from the file's name "
+        "and content.",
+        rich_help_panel=PANEL_POSES,
+    ),
+]
+CalibOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--calib",
+        help="KITTI calib.txt (or KITTI-360 calibration/ folder) taking the poses to the "
+        "LiDAR; default: calib.txt beside poses.txt when it exists; 'none' keeps the poses "
+        "as stored.",
+        rich_help_panel=PANEL_POSES,
+    ),
+]
+ExtrinsicOpt = Annotated[
+    Optional[Path],
+    typer.Option(
+        "--extrinsic",
+        help="A 4 x 4 text file: the LiDAR's pose in the pose file's frame, applied after "
+        "the calibration.",
+        rich_help_panel=PANEL_POSES,
+    ),
+]
+MaxTimeGapOpt = Annotated[
+    Optional[float],
+    typer.Option(
+        "--max-time-gap",
+        min=0.0,
+        help="Seconds: a scan farther than this from the poses around it gets no pose; "
+        "default: 3 median periods of the pose file.",
+        rich_help_panel=PANEL_POSES,
+    ),
+]
+
+
+def pose_options(
+    poses_format: str | None, calib: str | None, extrinsic: Path | None, max_time_gap: float | None
+) -> dict:
+    """The keyword arguments of `disco_cli.poses.ScanPoser` from the four options above."""
+    from disco_cli.poses.scans import calib_arg
+
+    return {
+        "poses_format": poses_format,
+        "calib": calib_arg(calib),
+        "extrinsic": extrinsic,
+        "max_time_gap": max_time_gap,
+    }
+
+
+ProtocolOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--protocol",
+        help="The DiSCO paper's protocol on a dataset folder: nclt, mulran or oxford "
+        "(docs/datasets.md).",
+        rich_help_panel="Protocol",
+    ),
+]
+
+OxfordScaleOpt = Annotated[
+    Optional[float],
+    typer.Option(
+        "--oxford-scale",
+        min=0.001,
+        help="Metres per unit of PointNetVLAD's normalized Oxford submaps, with --protocol "
+        "oxford; default 20 (docs/datasets.md).",
+        rich_help_panel="Protocol",
+    ),
+]

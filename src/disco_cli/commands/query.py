@@ -3,52 +3,41 @@
 Queries stream: each scan's matches are written and flushed as soon as they are
 ready, so `find . -name '*.bin' | disco query - --db map.db | head` works. A scan
 that cannot be read gets one error line on stderr; the others go on, and the exit
-status is 1 at the end.
+status is 1 at the end. The work is `Map.query_files` (disco_cli/map.py).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Optional
+from typing import Annotated, Optional
 
 import typer
 
 from disco_cli.commands.options import (
-    PANEL_RUN,
+    CalibOpt,
     DeviceOpt,
+    ExtrinsicOpt,
+    MaxTimeGapOpt,
     OutputFormatOpt,
+    PosesFormatOpt,
     RerankOpt,
     ScanFormatOpt,
+    ScanRootOpt,
+    TopicOpt,
     WorkersOpt,
     apply_rerank,
+    db_option,
+    model_option,
+    opt,
+    pose_options,
+    topk_option,
 )
-from disco_cli.console import error, fail, handle_errors
-
-if TYPE_CHECKING:
-    from disco_cli.database import Database
+from disco_cli.console import error, fail, handle_errors, warn
 
 COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
-POSE_COLUMNS = ["dx", "dy", "dz", "fitness", "accepted"]
+POSE_COLUMNS = ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "accepted"]
 PANEL_POSE = "Relative pose"
 PANEL_FILTER = "Filters"
-
-
-def open_for_model(db_path: Path, model: str | None, device: str) -> tuple[Database, Any]:
-    """The database and the model it was built with (`model` overrides the stored name,
-    e.g. a checkpoint path); refuses a model other than the database's."""
-    from disco_cli.database import Database, ModelInfo
-    from disco_cli.errors import DatabaseError
-    from disco_cli.model import MODELS, load_model
-
-    db = Database.open(db_path)
-    name = model or db.meta.get("model_source") or db.model.name
-    if model is None and name not in MODELS and not Path(name).is_file():
-        raise DatabaseError(
-            db_path, f"built with the checkpoint model '{db.model.name}'; pass --model PATH"
-        )
-    net = load_model(name, device=device)
-    db.check_model(ModelInfo.of(net))
-    return db, net
 
 
 @handle_errors
@@ -56,239 +45,138 @@ def query(
     scans: Annotated[
         list[str],
         typer.Argument(
-            help="Scan files, or - to read scan paths from stdin (one per line).",
+            help="Scan files, folders of scans (as for build-db), ROS bags (each of their "
+            "scans; one as BAG#TOPIC@STAMP_NS), or - to read scan paths from stdin (one per line).",
             show_default=False,
         ),
     ],
-    db_path: Annotated[
-        Path, typer.Option("--db", "-d", help="The map database (from disco build-db).")
-    ] = Path("map.db"),
-    topk: Annotated[
-        int, typer.Option("--topk", "-k", min=1, max=10000, help="Matches per query.")
-    ] = 10,
+    db_path: Annotated[Path, db_option("The map database (from disco build-db).")] = Path("map.db"),
+    topk: Annotated[int, topk_option("Matches per query.")] = 10,
     fmt: OutputFormatOpt = None,
     exclude_radius: Annotated[
         Optional[float],
-        typer.Option(
+        opt(
             "--exclude-radius",
             min=0.0,
-            help="Drop matches whose "
-            "stored pose is within this many metres (x, y) of the "
-            "query's pose (needs --query-poses).",
-            rich_help_panel=PANEL_FILTER,
+            panel=PANEL_FILTER,
+            help="Drop matches whose stored "
+            "pose is within this many metres (x, y) of the query's pose (needs --query-poses).",
         ),
     ] = None,
     query_poses: Annotated[
         Optional[Path],
-        typer.Option(
+        opt(
             "--query-poses",
-            help="KITTI poses of the query scans: row i "
-            "for the i-th scan, or by frame number in the file name.",
-            rich_help_panel=PANEL_FILTER,
+            panel=PANEL_FILTER,
+            help="Poses of the query scans (KITTI: row i for the i-th scan, or by frame number "
+            "in the file name; other formats by time).",
         ),
     ] = None,
-    calib: Annotated[
-        Optional[Path],
-        typer.Option(
-            "--calib", help="KITTI calib.txt for --query-poses.", rich_help_panel=PANEL_FILTER
-        ),
-    ] = None,
+    poses_format: PosesFormatOpt = None,
+    calib: CalibOpt = None,
+    extrinsic: ExtrinsicOpt = None,
+    max_time_gap: MaxTimeGapOpt = None,
     max_distance: Annotated[
         Optional[float],
-        typer.Option(
+        opt(
             "--max-distance",
             min=0.0,
+            panel=PANEL_FILTER,
             help="Drop matches with a distance above this (the `distance` column).",
-            rich_help_panel=PANEL_FILTER,
         ),
     ] = None,
     pose: Annotated[
         bool,
-        typer.Option(
+        opt(
             "--pose",
+            panel=PANEL_POSE,
             help="Also estimate the full relative pose of each match "
-            "(phase correlation + ICP on the points): adds dx, dy, dz, fitness, "
-            "accepted.",
-            rich_help_panel=PANEL_POSE,
+            "(phase correlation + ICP on the points): yaw_deg becomes the refined yaw, and "
+            "roll_deg, pitch_deg, dx, dy, dz, fitness, accepted are added (JSON lines also carry "
+            "the 4 x 4 T).",
         ),
     ] = False,
     verify: Annotated[
         bool,
-        typer.Option(
+        opt(
             "--verify",
+            panel=PANEL_POSE,
             help="Keep only matches whose relative pose is accepted (implies --pose).",
-            rich_help_panel=PANEL_POSE,
         ),
     ] = False,
     model: Annotated[
         Optional[str],
-        typer.Option(
-            "--model",
-            "-m",
-            help="The model; default: the one that "
-            "built the database (needed for checkpoint paths).",
-            rich_help_panel=PANEL_RUN,
+        model_option(
+            "The model; default: the one that built the database (needed for checkpoint paths)."
         ),
     ] = None,
     scan_format: ScanFormatOpt = None,
+    topic: TopicOpt = None,
+    scan_root: ScanRootOpt = None,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
-    from disco_cli.errors import DiscoError, PoseFileError
-    from disco_cli.pipeline import check_device, embed_stream, load_stream, pose_rows, stdin_paths
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.map import Map
+    from disco_cli.pipeline import QueryPoses, stdin_paths
+    from disco_cli.readers import is_bag, list_scans
 
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --query-poses")
-    check_device(device)
-    db, net = open_for_model(db_path, model, device)
-    apply_rerank(net, rerank)
-    ids, sigs = db.signatures()
-    index = SignatureIndex(sigs)
-    db_xy = None
-    q_rows = None
-    if exclude_radius is not None:
-        from disco_cli.poses import read_kitti_poses
-
-        db_xy = db.poses()[0][:, :2]
-        q_rows = pose_rows(read_kitti_poses(query_poses, calib))
-
-    def paths():
-        for s in scans:
-            if s == "-":
-                yield from stdin_paths()
-            else:
-                yield s
-
-    n_args = None if "-" in scans else len(scans)
     with_pose = pose or verify
     # A table is titled by its query, so its rows need not repeat the path.
-    writer = RowWriter(COLUMNS + (POSE_COLUMNS if with_pose else []), fmt, table_omit=["query"])
-    failed = 0
-    match_points = PointCache()
-    loaded = load_stream(
-        paths(),
-        net.bev_config,
-        workers=workers,
-        prefetch=2 * workers,
-        scan_format=scan_format.value if scan_format is not None else None,
-        keep_points=with_pose,
-    )
-    try:
-        for chunk in embed_stream(loaded, net, batch=1):
-            for item in chunk.errors:
-                error(str(item.error))
-                failed += 1
-            for j, item in enumerate(chunk.items):
-                exclude = None
-                try:
-                    if q_rows is not None:
-                        exclude = _exclusion(
-                            item.index,
-                            item.path,
-                            q_rows,
-                            n_args,
-                            db_xy,
-                            exclude_radius,
-                            str(query_poses),
-                        )
-                except PoseFileError as exc:
-                    error(str(exc))
-                    failed += 1
-                    continue
-                try:
-                    matches = match_queries(
-                        index,
-                        ids,
-                        db,
-                        net,
-                        chunk.signatures[j : j + 1],
-                        chunk.features[j : j + 1],
-                        topk,
-                        exclude=exclude,
-                        max_distance=max_distance,
-                    )[0]
-                except DiscoError as exc:
-                    error(str(exc))
-                    failed += 1
-                    continue
-                rows = [
-                    {
-                        "query": item.path,
-                        "rank": m.rank,
-                        "match": m.path,
-                        "match_id": m.match_id,
-                        "distance": m.distance,
-                        "yaw_deg": m.yaw_deg,
-                    }
-                    for m in matches
-                ]
-                if with_pose:
-                    from disco_cli.relative_pose import estimate_relative_pose
+    columns = COLUMNS + (POSE_COLUMNS if with_pose else [])
+    writer = RowWriter(columns, fmt, table_omit=["query"])
+    keys = columns + (["T"] if with_pose else [])  # JSON lines carry the whole T
+    fmt_name = scan_format.value if scan_format is not None else None
 
-                    kept = []
-                    for row in rows:
-                        try:
-                            rp = estimate_relative_pose(
-                                item.points, match_points.get(row["match"]), row["yaw_deg"]
-                            )
-                        except DiscoError as exc:
-                            error(f"{row['match']}: no relative pose ({exc})")
-                            failed += 1
-                            continue
-                        row.update(
-                            dx=rp.dx, dy=rp.dy, dz=rp.dz, fitness=rp.fitness, accepted=rp.accepted
-                        )
-                        if rp.accepted or not verify:
-                            kept.append(row)
-                    rows = kept
-                    item.points = None
-                writer.write(rows, title=item.path)
-    finally:
-        loaded.close()
-        db.close()
+    # A folder or a bag is expanded like build-db's (DIR/velodyne/, a folder of scans).
+    def expand(a: str) -> list[str]:
+        listed = a != "-" and (is_bag(a) or Path(a).is_dir())
+        return [str(f) for f in list_scans(a, fmt_name, topic)] if listed else [a]
+
+    given = [f for a in scans for f in expand(a)]
+    paths = (p for s in given for p in (stdin_paths() if s == "-" else [s]))
+    failed = 0
+    with Map.open(db_path, model=model, device=device, scan_root=scan_root) as m:
+        m.on_missing_scan = warn
+        apply_rerank(m.model, rerank)
+        exclude, poses_of = None, None
+        if exclude_radius is not None:  # the query's own scan, and those near its pose
+            opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
+            # Scans in a bag go by the time in their names, scans from stdin one by one.
+            known = None if "-" in given or any(map(is_bag, scans)) else given
+            poses_of = QueryPoses(query_poses, opts, known, warn=error)
+            exclude = lambda i, p: m.near(poses_of(i, p)[:2], exclude_radius, p)  # noqa: E731
+        results = m.query_files(
+            paths,
+            topk=topk,
+            pose=with_pose,
+            exclude=exclude,
+            max_distance=max_distance,
+            workers=workers,
+            scan_format=fmt_name,
+        )
+        for res in results:
+            if res.error is not None:
+                error(str(res.error))
+                failed += 1
+                continue
+            rows = []
+            for mt in res.matches:
+                if with_pose and mt.T is None and mt.accepted is False:
+                    error(f"{m.shown(mt.name)}: {mt.reason}")
+                    failed += 1
+                    continue
+                if verify and not mt.accepted:
+                    continue
+                # A match whose scan is missing keeps its row, with the pose columns empty.
+                row = {**mt.as_dict(), "query": res.name, "match": m.shown(mt.name)}
+                rows.append({k: row.get(k) for k in keys})
+            writer.write(rows, title=res.name)
+    if poses_of is not None and poses_of.missing:
+        error(f"{poses_of.missing} queries had no pose: only their own scan was excluded")
     if failed:
         raise typer.Exit(1)
-
-
-class PointCache:
-    """The points of the last few match scans read (a query's matches often repeat)."""
-
-    def __init__(self, size: int = 32):
-        from collections import OrderedDict
-
-        self.size = size
-        self._cache: OrderedDict = OrderedDict()
-
-    def get(self, path: str) -> Any:
-        from disco_cli.readers import read_scan
-
-        if path in self._cache:
-            self._cache.move_to_end(path)
-            return self._cache[path]
-        points = read_scan(path)
-        self._cache[path] = points
-        if len(self._cache) > self.size:
-            self._cache.popitem(last=False)
-        return points
-
-
-def _exclusion(
-    index: int, path: str, q_rows: Any, n_args: int | None, db_xy: Any, radius: float, source: str
-) -> Any:
-    import numpy as np
-
-    from disco_cli.errors import PoseFileError
-    from disco_cli.pipeline import frame_rows
-
-    if n_args is not None and n_args == len(q_rows):
-        row = index
-    else:
-        row = int(frame_rows([path], len(q_rows), source)[0])
-    if row >= len(q_rows):
-        raise PoseFileError(f"{source}: no pose for query {path}")
-    d = np.hypot(db_xy[:, 0] - q_rows[row, 0], db_xy[:, 1] - q_rows[row, 1])
-    return d <= radius  # unknown stored poses give NaN: never excluded

@@ -16,13 +16,6 @@ import typer
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
-class SensorName(str, Enum):
-    hdl32 = "hdl32"
-    hdl64 = "hdl64"
-    vlp16 = "vlp16"
-    os1_64 = "os1-64"
-
-
 class Style(str, Enum):
     grid = "grid"
     suburban = "suburban"
@@ -78,8 +71,13 @@ def simulate(
         float, typer.Option("--step-m", min=0.05, help="Mean distance driven between scans (m).")
     ] = 1.0,
     sensor: Annotated[
-        SensorName, typer.Option("--sensor", help="Beam pattern to simulate.")
-    ] = SensorName.hdl32,
+        str,
+        typer.Option(
+            "--sensor",
+            help="Beam pattern to simulate: hdl32, hdl64, vlp16, os1-64, or a made-up "
+            "uniform-N or hdl64like-N (N = 16..128 beams; see docs/simulator.md).",
+        ),
+    ] = "hdl32",
     seed: Annotated[int, typer.Option("--seed", min=0, help="World and noise seed.")] = 0,
     azimuth_step: Annotated[
         Optional[float],
@@ -216,7 +214,7 @@ def simulate(
             frames=frames,
             length_m=length_m,
             step_m=step_m,
-            sensor=sensor.value,
+            sensor=sensor,
             seed=seed,
             threads=threads,
             azimuth_step_deg=azimuth_step,
@@ -227,6 +225,6 @@ def simulate(
         )
     n = meta["sessions"][0]["frames"]
     stderr.print(
-        f"wrote {sessions} session(s) of {n} {sensor.value} scans to {out} "
+        f"wrote {sessions} session(s) of {n} {sensor} scans to {out} "
         f"(town of {meta['town']['streets']} streets, seed {seed})"
     )

@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from disco_cli.commands.options import PoseTopicOpt, ProtocolOpt, TopicOpt, output_option
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
@@ -39,14 +40,12 @@ def train(
         list[Path],
         typer.Argument(
             exists=True,
-            file_okay=False,
             show_default=False,
-            help="Sequence folders (velodyne/ + poses.txt), or folders of them (one world each).",
+            help="Sequence folders (velodyne/ + poses.txt) or ROS bags, or folders of them "
+            "(one world each).",
         ),
     ],
-    output: Annotated[
-        Path, typer.Option("--output", "-o", help="Checkpoint to write (after every epoch).")
-    ],
+    output: Annotated[Path, output_option("Checkpoint to write (after every epoch).")],
     epochs: Annotated[int, typer.Option(min=1, help="Epochs to train.")] = 10,
     steps: Annotated[
         int, typer.Option(min=0, help="Steps per epoch (0: one pass over the queries).")
@@ -125,6 +124,9 @@ def train(
         int, typer.Option(help="Random seed (sampling, augmentation, initialization).")
     ] = 0,
     threads: Annotated[int, typer.Option(min=0, help="Voxelizer threads (0: all cores).")] = 0,
+    protocol: ProtocolOpt = None,
+    topic: TopicOpt = None,
+    pose_topic: PoseTopicOpt = None,
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
     from disco_cli.bev import BEVConfig
@@ -140,6 +142,17 @@ def train(
         raise fail("--variants needs poses; --self-supervised makes its own augmented copies")
     if output.exists() and not resume:
         raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
+    if protocol is not None:
+        # The paper's training sessions and distances (disco_cli.protocols) replace
+        # DATA, --d-pos, --d-neg and --spacing.
+        from disco_cli.protocols import training_setup
+
+        if len(data) != 1:
+            raise fail("--protocol takes one dataset folder")
+        setup = training_setup(protocol, data[0])
+        data, d_pos, d_neg, spacing = setup.sessions, setup.d_pos, setup.d_neg, setup.spacing
+        # The provenance records what the protocol chose, as a command that reruns it.
+        ctx.params.update(d_pos=d_pos, d_neg=d_neg, spacing=spacing, protocol=None)
     command = _command_line(ctx, data, output)
     bev_config = BEVConfig()
     opts = TrainOptions(
@@ -179,6 +192,8 @@ def train(
                 threads=threads,
                 variants=copies,
                 on_progress=lambda done, total: bar.update(task, completed=done, total=total),
+                topic=topic,
+                pose_topic=pose_topic,
             )
         stderr.print(f"{what}: {len(result.anchors)} scans from {len(result.sessions)} sequences")
         return result

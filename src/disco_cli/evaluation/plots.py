@@ -31,11 +31,9 @@ def write_plots(directory: Path, ev: Evaluation, title: str = "") -> list[Path]:
     """Write the plots that this evaluation has data for; [] (and a warning) without matplotlib."""
     plt = _pyplot()
     if plt is None:
-        from rich.markup import escape
-
         from disco_cli.console import warn
 
-        warn(escape(INSTALL_HINT))  # "[plot]" is not rich markup
+        warn(INSTALL_HINT)  # warn() prints "[plot]" as it is, not as rich markup
         return []
     directory = Path(directory)
     written = []

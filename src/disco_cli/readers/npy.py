@@ -29,6 +29,12 @@ def read(path: Path) -> np.ndarray:
         # nearly anything (ValueError, SyntaxError, TokenError, EOFError...).
         reason = f"not a readable .npy array ({type(exc).__name__}: {exc})"
         raise ScanReadError(path, reason) from None
+    return from_array(arr, path)
+
+
+def from_array(arr: np.ndarray, path: str | Path) -> np.ndarray:
+    """An array as a float32 `N x 4` scan, with the checks and messages of an .npy file
+    (the library API takes arrays through here; `path` names the array in errors)."""
     if arr.dtype.names:
         names = list(arr.dtype.names)
         missing = [c for c in ("x", "y", "z") if c not in names]

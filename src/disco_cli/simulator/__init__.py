@@ -2,16 +2,16 @@
 
 The code lives in modules named for their job: `session` (driving sessions, ray
 casting, noise, writing the files), `world` (the town: `layout`, `scenery` and
-`changes` between and within sessions), `routes` (where the car drives) and
-`sensors` (beam patterns).
+`changes` between sessions, `movers` within one), `robots` (how later sessions'
+robots differ), `routes` (where the car drives) and `sensors` (beam patterns).
 """
 
 from __future__ import annotations
 
 from disco_cli.simulator.params import ChangeParams
+from disco_cli.simulator.robots import RobotParams
 from disco_cli.simulator.sensors import SENSORS, Sensor, get_sensor
 from disco_cli.simulator.session import (
-    RobotParams,
     SimulatedSession,
     cast,
     finish_scan,

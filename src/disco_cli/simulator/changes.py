@@ -1,5 +1,5 @@
-"""What changes: between sessions (parked cars, small things, trees, foliage) and
-within a session (cars driving, cyclists riding, people walking).
+"""What changes between sessions: parked cars, small things, trees, foliage, hedges,
+fences and buildings (what moves within a session is in `movers`).
 
 A session's world is the static town plus that session's draw of the changeable
 things; `SessionWorld.at(t)` adds the movers where they are at time `t`.
@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from disco_cli.simulator.objects import BOX, CYLINDER, ELLIPSOID, Builder, Material, Prims, car
+from disco_cli.simulator.movers import Movers
+from disco_cli.simulator.objects import ELLIPSOID, Builder, Material, Prims, car
 from disco_cli.simulator.params import CHANGE_CLASSES
-from disco_cli.simulator.scenery import Scenery
 
 if TYPE_CHECKING:
     from disco_cli.simulator.world import Town
@@ -78,12 +78,13 @@ class SessionWorld:
         )
 
 
-class Changes(Scenery):
+class Changes(Movers):
     """Each session's draw of the changeable things, and the movers (a part of `Town`)."""
 
     objects: list[str]
     _pool_cache: _Pool | None
 
+    # -- the classic draw ---------------------------------------------------------
     def session_world(self, session: int) -> SessionWorld:
         """The static town plus this session's parked cars and changeable things."""
         from disco_cli import _core
@@ -118,143 +119,10 @@ class Changes(Scenery):
             self,
         )
 
-    def _movers(self, rng: np.random.Generator) -> np.ndarray:
-        """This session's traffic and walkers, one row each: street, heading (+-1), start
-        (m), speed (m/s), offset right of the heading (m), length, width, height,
-        reflectivity, kind (0 car, 1 person), span start, span length."""
-        p = self.params
-        rows = []
-        for k, s in enumerate(self.streets):
-            lo = self.node_clear[self.links[k][0]]
-            span = s.length - lo - self.node_clear[self.links[k][1]]
-            if span < 10:
-                continue
-            for heading in (1.0, -1.0):
-                for _ in range(rng.poisson(span * p.traffic_per_km / 1000)):
-                    rows.append(
-                        [
-                            k,
-                            heading,
-                            rng.uniform(0, span),
-                            rng.uniform(6, 14),
-                            rng.uniform(1.5, 2.1),
-                            rng.uniform(3.8, 5.2),
-                            rng.uniform(1.7, 2.0),
-                            rng.uniform(1.4, 2.0),
-                            rng.choice([0.08, 0.2, 0.5, 0.8]),
-                            0,
-                            lo,
-                            span,
-                        ]
-                    )
-                for _ in range(rng.poisson(span * p.pedestrians_per_km / 1000)):
-                    off = s.half_width + rng.uniform(0.4, max(0.5, s.sidewalk - 0.4))
-                    h = rng.uniform(1.5, 1.95)
-                    rows.append(
-                        [
-                            k,
-                            rng.choice([1.0, -1.0]),
-                            rng.uniform(0, span),
-                            rng.uniform(0.8, 1.7),
-                            heading * off,
-                            0.5,
-                            0.5,
-                            h,
-                            0.35,
-                            1,
-                            lo,
-                            span,
-                        ]
-                    )
-        return np.array(rows, np.float64).reshape(-1, 12)
-
-    def mover_rows(
-        self, movers: np.ndarray, t: float, xy: np.ndarray | None, keep_clear_m: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Primitive rows of the movers at time `t` (cars: body and cabin; people: a
-        cylinder); none within `keep_clear_m` of `xy`."""
-        k = movers[:, 0].astype(int)
-        heading, s0, speed, right = movers[:, 1], movers[:, 2], movers[:, 3], movers[:, 4]
-        a = np.array([self.streets[i].a for i in k]).reshape(-1, 2)
-        d = np.array([self.streets[i].dir for i in k]).reshape(-1, 2)
-        left = np.array([self.streets[i].left for i in k]).reshape(-1, 2)
-        along = movers[:, 10] + np.mod(s0 + heading * speed * t, movers[:, 11])
-        pos = a + d * along[:, None] - left * (heading * right)[:, None]
-        keep = np.ones(len(movers), bool)
-        if xy is not None:
-            keep = np.hypot(*(pos - np.asarray(xy)[:2]).T) > keep_clear_m
-        yaw = np.array([self.streets[i].yaw for i in k])
-        g = self.ground_z(pos[:, 0], pos[:, 1])
-        length, width, height = movers[:, 5], movers[:, 6], movers[:, 7]
-        rows, refl, drop = [], [], []
-        for i in np.flatnonzero(keep):
-            x, y = pos[i]
-            if movers[i, 9] == 0:  # a car: body, then a narrower cabin of glass
-                body = 0.55 * height[i]
-                rows.append(
-                    [
-                        BOX,
-                        x,
-                        y,
-                        g[i] + (0.25 + body) / 2,
-                        length[i] / 2,
-                        width[i] / 2,
-                        (body - 0.25) / 2,
-                        yaw[i],
-                        1.0,
-                    ]
-                )
-                refl.append(movers[i, 8])
-                drop.append(0.03)
-                rows.append(
-                    [
-                        BOX,
-                        x,
-                        y,
-                        g[i] + (body + height[i]) / 2,
-                        0.3 * length[i],
-                        0.45 * width[i],
-                        (height[i] - body) / 2,
-                        yaw[i],
-                        1.0,
-                    ]
-                )
-                refl.append(0.1)
-                drop.append(0.4)
-            elif movers[i, 9] == 2:  # a cyclist: bike and rider, seen side on
-                rows.append(
-                    [
-                        BOX,
-                        x,
-                        y,
-                        g[i] + height[i] / 2,
-                        length[i] / 2,
-                        width[i] / 2,
-                        height[i] / 2,
-                        yaw[i],
-                        1.0,
-                    ]
-                )
-                refl.append(movers[i, 8])
-                drop.append(0.1)
-            else:  # a person
-                rows.append(
-                    [CYLINDER, x, y, g[i] + height[i] / 2, 0.25, 0.25, height[i] / 2, 0.0, 1.0]
-                )
-                refl.append(movers[i, 8])
-                drop.append(0.05)
-        return (
-            np.array(rows, np.float64).reshape(-1, 9),
-            np.array(refl, np.float32),
-            np.array(drop, np.float32),
-        )
-
-    # -- the change model ----------------------------------------------------------
     def _pool(self) -> _Pool:
         """Every object any session may show, and which of them session 00 has."""
         if self._pool_cache is not None:
             return self._pool_cache
-        first = len(self.objects)
         prims = Prims()
         prims.extend(self.static)
         rng = np.random.default_rng([self.seed, 20])
@@ -292,8 +160,7 @@ class Changes(Scenery):
         table = np.array(prims.rows, np.float64).reshape(-1, 9)
         obj = np.array(prims.obj, np.int64)
         n = len(self.objects)
-        present0 = np.ones(n, bool)
-        present0[:first] = True  # objects of the static town
+        present0 = np.ones(n, bool)  # the static town's objects are there
         for o, here in present.items():
             present0[o] = here
         self._pool_cache = _Pool(
@@ -360,14 +227,11 @@ class Changes(Scenery):
             here = ids[pool.present0[ids]]
             for o in here[u[here, 0] < rate]:
                 out[int(o)] = names[min(int(np.searchsorted(cum, u[o, 1])), len(names) - 1)]
-            # As many new ones as go, where the class has places for them.
+            # About as many new ones as go, where the class has room for them (a car
+            # in an empty spot, a hedge where none stood, a construction site).
             latent = ids[~pool.present0[ids]]
             gone_share = sum(w for a, w in ACTIONS[cls] if a in GONE)
-            if len(latent) and cls != "cars":
-                q = min(1.0, rate * gone_share * len(here) / len(latent))
-                for o in latent[u[latent, 0] < q]:
-                    out[int(o)] = "new"
-            elif len(latent):  # a car parks in an empty spot
+            if len(latent):
                 q = min(1.0, rate * gone_share * len(here) / len(latent))
                 for o in latent[u[latent, 0] < q]:
                     out[int(o)] = "new"
@@ -430,37 +294,6 @@ class Changes(Scenery):
         return SessionWorld(
             caster, refl, drop, table, np.concatenate([movers, cyclists]), self, obj
         )
-
-    def _cyclists(self, rng: np.random.Generator) -> np.ndarray:
-        """This session's cyclists (mover rows of kind 2), near the right kerb."""
-        per_km = self.params.change.cyclists_per_km if self.params.change else 0.0
-        rows = []
-        for k, s in enumerate(self.streets):
-            lo = self.node_clear[self.links[k][0]]
-            span = s.length - lo - self.node_clear[self.links[k][1]]
-            if span < 10:
-                continue
-            for heading in (1.0, -1.0):
-                for _ in range(rng.poisson(span * per_km / 1000)):
-                    right = s.half_width - rng.uniform(0.6, 1.2)
-                    h = rng.uniform(1.6, 1.9)
-                    rows.append(
-                        [
-                            k,
-                            heading,
-                            rng.uniform(0, span),
-                            rng.uniform(3, 7),
-                            right,
-                            1.8,
-                            0.6,
-                            h,
-                            0.3,
-                            2,
-                            lo,
-                            span,
-                        ]
-                    )
-        return np.array(rows, np.float64).reshape(-1, 12)
 
 
 @dataclass

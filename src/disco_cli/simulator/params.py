@@ -63,11 +63,8 @@ class ChangeParams:
         return out
 
     def check(self, source: str = "change parameters") -> None:
-        bad = [
-            k
-            for k in ("fraction", *CHANGE_CLASSES)
-            if not 0.0 <= (self.rate(k) if k != "fraction" else self.fraction) <= 1.0
-        ]
+        given = {k: getattr(self, k) for k in ("fraction", *CHANGE_CLASSES)}
+        bad = [k for k, v in given.items() if v is not None and not 0.0 <= v <= 1.0]
         if bad:
             raise DiscoError(f"{source}: change {', '.join(bad)} must be within 0..1")
         if self.cyclists_per_km < 0:

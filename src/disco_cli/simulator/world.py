@@ -1,9 +1,10 @@
 """A procedural town for the simulated LiDAR: roads, buildings, walls, trees, poles, cars.
 
 `Town` puts together its parts, each in a module named for what it does:
-`layout` (street network, ground), `scenery` (what stands along the streets),
-`changes` (what differs between sessions, and what moves within one); the
-primitives and objects are in `objects`, the parameters in `params`.
+`layout` (street network, ground), `scenery` (what stands along the streets, as
+`styles` has it), `changes` (what differs between sessions), `movers` (what moves
+within one); the primitives and objects are in `objects`, the parameters in
+`params`.
 
 Everything is made of three primitives that the C++ ray caster knows (boxes
 turned about z, vertical cylinders, vertical ellipsoids) over a gently tilted

@@ -75,17 +75,39 @@ class TrainData:
         return table
 
 
+def _is_session(folder: Path) -> bool:
+    """A dataset session folder: a pose file beside scans (NCLT velodyne_sync/, MulRan
+    sensor_data/Ouster/, ...)."""
+    from disco_cli.poses import find_pose_file
+    from disco_cli.readers import list_scans
+
+    try:
+        return find_pose_file(folder) is not None and bool(list_scans(folder))
+    except DiscoError:
+        return False
+
+
 def expand_sequences(paths: list[Path]) -> list[Path]:
-    """Sequence folders: each path itself if it holds velodyne/, else its subfolders that do."""
+    """Sequence folders: each path itself if it holds velodyne/ (or is a ROS bag), else its
+    subfolders that do (and the bags in it)."""
+    from disco_cli.readers import is_bag
+
     out: list[Path] = []
     for p in paths:
         p = Path(p)
-        if not p.is_dir():
-            raise DiscoError(f"{p}: not a folder")
-        if (p / "velodyne").is_dir():
+        if is_bag(p):
             out.append(p)
             continue
-        subs = sorted(d for d in p.iterdir() if (d / "velodyne").is_dir())
+        if not p.is_dir():
+            raise DiscoError(f"{p}: not a folder")
+        if (p / "velodyne").is_dir() or _is_session(p):
+            out.append(p)
+            continue
+        subs = sorted(
+            d
+            for d in p.iterdir()
+            if is_bag(d) or (d.is_dir() and ((d / "velodyne").is_dir() or _is_session(d)))
+        )
         if not subs:
             raise DiscoError(f"{p}: no velodyne/ folder in it or in its subfolders")
         out.extend(subs)
@@ -99,16 +121,22 @@ def _compact(bevs: np.ndarray) -> np.ndarray:
     return bevs.astype(np.float16)
 
 
-def _read_poses(seq: Path) -> np.ndarray:
-    from disco_cli.poses import read_kitti_poses
+def _read_poses(seq: Path, scans: list[Path]) -> np.ndarray:
+    """LiDAR poses `[N, 4, 4]` of a sequence's scans from the pose file beside them
+    (`disco_cli.poses.poses_for_scans`; NaN for a scan without a pose, named in one warning)."""
+    from disco_cli.poses import find_pose_file, poses_for_scans
 
-    poses_file = seq / "poses.txt"
-    if not poses_file.is_file():
+    poses_file = find_pose_file(seq)
+    if poses_file is None:
         raise PoseFileError(
-            f"{poses_file}: missing (train with --self-supervised for data without poses)"
+            f"{seq / 'poses.txt'}: missing (train with --self-supervised for data without poses)"
         )
-    calib = seq / "calib.txt"
-    return read_kitti_poses(poses_file, calib if calib.is_file() else None)
+    T, report = poses_for_scans(scans, poses_file)
+    if report.warning():
+        from disco_cli.console import warn
+
+        warn(report.warning())
+    return T
 
 
 def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
@@ -158,13 +186,18 @@ def load_training_data(
     seed: int = 0,
     threads: int = 0,
     on_progress: Callable[[int, int], None] | None = None,
+    topic: str | None = None,
+    pose_topic: str | None = None,
     variants: int = 0,
     augment: AugmentConfig | None = None,
 ) -> TrainData:
-    """Read, voxelize and index every sequence (see the module docstring)."""
+    """Read, voxelize and index every sequence (see the module docstring).
+
+    A ROS bag is a sequence of its `topic`'s scans, posed from its `pose_topic` (scans
+    without a pose near their stamp are left out)."""
     from disco_cli.bev import polar_bev_batch
     from disco_cli.poses import xy_yaw
-    from disco_cli.readers import list_scans, read_scan
+    from disco_cli.readers import is_bag, list_scans, read_scan
 
     seqs = expand_sequences(paths)
     rng = np.random.default_rng(seed)
@@ -174,20 +207,36 @@ def load_training_data(
     plan: list[tuple[int, int, Path, list[Path], np.ndarray, np.ndarray]] = []
     groups: dict[str, int] = {}
     for sid, seq in enumerate(seqs):
-        scans = list_scans(seq)
+        scans = list_scans(seq, topic=topic)
         if not scans:
             raise DiscoError(f"{seq}: no scans")
-        if self_supervised:
+        if not self_supervised and is_bag(seq):
+            from disco_cli.readers.bags import bag_poses
+
+            if pose_topic is None:
+                raise PoseFileError(
+                    f"{seq}: a bag's poses come from --pose-topic (or train with --self-supervised)"
+                )
+            poses, _ = bag_poses([str(s) for s in scans], pose_topic)
+            posed = np.isfinite(poses[:, 0, 0])
+            scans = [s for s, ok in zip(scans, posed) if ok]
+            if not scans:
+                raise PoseFileError(f"{seq}: no scan has a pose on {pose_topic}")
+            x, y, yaw = xy_yaw(poses[posed])
+            xy = np.stack([x, y], axis=1)
+            heading = np.degrees(yaw)
+            gid = groups.setdefault(str(seq.resolve().parent), len(groups))
+        elif self_supervised:
             xy = np.zeros((len(scans), 2))
             heading = np.zeros(len(scans))
             gid = len(groups)
             groups[str(seq)] = gid
         else:
-            poses = _read_poses(seq)
-            if len(poses) != len(scans):
-                raise PoseFileError(
-                    f"{seq / 'poses.txt'}: {len(poses)} poses for {len(scans)} scans"
-                )
+            poses = _read_poses(seq, scans)
+            has = np.isfinite(poses[:, 0, 3])
+            scans, poses = [s for s, h in zip(scans, has) if h], poses[has]
+            if not scans:
+                raise PoseFileError(f"{seq}: no scan has a pose")
             x, y, yaw = xy_yaw(poses)
             xy = np.stack([x, y], axis=1)
             heading = np.degrees(yaw)

@@ -255,9 +255,14 @@ def train(
         prefix = "val" if val is not None else "train"
         entry.update({f"{prefix}_{key}": v for key, v in metrics.items()})
         history.append(entry)
+        # Numbered from 1 as the progress bar numbers it ("epoch 1/2"); the history keeps
+        # the 0-based index that `resume` reads.
         log(
-            " ".join(
-                f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in entry.items()
+            f"epoch {epoch + 1}/{opts.epochs} "
+            + " ".join(
+                f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                for k, v in entry.items()
+                if k != "epoch"
             )
         )
         save_checkpoint(

@@ -1,0 +1,179 @@
+"""The two evaluation runs, from scans and poses to an `Evaluation` (the paper's dataset
+settings that feed them are in `disco_cli/protocols.py`).
+
+- `multi_session`: the paper's protocol. Scans of one session are queried against a
+  map database of another; the database's stored poses are the ground truth.
+- `loop_closure`: the single-sequence protocol used on KITTI. Every scan against the
+  scans at least an exclusion window before it.
+
+Definitions of the metrics: docs/evaluation.md. `disco eval` and `disco eval-loops`
+read the inputs, call these and print or write the report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from disco_cli.errors import DatabaseError, PoseFileError
+
+__all__ = ["multi_session", "loop_closure", "exclusion_limits", "posed_scans"]
+
+
+def posed_scans(
+    paths: list[Any],
+    poses_file: Any,
+    pose_opts: dict,
+    warn: Callable[[str], None],
+    pose_topic: str | None = None,
+) -> tuple[list[Any], np.ndarray]:
+    """The scans that have a pose and their LiDAR poses: from a pose file
+    (`disco_cli.poses.ScanPoser`), or for scans in bags from the bags' `pose_topic` by
+    time. The others are named in one `warn` and left out of the evaluation."""
+    if pose_topic is not None:
+        from disco_cli.readers.bags import bag_poses
+
+        source = pose_topic
+        gap, extrinsic = pose_opts["max_time_gap"], pose_opts["extrinsic"]
+        T, missing = bag_poses([str(p) for p in paths], pose_topic, gap, extrinsic)
+        if missing:
+            warn(
+                f"{pose_topic}: {len(missing)} of {len(paths)} scans have no pose near their "
+                f"stamp (e.g. {missing[0]}) and are left out of the evaluation"
+            )
+    else:
+        from disco_cli.poses import ScanPoser
+
+        source = poses_file
+        T, report = ScanPoser(poses_file, **pose_opts).poses(paths)
+        if report.warning():
+            warn(report.warning() + " and left out of the evaluation")
+    keep = np.isfinite(T[:, 0, 3])
+    if not keep.any():
+        raise PoseFileError(f"{source}: none of the {len(paths)} scans has a pose")
+    return [p for p, k in zip(paths, keep) if k], T[keep]
+
+
+def multi_session(
+    paths: list[str],
+    query_poses: np.ndarray,
+    db: Any,
+    model: Any,
+    radius: float = 3.0,
+    topk: int = 25,
+    scan_format: str | None = None,
+    on_progress: Callable[[int], None] | None = None,
+    source: str = "query poses",
+) -> Any:
+    """Recall@1..topk, Recall@1%, PR AUC, F1max and yaw error of `paths` (with their
+    `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`."""
+    from disco_cli.evaluation.metrics import (
+        one_percent_n,
+        retrieval_evaluation,
+        within_radius,
+        wrap_deg,
+    )
+    from disco_cli.pipeline import embed_paths
+    from disco_cli.poses import xy_yaw
+    from disco_cli.search import SignatureIndex, match_queries
+
+    if len(query_poses) != len(paths):
+        raise PoseFileError(f"{source}: {len(query_poses)} poses for {len(paths)} query scans")
+    db_poses, _ = db.poses()
+    if not np.isfinite(db_poses[:, :2]).all():
+        raise DatabaseError(db.path, "some scans have no pose; build it with --poses")
+    ids, db_sigs = db.signatures()
+    sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
+    depth = max(topk, one_percent_n(len(ids)))
+    matches = match_queries(SignatureIndex(db_sigs), ids, db, model, sigs, feats, depth)
+
+    retrieved = np.full((len(paths), depth), -1, np.int64)
+    distances = np.full((len(paths), depth), np.inf)
+    yaw_est = np.full(len(paths), np.nan)
+    for i, found in enumerate(matches):
+        for m in found:
+            retrieved[i, m.rank - 1], distances[i, m.rank - 1] = m.row, m.distance
+        if found:
+            yaw_est[i] = found[0].yaw_deg
+    qx, qy, qyaw = xy_yaw(query_poses)
+    truth = within_radius(np.c_[qx, qy], db_poses[:, :2], radius)
+    top1 = np.maximum(retrieved[:, 0], 0)
+    # Ground-truth yaw of T_match^-1 T_query for planar poses: the heading difference.
+    yaw_true = wrap_deg(np.degrees(qyaw - db_poses[top1, 3]))
+    ev = retrieval_evaluation(retrieved, distances, truth, yaw_est, yaw_true)
+    # The search went deep enough for recall@1%; report recall@N up to the N asked for.
+    ev.metrics["recall@N"] = ev.metrics["recall@N"][:topk]
+    ev.metrics["topk"] = topk
+    ev.recall_curve = ev.recall_curve[:topk]
+    return ev
+
+
+def exclusion_limits(
+    n: int, exclude_frames: int | None, times: np.ndarray | None, seconds: float | None
+) -> np.ndarray:
+    """Scan i may match scans [0, limit[i]): at least `exclude_frames` frames back, or
+    (times given) at least `seconds` s back."""
+    if exclude_frames is not None:
+        # Scan i searches scans 0 .. i - N.
+        return np.maximum(np.arange(n) - exclude_frames + 1, 0)
+    assert times is not None and seconds is not None
+    return np.searchsorted(times, times - seconds, side="right")
+
+
+def loop_closure(
+    paths: list[str],
+    poses: np.ndarray,
+    limit: np.ndarray,
+    model: Any,
+    radius: float = 3.0,
+    scan_format: str | None = None,
+    on_progress: Callable[[int], None] | None = None,
+    source: str = "poses",
+) -> Any:
+    """Precision-recall, F1max and recall at 100% precision of loop closure along one
+    sequence (`[N, 4, 4]` poses; scan i searches scans [0, limit[i]))."""
+    from disco_cli.database import MatchRows
+    from disco_cli.evaluation.metrics import loop_evaluation, within_radius
+    from disco_cli.pipeline import embed_paths
+    from disco_cli.poses import relative_yaw_deg
+    from disco_cli.search import SignatureIndex, match_queries
+
+    n = len(paths)
+    if len(poses) != n:
+        raise PoseFileError(f"{source}: {len(poses)} poses for {n} scans")
+    sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
+
+    class _Memory:
+        """The scans of this run, standing in for a database in `match_queries`."""
+
+        def rows(self, ids: np.ndarray) -> MatchRows:
+            ids = np.asarray(ids, np.int64)
+            no_pose = np.full((len(ids), 4), np.nan)
+            return MatchRows(ids, [str(paths[i]) for i in ids], no_pose, feats[ids])
+
+    queries = np.flatnonzero(limit > 0)
+    matches = match_queries(
+        SignatureIndex(sigs),
+        np.arange(n),
+        _Memory(),
+        model,
+        sigs[queries],
+        feats[queries],
+        1,
+        limit=limit[queries],
+    )
+    xy = poses[:, :2, 3]
+    near = within_radius(xy[queries], xy, radius)
+    near &= np.arange(n)[None, :] < limit[queries][:, None]
+    has_true = near.any(axis=1)
+    dist = np.full(len(queries), np.nan)
+    top = np.zeros(len(queries), np.int64)
+    yaw_est = np.full(len(queries), np.nan)
+    for i, found in enumerate(matches):
+        if found:
+            dist[i], top[i], yaw_est[i] = found[0].distance, found[0].row, found[0].yaw_deg
+    correct = np.isfinite(dist) & near[np.arange(len(queries)), top]
+    yaw_true = relative_yaw_deg(poses[top], poses[queries])
+    return loop_evaluation(dist, correct, has_true, yaw_est, yaw_true)

@@ -1,0 +1,616 @@
+"""`Map`: a map database you add scans to and localize scans against, from Python.
+
+    with Map.create("map.db", model="default") as m:
+        m.add(points, name="scan-0", pose=T_world_sensor)      # N x 3 / N x 4 array
+    with Map.open("map.db") as m:
+        for match in m.query(points, topk=3, pose=True):
+            print(match.name, match.distance, match.yaw_deg, match.T)
+
+A map is the same SQLite file `disco build-db` writes (docs/database.md): one
+transaction per batch, so a crash keeps every finished batch, and readers opened
+meanwhile see a consistent state. Frames and units of the results: `localize.py`.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from disco_cli.database import Database, ModelInfo, ScanBatch
+from disco_cli.errors import DatabaseError, DiscoError
+from disco_cli.localize import Match, PointCache, as_match, refine_matches
+
+__all__ = ["Map", "AddResult", "Interrupted", "QueryResult", "model_for_database"]
+
+
+def model_for_database(db: Database, model: Any = None, device: str = "cpu") -> tuple[Any, str]:
+    """The model that built `db` and how it was named: `model` (a name, a checkpoint path
+    or a loaded model) when given, which must be the same; else the stored one."""
+    from disco_cli.model import MODELS, load_model
+
+    if model is not None and not isinstance(model, (str, Path)):
+        net, source = model, str(getattr(model, "name", "model"))
+    else:
+        source = str(model or db.meta.get("model_source") or db.model.name)
+        if model is None and source not in MODELS and not Path(source).is_file():
+            raise DatabaseError(
+                db.path, f"built with the checkpoint model '{db.model.name}'; pass --model PATH"
+            )
+        net = load_model(source, device=device)
+    db.check_model(ModelInfo.of(net))
+    return net, source
+
+
+def _model_source(model: Any) -> str:
+    """How `Map.open` finds the model again: a registry name or a checkpoint's full path."""
+    from disco_cli.model import MODELS
+
+    if not isinstance(model, (str, Path)):
+        return str(getattr(model, "name", "model"))
+    return str(model) if str(model) in MODELS else str(Path(model).resolve())
+
+
+def _load_model(model: Any, device: str) -> Any:
+    from disco_cli.model import load_model
+    from disco_cli.pipeline import check_device
+
+    check_device(device)
+    return load_model(model, device=device) if isinstance(model, (str, Path)) else model
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during `Map.add_files`. Every batch committed before it is stored (one
+    transaction each): `added` scans were added by this call; `added` is None when no
+    file was created."""
+
+    def __init__(self, added: int | None):
+        super().__init__()
+        self.added = added
+
+
+@dataclass
+class AddResult:
+    """What `Map.add_files` did."""
+
+    written: int = 0  # scans added
+    already: int = 0  # scans skipped because the map holds them already
+    bad: list[str] | None = None  # unreadable scans skipped (skip_bad=True)
+
+
+@dataclass
+class QueryResult:
+    """One query of `Map.query_files`: its matches, or the error that stopped it."""
+
+    index: int  # position in the input
+    name: str
+    matches: list[Match]
+    error: DiscoError | None = None
+
+
+class Map:
+    """A map database of scan signatures. Use `Map.create(path)` or `Map.open(path)`.
+
+    `len(map)` is the number of scans; `map.model` the model that embeds them. A map
+    opened read-only answers from a snapshot taken at its first query (`refresh()`
+    takes a new one), so a build appending at the same time never shows half a batch.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        db: Database | None,
+        model: Any,
+        source: str,
+        writable: bool,
+        overwrite: bool = False,
+    ):
+        self.path = path
+        self._db = db
+        self._model = model
+        self._source = source
+        self._writable = writable
+        self._overwrite = overwrite
+        self._closed = False
+        self._snapshot: tuple[np.ndarray, Any] | None = None  # ids, SignatureIndex
+        self._xy: np.ndarray | None = None  # stored x, y of the snapshot's scans
+        self._real: np.ndarray | None = None  # their files' real paths
+        self._points = PointCache(self._read_match, size=32)
+        self._missing: set[str] = set()
+        self.scan_root: str | Path | None = None
+        # Told once per stored scan that cannot be found or read (default: a warning).
+        self.on_missing_scan: Callable[[str], None] = lambda msg: warnings.warn(msg, stacklevel=4)
+
+    # -- opening and closing --------------------------------------------------
+
+    @classmethod
+    def create(
+        cls, path: str | Path, model: Any = "default", *, overwrite: bool = False, device="cpu"
+    ) -> Map:
+        """A new, empty map at `path` for `model` (a name, a checkpoint path or a model
+        object). The file appears with the first batch added; an existing file is refused
+        unless `overwrite` (it is replaced when the first batch is written)."""
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise DatabaseError(path, "already exists; use Map.open to add to it")
+        net = _load_model(model, device)
+        return cls(path, None, net, _model_source(model), True, overwrite)
+
+    @classmethod
+    def open(
+        cls,
+        path: str | Path,
+        *,
+        writable: bool = False,
+        model: Any = None,
+        device: str = "cpu",
+        scan_root: str | Path | None = None,
+    ) -> Map:
+        """An existing map. `model` defaults to the one that built it; another is refused.
+        A stored scan (read for poses) is found at its stored path, else relative to the
+        map's folder, else under `scan_root` (docs/database.md)."""
+        from disco_cli.pipeline import check_device
+
+        check_device(device)
+        db = Database.open(path, writable=writable)
+        try:
+            net, source = model_for_database(db, model, device)
+        except BaseException:
+            db.close()
+            raise
+        m = cls(Path(path), db, net, source, writable)
+        m.scan_root = scan_root
+        return m
+
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+        self._db = None
+        self._snapshot = None
+        self._closed = True
+
+    def __enter__(self) -> Map:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DatabaseError(self.path, "the map is closed")
+
+    # -- what it holds ----------------------------------------------------------
+
+    @property
+    def model(self) -> Any:
+        """The model that embeds scans for this map (`load_model`'s protocol)."""
+        return self._model
+
+    @property
+    def database(self) -> Database | None:
+        """The underlying `Database` (None for a new map before its first scan)."""
+        return self._db
+
+    def __len__(self) -> int:
+        self._check_open()
+        if self._db is None:
+            return 0
+        if not self._writable:
+            return len(self._index()[0])
+        return len(self._db)
+
+    def names(self) -> list[str]:
+        """Every stored name (path), in id order."""
+        self._check_open()
+        return [] if self._db is None else self._db.paths()
+
+    def near(self, xy: Any, radius: float, path: str | None = None) -> np.ndarray:
+        """Ids of the scans whose stored pose is within `radius` m of `xy` (x, y, or a
+        4 x 4 pose; NaN: none), and of the stored scan of the file `path` itself when
+        given (a query that is in the map); scans without a pose are never near."""
+        self._check_open()
+        if self._db is None:
+            return np.empty(0, np.int64)
+        xy = np.asarray(xy, dtype=np.float64)
+        if xy.shape == (4, 4):
+            xy = xy[:2, 3]
+        ids, _ = self._index()
+        if self._xy is None or len(self._xy) != len(ids):
+            self._xy = self._db.poses()[0][: len(ids), :2]
+        stored = self._xy
+        d = np.hypot(stored[:, 0] - xy[0], stored[:, 1] - xy[1])
+        near = d <= radius  # unknown poses give NaN: never near
+        if path is not None:
+            if self._real is None or len(self._real) != len(ids):
+                self._real = np.array([os.path.realpath(p) for p in self.names()[: len(ids)]])
+            near |= self._real == os.path.realpath(path)
+        return ids[near]
+
+    def stored(self, names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`(found [N] bool, signatures [N, D], features [N, ...])` of the scan files
+        `names` as stored (matched by where the stored scans are now; rows of scans not
+        stored are zero), for reusing a map's embeddings."""
+        self._check_open()
+        n = len(names)
+        if self._db is None:
+            return np.zeros(n, bool), np.zeros((n, 0), np.float32), np.zeros((n, 0), np.float32)
+        ids, index = self._index()
+        # By where the stored scans are now, so that it works from any directory and for
+        # a map that moved (Database.locate).
+        where = {p: k for k, p in enumerate(self._db.locations(self.scan_root)[: len(ids)])}
+        rows = np.array([where.get(os.path.abspath(p), -1) for p in names], dtype=np.int64)
+        found = rows >= 0
+        sigs = np.zeros((n, index.dim), np.float32)
+        feats = np.zeros((n, *self._db.feature_shape), np.float32)
+        if found.any():
+            sigs[found] = index.matrix[rows[found]]
+            feats[found] = self._db.rows(ids[rows[found]]).features
+        return found, sigs, feats
+
+    # -- adding -----------------------------------------------------------------
+
+    def add(self, points: Any, *, name: str | None = None, pose: Any = None, time=None) -> int:
+        """Add one scan (an N x 3 or N x 4 array); returns its id. `pose`: the sensor's
+        4 x 4 pose in the world (stored as x, y, z, yaw); `time` in seconds."""
+        return self.add_many([(points, name, pose, time)])[0]
+
+    def add_many(self, items: Iterable[tuple], *, batch: int = 32) -> list[int]:
+        """Add scans from `(points, name, pose)` or `(points, name, pose, time)` tuples,
+        one transaction per `batch` scans (as `disco build-db`); returns their ids.
+        An unnamed scan is called `scan-<id>`."""
+        from disco_cli.pipeline import array_points, scan_bev
+
+        self._check_writable()
+        ids: list[int] = []
+        part: list[tuple] = []
+        for item in items:
+            points, name, pose, time = (*item, None, None)[:4] if len(item) < 4 else item
+            label = name or f"scan-{len(self) + len(part) + 1}"
+            pts = array_points(points, label)
+            part.append((label, scan_bev(pts, self._model.bev_config, label), pose, time))
+            if len(part) >= batch:
+                ids += self._write_bevs(part)
+                part = []
+        if part:
+            ids += self._write_bevs(part)
+        return ids
+
+    def add_files(
+        self,
+        paths: list[str],
+        *,
+        poses: np.ndarray | None = None,
+        times: np.ndarray | None = None,
+        batch: int = 32,
+        workers: int = 1,
+        scan_format: str | None = None,
+        skip_bad: bool = False,
+        on_progress: Callable[[int, int], None] | None = None,
+        on_skip: Callable[[DiscoError], None] | None = None,
+    ) -> AddResult:
+        """Embed scan files and add them, one transaction per batch, reading and
+        voxelizing on `workers` threads while the network runs. Scans are stored by
+        absolute path; those the map holds already are skipped, so running it again
+        resumes. `poses`: `[N, 4]`
+        x, y, z, yaw (rad) rows, NaN where unknown. The first unreadable scan raises
+        its `ScanReadError`, unless `skip_bad` (then `on_skip(error)` is told).
+        `on_progress(done, written)` after each batch. Ctrl-C raises `Interrupted`."""
+        from disco_cli.database import stored_paths
+
+        self._check_writable()
+        n = len(paths)
+        poses = np.full((n, 4), np.nan) if poses is None else np.asarray(poses, np.float64)
+        times = np.full(n, np.nan) if times is None else np.asarray(times, np.float64)
+        # Stored absolute, with the path relative to the map beside it, so that the map
+        # can be read from any directory and moved as a whole (docs/database.md). Two
+        # spellings of one file count once; an older map's relative paths count from here.
+        absolute, rel_paths = stored_paths(paths, self.path)
+        stored = {os.path.abspath(p) for p in self.names()}
+        first = {p: i for i, p in reversed(list(enumerate(absolute)))}
+        todo = [i for i, p in enumerate(absolute) if p not in stored and first[p] == i]
+        result = AddResult(already=sum(p in stored for p in absolute), bad=[])
+        if not todo:
+            return result
+        before = self._count()
+        try:
+            self._add_todo(
+                paths,
+                todo,
+                absolute,
+                rel_paths,
+                poses,
+                times,
+                batch,
+                workers,
+                scan_format,
+                skip_bad,
+                on_progress,
+                on_skip,
+                result,
+            )
+        except KeyboardInterrupt:
+            now = self._count()
+            raise Interrupted(None if now is None else now - (before or 0)) from None
+        return result
+
+    def _count(self) -> int | None:
+        """Scans in the file now; None when there is no file (also when a new map's file
+        appeared but was not opened yet, it is counted)."""
+        if self._db is not None:
+            return len(self._db)
+        if not self.path.exists():
+            return None
+        try:
+            with Database.open(self.path, verify=False) as fresh:
+                return len(fresh)
+        except DatabaseError:
+            return 0
+
+    def _add_todo(
+        self,
+        paths,
+        todo,
+        absolute,
+        rel_paths,
+        poses,
+        times,
+        batch,
+        workers,
+        scan_format,
+        skip_bad,
+        on_progress,
+        on_skip,
+        result,
+    ) -> None:
+        from disco_cli.pipeline import embed_stream, load_stream
+
+        loaded = load_stream(
+            (paths[i] for i in todo),
+            self._model.bev_config,
+            workers=workers,
+            prefetch=max(2 * batch, 4 * workers),
+            scan_format=scan_format,
+        )
+        try:
+            for chunk in embed_stream(loaded, self._model, batch):
+                for item in chunk.errors:
+                    if not skip_bad:
+                        raise item.error  # type: ignore[misc]
+                    if on_skip is not None:
+                        on_skip(item.error)  # type: ignore[arg-type]
+                    result.bad.append(item.path)  # type: ignore[union-attr]
+                if chunk.items:
+                    rows = [todo[it.index] for it in chunk.items]
+                    self._append(
+                        ScanBatch(
+                            paths=[absolute[r] for r in rows],
+                            rel_paths=[rel_paths[r] for r in rows],
+                            signatures=chunk.signatures,
+                            features=chunk.features,
+                            poses=poses[rows],
+                            times=times[rows],
+                        )
+                    )
+                    result.written += len(rows)
+                if on_progress is not None:
+                    on_progress(result.written + len(result.bad), result.written)  # type: ignore[arg-type]
+        finally:
+            loaded.close()  # type: ignore[attr-defined]
+
+    def _check_writable(self) -> None:
+        self._check_open()
+        if not self._writable:
+            raise DatabaseError(self.path, "opened read-only; use Map.open(path, writable=True)")
+
+    def _write_bevs(self, part: list[tuple]) -> list[int]:
+        from disco_cli.pipeline import pose_rows
+
+        sigs, feats = self._model.embed(np.stack([b for _, b, _, _ in part]))
+        rows = np.full((len(part), 4), np.nan)
+        for k, (label, _, pose, _) in enumerate(part):
+            if pose is not None:
+                T = np.asarray(pose, dtype=np.float64)
+                if T.shape != (4, 4) or not np.isfinite(T).all():
+                    raise DiscoError(f"{label}: pose must be a finite 4 x 4 matrix, got {T.shape}")
+                rows[k] = pose_rows(T[None])[0]
+        times = [np.nan if t is None else float(t) for _, _, _, t in part]
+        first = 0 if self._db is None else len(self._db)
+        self._append(ScanBatch([p[0] for p in part], sigs, feats, rows, np.asarray(times)))
+        return list(range(first + 1, first + 1 + len(part)))
+
+    def _append(self, part: ScanBatch) -> None:
+        from disco_cli import __version__
+
+        if self._db is None:
+            if self._overwrite:
+                for suffix in ("", "-wal", "-shm"):
+                    Path(str(self.path) + suffix).unlink(missing_ok=True)
+            self._db = Database.create(
+                self.path,
+                ModelInfo.of(self._model),
+                part,
+                disco_version=__version__,
+                extra_meta={"model_source": self._source},
+            )
+        else:
+            self._db.append(part)
+        self._snapshot = None
+
+    # -- localizing ---------------------------------------------------------------
+
+    def refresh(self) -> None:
+        """Take a new snapshot of the stored scans (a read-only map sees scans added by
+        another process only after this)."""
+        self._check_open()
+        self._snapshot = None
+
+    def _index(self) -> tuple[np.ndarray, Any]:
+        from disco_cli.search import SignatureIndex
+
+        self._check_open()
+        if self._db is None:
+            raise DatabaseError(self.path, "the database is empty")
+        if self._snapshot is None:
+            ids, sigs = self._db.signatures()
+            self._snapshot = (ids, SignatureIndex(sigs))
+        return self._snapshot
+
+    def _exclude_rows(self, exclude: Any) -> np.ndarray | None:
+        if exclude is None:
+            return None
+        ids, _ = self._index()
+        ex = np.asarray(exclude)
+        if ex.dtype == bool:
+            if ex.shape != (len(ids),):
+                raise DiscoError(f"exclude: a mask must have one entry per scan ({len(ids)})")
+            return ex
+        rows = np.searchsorted(ids, ex.astype(np.int64).reshape(-1))
+        mask = np.zeros(len(ids), bool)
+        ok = rows < len(ids)
+        mask[rows[ok][ids[rows[ok]] == ex.reshape(-1)[ok]]] = True
+        return mask
+
+    def locate(self, name: str) -> Path | None:
+        """Where the stored scan `name` is now (`Database.locate`), or None."""
+        self._check_open()
+        return None if self._db is None else self._db.locate(name, self.scan_root)
+
+    def shown(self, name: str) -> str:
+        """A stored scan's path as printed: where it is now (else as stored), relative to
+        the current directory when it lies under it, else absolute."""
+        where = self.locate(name)
+        full = os.path.abspath(where if where is not None else name)
+        rel = os.path.relpath(full)
+        return full if rel.startswith(os.pardir) else rel
+
+    def _read_match(self, name: str) -> np.ndarray:
+        from disco_cli.errors import ScanReadError
+        from disco_cli.readers import read_scan
+
+        if name in self._missing:
+            raise ScanReadError(name, "not found (nor beside the database)")
+        where = self.locate(name)
+        try:
+            if where is None:
+                raise ScanReadError(name, "not found (nor beside the database)")
+            return read_scan(where)
+        except ScanReadError as exc:
+            self._missing.add(name)
+            hint = "" if self.scan_root else "; --scan-root DIR says where the map's scans are"
+            self.on_missing_scan(f"{exc}: no relative pose for this match{hint}")
+            raise
+
+    def _search(
+        self,
+        signature: np.ndarray,
+        features: np.ndarray,
+        topk: int,
+        rerank: int | None,
+        exclude: Any,
+        max_distance: float | None,
+    ) -> list:
+        from disco_cli.search import match_queries
+
+        ids, index = self._index()
+        return match_queries(
+            index,
+            ids,
+            self._db,
+            self._model,
+            signature[None],
+            features[None],
+            topk,
+            exclude=self._exclude_rows(exclude),
+            max_distance=max_distance,
+            rerank=rerank,
+        )[0]
+
+    def query(
+        self,
+        points: Any,
+        *,
+        topk: int = 10,
+        pose: bool = False,
+        verify: bool = False,
+        rerank: int | None = None,
+        exclude: Any = None,
+        max_distance: float | None = None,
+        name: str = "points",
+    ) -> list[Match]:
+        """The `topk` best matches of one scan (an N x 3 or N x 4 array), best first.
+
+        `pose` adds the refined pose T_match<-query of each (read from the match's
+        stored path); `verify` keeps only the matches whose pose is accepted (implies
+        `pose`). `rerank`: how many nearest signatures to re-rank (default: the
+        model's). `exclude`: match ids (or a boolean mask over the map) to leave out;
+        `max_distance` drops worse matches. `name` names the scan in errors.
+        """
+        from disco_cli.pipeline import array_points, embed_one
+
+        self._check_open()
+        pts = array_points(points, name)
+        sig, feat = embed_one(pts, self._model, name)
+        found = self._search(sig, feat, topk, rerank, exclude, max_distance)
+        if not (pose or verify):
+            return [as_match(m) for m in found]
+        return refine_matches(found, pts, self._points.get, verify=verify)
+
+    def query_many(self, scans: Iterable[Any], **options: Any) -> Iterator[list[Match]]:
+        """`query` of each scan in turn, yielded as each is done (same options)."""
+        for points in scans:
+            yield self.query(points, **options)
+
+    def query_files(
+        self,
+        paths: Iterable[str],
+        *,
+        topk: int = 10,
+        pose: bool = False,
+        rerank: int | None = None,
+        exclude: Callable[[int, str], Any] | None = None,
+        max_distance: float | None = None,
+        workers: int = 1,
+        scan_format: str | None = None,
+    ) -> Iterator[QueryResult]:
+        """Query scan files, streamed: reading and voxelizing run ahead on `workers`
+        threads, and each result is yielded as soon as it is ready, in input order.
+        A scan that fails yields its error and the others go on. `exclude(index, path)`
+        gives the match ids to leave out for each query. With `pose`, rows whose pose
+        could not be estimated have `T` None and the reason in `reason`."""
+        from disco_cli.pipeline import embed_stream, load_stream
+
+        self._check_open()
+        loaded = load_stream(
+            paths,
+            self._model.bev_config,
+            workers=workers,
+            prefetch=2 * workers,
+            scan_format=scan_format,
+            keep_points=pose,
+        )
+        try:
+            for chunk in embed_stream(loaded, self._model, batch=1):
+                for item in chunk.errors:
+                    yield QueryResult(item.index, item.path, [], item.error)
+                for j, item in enumerate(chunk.items):
+                    try:
+                        ex = None if exclude is None else exclude(item.index, item.path)
+                        found = self._search(
+                            chunk.signatures[j], chunk.features[j], topk, rerank, ex, max_distance
+                        )
+                    except DiscoError as exc:
+                        yield QueryResult(item.index, item.path, [], exc)
+                        continue
+                    if pose:
+                        matches = refine_matches(found, item.points, self._points.get)
+                    else:
+                        matches = [as_match(m) for m in found]
+                    item.points = None
+                    yield QueryResult(item.index, item.path, matches)
+        finally:
+            loaded.close()  # type: ignore[attr-defined]

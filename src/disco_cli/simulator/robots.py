@@ -1,0 +1,76 @@
+"""The robots of later sessions: how each differs from session 00's (sensor, mount
+height and tilt, driving line), drawn per session from `RobotParams`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from disco_cli.errors import DiscoError
+from disco_cli.simulator.sensors import Sensor, get_sensor
+
+
+@dataclass(frozen=True)
+class RobotParams:
+    """How the robots of later sessions differ from session 00's, drawn per session.
+
+    The pose in poses.txt is the sensor's: it includes the mount's height and tilt.
+    """
+
+    height_m: tuple[float, float] | None = None  # mount height above the ground (range)
+    tilt_deg: float = 0.0  # the mount's roll and pitch, each within +-tilt_deg
+    offset_m: float | None = None  # sideways from session 00's driving line, up to this
+    sensor: str | None = None  # a sensor name, uniform-N, hdl64like-N, or "random"
+
+    def check(self) -> None:
+        if self.height_m is not None:
+            lo, hi = self.height_m
+            if not 0.3 <= lo <= hi <= 3.0:
+                raise DiscoError("--robot-height must be a range within 0.3..3 m")
+        if not 0.0 <= self.tilt_deg <= 10.0:
+            raise DiscoError("--robot-tilt must be within 0..10 degrees")
+        if self.offset_m is not None and not 0.0 <= self.offset_m <= MAX_OFFSET_M + 1.5:
+            raise DiscoError(f"--robot-offset must be within 0..{MAX_OFFSET_M + 1.5:g} m")
+        if self.sensor not in (None, "random"):
+            get_sensor(self.sensor)
+
+    def to_dict(self) -> dict:
+        out: dict = {"tilt_deg": self.tilt_deg}
+        if self.height_m is not None:
+            out["height_m"] = list(self.height_m)
+        if self.offset_m is not None:
+            out["offset_m"] = self.offset_m
+        if self.sensor is not None:
+            out["sensor"] = self.sensor
+        return out
+
+
+MAX_OFFSET_M = 2.5  # how far right (or left) of the centre line a robot may drive
+RANDOM_BEAMS = (16, 32, 64, 128)
+
+
+def draw_robot(
+    robot: RobotParams, seed: int, k: int, base: Sensor, offset0: float, reverse: bool
+) -> tuple[Sensor, float, float, float, float | None]:
+    """Session k's sensor, mount height, roll, pitch (deg) and offset (None: its own)."""
+    rng = np.random.default_rng([seed, 30, k])
+    sensor = base
+    if robot.sensor == "random":
+        layout = ("uniform", "hdl64like")[int(rng.integers(2))]
+        sensor = get_sensor(f"{layout}-{int(rng.choice(RANDOM_BEAMS))}")
+    elif robot.sensor is not None:
+        sensor = get_sensor(robot.sensor)
+    height = sensor.mount_height if robot.height_m is None else float(rng.uniform(*robot.height_m))
+    roll, pitch = (float(v) for v in rng.uniform(-robot.tilt_deg, robot.tilt_deg, 2))
+    offset = None
+    if robot.offset_m is not None:
+        # Session 00 drives offset0 right of the centre line; this session, d away from
+        # that line: right of its own heading, which is the other side when reversed.
+        d = float(rng.uniform(0.0, robot.offset_m))
+        centre = -offset0 if reverse else offset0
+        options = [centre + d, centre - d]
+        fits = [o for o in options if abs(o) <= MAX_OFFSET_M]
+        offset = fits[int(rng.integers(len(fits)))] if fits else min(options, key=abs)
+        offset = float(np.clip(offset, -MAX_OFFSET_M, MAX_OFFSET_M))
+    return sensor, height, roll, pitch, offset

@@ -1,0 +1,77 @@
+"""What each town style is made of (see `TownParams.style` and docs/simulator.md).
+
+A grid town mixes five characters of street side; the other styles are each made
+of their own. A side style sets building heights (m), density (share of lots
+built), setback (m), frontage shares (none / wall / fence / hedge), the chance of
+a tree row, lot width and building depth (m).
+"""
+
+from __future__ import annotations
+
+SIDE_STYLES: dict[str, tuple[list[str], list[float]]] = {
+    "grid": (
+        ["downtown", "residential", "industrial", "park", "mixed"],
+        [0.25, 0.3, 0.15, 0.1, 0.2],
+    ),
+    "suburban": (["suburban"], [1.0]),
+    "industrial": (["hall", "industrial"], [0.8, 0.2]),
+    "park": (["parkroad"], [1.0]),
+    "parking": (["lot", "mixed"], [0.7, 0.3]),
+}
+HEIGHTS = {
+    "downtown": (12, 40),
+    "residential": (5, 12),
+    "industrial": (6, 14),
+    "park": (3, 6),
+    "mixed": (5, 22),
+    "suburban": (5, 9),
+    "hall": (7, 14),
+    "parkroad": (3, 5),
+    "lot": (4, 9),
+}
+DENSITY = {
+    "downtown": 1.0,
+    "residential": 0.85,
+    "industrial": 0.75,
+    "park": 0.25,
+    "mixed": 0.85,
+    "suburban": 0.9,
+    "hall": 0.9,
+    "parkroad": 0.06,
+    "lot": 0.5,
+}
+SETBACK = {
+    "downtown": (0.3, 1.0),
+    "residential": (1.0, 4.5),
+    "industrial": (2.0, 8.0),
+    "park": (5.0, 15.0),
+    "mixed": (0.5, 5.0),
+    "suburban": (4.0, 8.0),
+    "hall": (4.0, 12.0),
+    "parkroad": (10.0, 20.0),
+    "lot": (2.0, 4.0),
+}
+_FRONTAGE = [0.3, 0.25, 0.2, 0.25]
+FRONTAGE = {
+    "downtown": [0.8, 0.2, 0, 0],
+    "residential": _FRONTAGE,
+    "industrial": _FRONTAGE,
+    "park": _FRONTAGE,
+    "mixed": _FRONTAGE,
+    "suburban": [0.15, 0.1, 0.3, 0.45],
+    "hall": [0.2, 0.1, 0.7, 0.0],
+    "parkroad": [0.4, 0.0, 0.1, 0.5],
+    "lot": [0.5, 0.0, 0.2, 0.3],
+}
+TREE_ROW = {"park": 0.95, "residential": 0.7, "suburban": 0.6, "hall": 0.15, "parkroad": 1.0}
+LOT_WIDTH = {"suburban": (14, 24), "hall": (30, 70)}
+DEPTH = {"suburban": (8, 12), "hall": (20, 45)}
+# Around and inside the blocks: one thing per so many m2, the shares of trees / bushes / mounds
+# (the rest are sheds or halls) and the size of those (width, depth, height ranges).
+OUTSKIRTS = {
+    "grid": (200, (0.6, 0.75, 0.9), ((4, 30), (4, 20), (2.5, 12))),
+    "suburban": (200, (0.55, 0.8, 0.88), ((4, 12), (4, 10), (2.5, 8))),
+    "industrial": (200, (0.3, 0.4, 0.5), ((20, 60), (15, 40), (6, 14))),
+    "park": (110, (0.75, 0.92, 0.98), ((3, 8), (3, 6), (2.5, 4))),
+    "parking": (200, (0.5, 0.65, 0.8), ((8, 30), (8, 20), (3, 8))),
+}

@@ -1,0 +1,380 @@
+// Checks of the C++ core that need no Python, built natively and for aarch64 by
+// `make check-aarch64` (tests/cpp/CMakeLists.txt), whose outputs must be equal line
+// for line.
+//
+// - The polar BEV of seeded random scans and of edge cases, at every kernel level
+//   this CPU has, must equal an independent reference written here from the
+//   definition (double precision, std::atan2); each case prints a hash of its BEV.
+// - voxel_downsample, int8_encode and ray casting print hashes of their outputs,
+//   which must not depend on the CPU either (no FMA fusing, no fast-math).
+// Lines starting with '#' (the kernels this machine has) are left out of the
+// comparison. Exit status 1 on any mismatch with the reference.
+//
+// Inputs are made from integers by exact float arithmetic (no libm), so both
+// builds see the same bits. `check_core --bench` times the kernels instead.
+#include <Eigen/Core>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "disco/int8_search.hpp"
+#include "disco/polar_bev.hpp"
+#include "disco/raycast.hpp"
+#include "disco/voxel_grid.hpp"
+
+namespace {
+
+int g_failures = 0;
+std::uint64_t g_checksum = 1469598103934665603ull;  // over every printed hash
+
+struct Rng {  // splitmix64: the same sequence on every platform
+    std::uint64_t s;
+    std::uint64_t next() {
+        std::uint64_t z = (s += 0x9E3779B97F4A7C15ull);
+        z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+        z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+        return z ^ (z >> 31);
+    }
+    // A multiple of 2^-16 in [lo, hi): exact in float for |value| < 256.
+    double uniform(double lo, double hi) {
+        const auto steps = static_cast<std::uint64_t>((hi - lo) * 65536.0);
+        return lo + static_cast<double>(next() % steps) / 65536.0;
+    }
+};
+
+std::uint64_t fnv1a(const void* data, std::size_t bytes, std::uint64_t h = 1469598103934665603ull) {
+    const auto* p = static_cast<const unsigned char*>(data);
+    for (std::size_t i = 0; i < bytes; ++i) h = (h ^ p[i]) * 1099511628211ull;
+    return h;
+}
+
+unsigned long long reported(std::uint64_t h) {
+    g_checksum = fnv1a(&h, sizeof h, g_checksum);
+    return static_cast<unsigned long long>(h);
+}
+
+// The definition of docs/bev.md, written independently of polar_bev.cpp.
+std::vector<float> reference_bev(const std::vector<double>& xyz, const disco::BEVConfig& c) {
+    const int layers = c.layers();
+    std::vector<float> out(c.cells(), 0.0f);
+    std::vector<double> count(c.cells(), 0.0);
+    const double two_pi = 2.0 * 3.14159265358979323846;
+    for (std::size_t i = 0; i + 2 < xyz.size(); i += 3) {
+        const double x = xyz[i], y = xyz[i + 1], z = xyz[i + 2];
+        if (!std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z)) continue;
+        const double r = std::sqrt(x * x + y * y);
+        if (!(r >= c.min_range && r < c.max_range && z >= c.z_min && z < c.z_max)) continue;
+        double theta = std::atan2(y, x);
+        if (theta < 0) theta += two_pi;
+        const int ring = std::min(static_cast<int>(std::floor(r / (c.max_range / c.rings))),
+                                  c.rings - 1);
+        const int sector = std::min(
+            static_cast<int>(std::floor(theta / (two_pi / c.sectors))), c.sectors - 1);
+        const int height = std::min(
+            static_cast<int>(std::floor((z - c.z_min) / ((c.z_max - c.z_min) / layers))),
+            layers - 1);
+        const std::size_t cell =
+            (static_cast<std::size_t>(height) * c.rings + ring) * c.sectors + sector;
+        if (c.mode == disco::BEVMode::kOccupancy) {
+            out[cell] = 1.0f;
+        } else if (c.mode == disco::BEVMode::kDensity) {
+            count[cell] += 1.0;
+        } else {
+            out[cell] = std::max(out[cell], static_cast<float>(z - c.z_min));
+        }
+    }
+    if (c.mode == disco::BEVMode::kDensity) {
+        double peak = 0.0;
+        for (double v : count) peak = std::max(peak, v);
+        const auto peak_f = static_cast<float>(peak);
+        for (std::size_t k = 0; k < out.size(); ++k) {
+            out[k] = static_cast<float>(count[k]);
+            if (peak_f > 1.0f) out[k] /= peak_f;
+        }
+    }
+    return out;
+}
+
+template <typename T>
+std::vector<float> run_bev(const std::vector<T>& rows, int cols, const disco::BEVConfig& c) {
+    const auto n = static_cast<Eigen::Index>(rows.size() / cols);
+    disco::BEVPointsView<T> view(rows.data(), n, 3, Eigen::Stride<Eigen::Dynamic, Eigen::Dynamic>(cols, 1));
+    std::vector<float> out(c.cells());
+    disco::polar_bev(view, c, out.data());
+    return out;
+}
+
+// Every kernel level this machine has, on float32 rows of 4 and 3 columns and on
+// float64 rows, must give the reference. Prints one line per case.
+void check_bev(const std::string& name, const std::vector<double>& xyz, const disco::BEVConfig& c) {
+    const std::size_t n = xyz.size() / 3;
+    std::vector<float> f4(4 * n), f3(3 * n);
+    std::vector<double> xyz_f(3 * n);  // the float32 points, as the reference sees them
+    for (std::size_t i = 0; i < n; ++i) {
+        for (int k = 0; k < 3; ++k) {
+            const auto v = static_cast<float>(xyz[3 * i + k]);
+            f4[4 * i + k] = v;
+            f3[3 * i + k] = v;
+            xyz_f[3 * i + k] = v;
+        }
+        f4[4 * i + 3] = 0.5f;
+    }
+    const std::vector<float> expected = reference_bev(xyz_f, c);
+    const std::vector<float> expected64 = reference_bev(xyz, c);
+    const int best = disco::bev_kernel_level();
+    for (int level = best; level >= 0; --level) {
+        disco::set_bev_kernel_level(level);
+        const bool ok = run_bev(f4, 4, c) == expected && run_bev(f3, 3, c) == expected &&
+                        run_bev(xyz, 3, c) == expected64;
+        if (!ok) {
+            std::fprintf(stderr, "FAIL %s: kernel %s differs from the reference\n", name.c_str(),
+                         disco::bev_kernel_name(level));
+            ++g_failures;
+        }
+    }
+    disco::set_bev_kernel_level(3);
+    std::size_t filled = 0;
+    for (float v : expected) filled += v != 0.0f;
+    std::uint64_t h = fnv1a(expected.data(), expected.size() * sizeof(float));
+    h = fnv1a(expected64.data(), expected64.size() * sizeof(float), h);
+    std::printf("bev %-28s points %7zu cells %6zu hash %016llx\n", name.c_str(), n, filled,
+                reported(h));
+}
+
+std::vector<double> random_scan(std::uint64_t seed, std::size_t n) {
+    Rng rng{seed};
+    std::vector<double> xyz(3 * n);
+    for (std::size_t i = 0; i < n; ++i) {
+        xyz[3 * i] = rng.uniform(-90, 90);
+        xyz[3 * i + 1] = rng.uniform(-90, 90);
+        xyz[3 * i + 2] = rng.uniform(-3, 21);
+    }
+    return xyz;
+}
+
+// Points on the grid's edges (exact, or one float step either side) and values a
+// fast path must not misread: signed zeros, NaN, Inf, huge and tiny numbers.
+std::vector<double> edge_points(const disco::BEVConfig& c) {
+    std::vector<double> xyz;
+    auto add = [&](double x, double y, double z) { xyz.insert(xyz.end(), {x, y, z}); };
+    const double ring_w = c.max_range / c.rings;
+    const double height_w = (c.z_max - c.z_min) / c.heights;
+    for (int k = 0; k <= c.rings; ++k) {
+        const double r = k * ring_w;
+        for (double s : {-1.0, 0.0, 1.0}) {
+            const auto rf = static_cast<double>(std::nextafter(static_cast<float>(r), s * 1e9f));
+            add(rf, 0.0, 0.25);
+            add(0.0, -rf, 0.25);
+            add(-rf, 0.0, 7.5);
+        }
+    }
+    for (double r : {c.min_range, c.max_range}) {
+        add(r, 0.0, 1.0);
+        add(std::nextafter(r, 0.0), 0.0, 1.0);
+    }
+    for (int k = 0; k <= c.heights; ++k) {
+        const double z = c.z_min + k * height_w;
+        add(10.0, 10.0, z);
+        add(-10.0, 4.0, std::nextafter(z, -1e9));
+        add(-10.0, -4.0, std::nextafter(z, 1e9));
+    }
+    // Diagonals (45 degrees: a sector edge of the default grid) and axes.
+    for (double d : {5.0, 17.0, 33.25, 60.0}) {
+        for (double sx : {-1.0, 1.0}) {
+            for (double sy : {-1.0, 1.0}) {
+                add(sx * d, sy * d, 2.0);
+                add(sx * d, sy * std::nextafter(d, 0.0), 2.0);
+                add(sx * 0.0, sy * d, 2.0);
+                add(sx * d, sy * 0.0, 2.0);
+            }
+        }
+    }
+    const double inf = std::numeric_limits<double>::infinity();
+    const double nan = std::numeric_limits<double>::quiet_NaN();
+    for (double v : {nan, inf, -inf, 1e30, -1e30, 1e-40, -1e-40, 0.0, -0.0}) {
+        add(v, 10.0, 1.0);
+        add(10.0, v, 1.0);
+        add(10.0, 10.0, v);
+        add(v, v, v);
+    }
+    return xyz;
+}
+
+void check_voxel_downsample() {
+    Rng rng{42};
+    disco::Points3d points;
+    for (int i = 0; i < 50000; ++i) {
+        // One draw per statement: the order of a call's arguments is unspecified.
+        const double x = rng.uniform(-50, 50);
+        const double y = rng.uniform(-50, 50);
+        const double z = rng.uniform(-2, 8);
+        points.emplace_back(x, y, z);
+    }
+    for (double voxel : {0.25, 1.0}) {
+        const disco::Points3d out = disco::voxel_downsample(points, voxel);
+        std::uint64_t h = 1469598103934665603ull;
+        for (const auto& p : out) h = fnv1a(p.data(), 3 * sizeof(double), h);
+        std::printf("voxel_downsample %.2f      points %7zu hash %016llx\n", voxel, out.size(),
+                    reported(h));
+    }
+}
+
+void check_int8_encode() {
+    Rng rng{7};
+    const std::int64_t n = 3000, d = 256;
+    std::vector<float> x(static_cast<std::size_t>(n * d));
+    for (auto& v : x) v = static_cast<float>(rng.uniform(-1, 1));
+    std::vector<double> mean(d), scale(d);
+    for (std::int64_t j = 0; j < d; ++j) {
+        mean[j] = rng.uniform(-0.1, 0.1);
+        scale[j] = rng.uniform(0.005, 0.01);
+    }
+    std::vector<std::int8_t> codes(x.size());
+    std::vector<double> code_sq(n), code_norm(n), err(n);
+    disco::int8_encode(x.data(), n, d, mean.data(), scale.data(), codes.data(), code_sq.data(),
+                       code_norm.data(), err.data(), 2);
+    std::uint64_t h = fnv1a(codes.data(), codes.size());
+    h = fnv1a(code_sq.data(), n * sizeof(double), h);
+    h = fnv1a(code_norm.data(), n * sizeof(double), h);
+    h = fnv1a(err.data(), n * sizeof(double), h);
+    std::printf("int8_encode                  rows %9lld hash %016llx\n",
+                static_cast<long long>(n), reported(h));
+}
+
+void check_raycast() {
+    // Axis-aligned boxes, cylinders and ellipsoids (yaw 0, so no libm sin/cos
+    // enters), rays along directions made of integers.
+    Rng rng{99};
+    std::vector<disco::Primitive> prims;
+    for (int k = 0; k < 300; ++k) {
+        disco::Primitive p;
+        p.kind = static_cast<disco::PrimitiveKind>(k % 3);
+        p.cx = rng.uniform(-60, 60);
+        p.cy = rng.uniform(-60, 60);
+        p.cz = rng.uniform(0, 5);
+        p.hx = rng.uniform(0.2, 4);
+        p.hy = rng.uniform(0.2, 4);
+        p.hz = rng.uniform(0.5, 6);
+        p.hit_prob = k % 5 == 0 ? 0.5 : 1.0;
+        prims.push_back(p);
+    }
+    const disco::RaycastWorld world(prims, disco::GroundPlane{0.01, -0.02, -1.7}, 4.0);
+    const std::int64_t n = 20000;
+    std::vector<float> dirs(3 * n);
+    for (std::int64_t i = 0; i < n; ++i) {
+        const float dx = static_cast<float>(rng.uniform(-1, 1));
+        const float dy = static_cast<float>(rng.uniform(-1, 1));
+        const float dz = static_cast<float>(rng.uniform(-0.4, 0.1));
+        const float len = std::sqrt(dx * dx + dy * dy + dz * dz);
+        dirs[3 * i] = dx / len;
+        dirs[3 * i + 1] = dy / len;
+        dirs[3 * i + 2] = dz / len;
+    }
+    std::vector<float> range(n), cosi(n);
+    std::vector<std::int32_t> id(n);
+    world.cast(Eigen::Vector3d(0.5, -0.25, 0.0), dirs.data(), n, 100.0, 1234, range.data(),
+               id.data(), cosi.data());
+    std::uint64_t h = fnv1a(range.data(), n * sizeof(float));
+    h = fnv1a(id.data(), n * sizeof(std::int32_t), h);
+    h = fnv1a(cosi.data(), n * sizeof(float), h);
+    std::printf("raycast                      rays %9lld hash %016llx\n",
+                static_cast<long long>(n), reported(h));
+}
+
+// Times each kernel on 30k points: random ones within +-45 m, or the first 30k
+// of a KITTI .bin file (float32 x, y, z, intensity) given after --bench.
+int bench(const char* path, int level_only) {
+    std::vector<float> rows;
+    if (path) {
+        std::FILE* f = std::fopen(path, "rb");
+        if (!f) {
+            std::perror(path);
+            return 1;
+        }
+        rows.resize(4 * 200000);
+        rows.resize(4 * (std::fread(rows.data(), 16, 200000, f)));
+        std::fclose(f);
+        // Every 4th point: a sparser scan in the same order.
+        std::vector<float> picked;
+        for (std::size_t i = 0; i < rows.size() / 4 && picked.size() < 4 * 30000; i += 4)
+            picked.insert(picked.end(), rows.begin() + 4 * i, rows.begin() + 4 * i + 4);
+        rows = picked;
+    } else {
+        const std::vector<double> xyz = random_scan(3, 30000);
+        rows.assign(4 * 30000, 0.0f);
+        for (std::size_t i = 0; i < 30000; ++i) {
+            for (int k = 0; k < 3; ++k) rows[4 * i + k] = static_cast<float>(xyz[3 * i + k] * 0.5);
+        }
+    }
+    const disco::BEVConfig c;
+    for (int level = disco::bev_kernel_level(); level >= 0; --level) {
+        if (level_only >= 0 && level != level_only) continue;
+        disco::set_bev_kernel_level(level);
+        std::vector<double> times;
+        for (int rep = 0; rep < 1000; ++rep) {
+            const auto t0 = std::chrono::steady_clock::now();
+            run_bev(rows, 4, c);
+            times.push_back(
+                std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0)
+                    .count());
+        }
+        std::sort(times.begin(), times.end());
+        std::printf("%-8s %zu points: median %.4f ms, min %.4f ms (1000 calls)\n",
+                    disco::bev_kernel_name(level), rows.size() / 4, times[times.size() / 2],
+                    times[0]);
+    }
+    return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    if (argc > 1 && std::strcmp(argv[1], "--bench") == 0)
+        return bench(argc > 2 ? argv[2] : nullptr, argc > 3 ? std::atoi(argv[3]) : -1);
+    std::printf("# kernels here:");
+    for (int level = disco::bev_kernel_level(); level >= 0; --level)
+        std::printf(" %s", disco::bev_kernel_name(level));
+    std::printf("\n");
+
+    const disco::BEVConfig base;
+    for (int mode = 0; mode < 3; ++mode) {
+        disco::BEVConfig c = base;
+        c.mode = static_cast<disco::BEVMode>(mode);
+        const std::string m = std::to_string(mode);
+        for (std::uint64_t seed = 1; seed <= 4; ++seed)
+            check_bev("random seed " + std::to_string(seed) + " mode " + m,
+                      random_scan(seed, 20003), c);
+        check_bev("edges mode " + m, edge_points(c), c);
+    }
+    disco::BEVConfig odd;  // another grid: 7 rings, 360 sectors, 3 layers, no min range
+    odd.rings = 7;
+    odd.sectors = 360;
+    odd.heights = 3;
+    odd.max_range = 50.0;
+    odd.min_range = 0.0;
+    check_bev("odd grid random", random_scan(11, 10000), odd);
+    check_bev("odd grid edges", edge_points(odd), odd);
+    disco::BEVConfig big;  // >= 2^24 cells: the plain kernel's integer cell index
+    big.rings = 4096;
+    big.sectors = 4097;
+    big.heights = 1;
+    big.mode = disco::BEVMode::kDensity;
+    check_bev("big grid random", random_scan(12, 5000), big);
+
+    check_voxel_downsample();
+    check_int8_encode();
+    check_raycast();
+    std::printf("checksum %016llx\n", static_cast<unsigned long long>(g_checksum));
+    if (g_failures) {
+        std::fprintf(stderr, "%d failures\n", g_failures);
+        return 1;
+    }
+    return 0;
+}

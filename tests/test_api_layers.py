@@ -1,0 +1,97 @@
+"""The import graph: library modules below the commands, and no import cycle.
+
+Every `import` in src/disco_cli is read with `ast` (those inside functions too):
+no module outside `commands/` and `cli.py` may import either, and the graph of
+module-level imports between library modules must have no cycle.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PKG = Path(__file__).resolve().parent.parent / "src" / "disco_cli"
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(PKG.parent).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _imports(path: Path, top_level_only: bool) -> set[str]:
+    tree = ast.parse(path.read_text())
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    found: set[str] = set()
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            # `from disco_cli import map` imports the module disco_cli.map
+            found |= {f"{node.module}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.If) and top_level_only:  # `if TYPE_CHECKING:` is no import
+            continue
+    return {m for m in found if m == "disco_cli" or m.startswith("disco_cli.")}
+
+
+def modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in PKG.rglob("*.py")}
+
+
+def _is_cli(name: str) -> bool:
+    return name in ("disco_cli.cli",) or name.startswith("disco_cli.commands")
+
+
+def test_library_never_imports_the_commands() -> None:
+    bad = []
+    for name, path in modules().items():
+        if _is_cli(name):
+            continue
+        bad += [f"{name} imports {m}" for m in _imports(path, False) if _is_cli(m)]
+    assert not bad, bad
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Cycles found by a depth-first search (each as the path that closes it)."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    cycles: list[list[str]] = []
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                cycles.append(path[path.index(nxt) :] + [nxt])
+            elif nxt not in state:
+                visit(nxt, path + [nxt])
+        state[node] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [name])
+    return cycles
+
+
+def test_find_cycles_finds_one() -> None:
+    assert find_cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c", "a"]]
+    assert find_cycles({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
+
+
+def test_no_import_cycle_at_module_level() -> None:
+    mods = modules()
+    graph = {
+        name: {m for m in _imports(path, True) if m in mods and m != name}
+        for name, path in mods.items()
+    }
+    assert sum(map(len, graph.values())) > 20  # the graph was read
+    assert not find_cycles(graph)
+
+
+def test_the_api_modules_exist_and_commands_stay_thin() -> None:
+    for name in ("map", "localize", "loop_detector"):
+        assert (PKG / f"{name}.py").is_file()
+    for command in ("query", "loops", "build_db", "evaluate", "eval_loops"):
+        lines = (PKG / "commands" / f"{command}.py").read_text().count("\n")
+        assert lines < 200, f"commands/{command}.py has {lines} lines"
