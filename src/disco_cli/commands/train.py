@@ -67,6 +67,22 @@ def train(
     bev_dropout: Annotated[
         float, typer.Option(help="Share of BEV cells dropped per sample (augmentation).")
     ] = 0.1,
+    variants: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="Augmented copies per scan made at load time: fewer beams, fewer points, "
+            "a wedge occluded, tilted, shifted in z (needs poses).",
+        ),
+    ] = 0,
+    augment_p: Annotated[
+        float,
+        typer.Option(min=0.0, max=1.0, help="Share of sampled scans shown as one of their copies."),
+    ] = 0.5,
+    occlude_p: Annotated[
+        float,
+        typer.Option(min=0.0, max=1.0, help="Share of BEVs that lose a 30-90 degree wedge."),
+    ] = 0.0,
     lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
     lambda_yaw: Annotated[float, typer.Option(help="Weight of the yaw KL loss.")] = 0.1,
     lambda_verify: Annotated[
@@ -130,6 +146,8 @@ def train(
     check_device(device)
     if self_supervised and lambda_verify > 0:
         raise fail("--lambda-verify needs poses (other passes of a place); not --self-supervised")
+    if self_supervised and variants > 0:
+        raise fail("--variants needs poses; --self-supervised makes its own augmented copies")
     if output.exists() and not resume:
         raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
     if protocol is not None:
@@ -177,6 +195,9 @@ def train(
         width=width,
         residual=residual,
         bev_dropout=bev_dropout,
+        variants=variants,
+        augment_p=augment_p if variants > 0 else 0.0,
+        occlude_p=occlude_p,
         hard_after=hard_after,
         self_supervised=self_supervised,
         time_gap=time_gap,
@@ -184,7 +205,7 @@ def train(
         device=device,
     )
 
-    def load(paths: list[Path], what: str, ss: bool):
+    def load(paths: list[Path], what: str, ss: bool, copies: int = 0):
         with progress(transient=True) as bar:
             task = bar.add_task(f"voxelizing {what}", total=None, rate="")
             result = load_training_data(
@@ -194,6 +215,7 @@ def train(
                 spacing=0.0 if ss else spacing,
                 seed=seed,
                 threads=threads,
+                variants=copies,
                 on_progress=lambda done, total: bar.update(task, completed=done, total=total),
                 topic=topic,
                 pose_topic=pose_topic,
@@ -202,7 +224,7 @@ def train(
         return result
 
     with oxford.scale(oxford_scale):
-        data_set = load(sessions, "training data", self_supervised)
+        data_set = load(sessions, "training data", self_supervised, variants)
         val_set = load(val, "validation data", False) if val else None
 
     with progress() as bar:

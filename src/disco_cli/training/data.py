@@ -14,6 +14,12 @@ uint8 (occupancy, counts) so that training is bound by the network, not by I/O.
 Self-supervised mode (no poses): the positive of a scan is a copy of it rotated by a
 random yaw, shifted by up to a few metres, thinned and noised; negatives are scans of
 the same sequence far apart in time.
+
+With poses, `variants=N` adds N augmented copies of every scan (`augment.augment_scan`:
+fewer beams, fewer points, a wedge occluded, tilted, shifted in z), made from its points
+at load time. A copy keeps the scan's pose and points back to it through `source`; it is
+never a query, a positive or a negative itself, but the training loop shows it in place
+of its scan now and then (`TrainOptions.augment_p`).
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError, PoseFileError
+from disco_cli.training.augment import AugmentConfig, augment_scan
 
 # Scans voxelized per call: bounds the memory held by raw point clouds.
 _CHUNK = 64
@@ -54,6 +61,21 @@ class TrainData:
 
     def float_bevs(self, idx: np.ndarray) -> np.ndarray:
         return self.bevs[idx].astype(np.float32)
+
+    def variant_table(self) -> np.ndarray:
+        """[N, V] rows of each row's augmented copies (`variants`), -1 where it has fewer."""
+        rows = np.arange(len(self))
+        copies = rows[self.source != rows]
+        if self.anchors.size == 0 or len(copies) == 0:
+            return np.full((len(self), 0), -1, np.int64)
+        counts = np.bincount(self.source[copies], minlength=len(self))
+        table = np.full((len(self), int(counts.max())), -1, np.int64)
+        fill = np.zeros(len(self), np.int64)
+        for c in copies:
+            s = self.source[c]
+            table[s, fill[s]] = c
+            fill[s] += 1
+        return table
 
 
 @dataclass
@@ -185,6 +207,8 @@ def load_training_data(
     on_progress: Callable[[int, int], None] | None = None,
     topic: str | None = None,
     pose_topic: str | None = None,
+    variants: int = 0,
+    augment: AugmentConfig | None = None,
 ) -> TrainData:
     """Read, voxelize and index every sequence (see the module docstring).
 
@@ -196,6 +220,9 @@ def load_training_data(
 
     seqs = expand_sequences(paths)
     rng = np.random.default_rng(seed)
+    # Its own stream, so that adding variants leaves everything else as it was.
+    aug_rng = np.random.default_rng([seed, 1])
+    variants = 0 if self_supervised else variants
     plan: list[tuple[int, int, str | None, list[Path], np.ndarray, np.ndarray]] = []
     groups: dict[str, int] = {}
     for sid, seq in enumerate(seqs):
@@ -242,7 +269,7 @@ def load_training_data(
         keep = _keep_by_spacing(xy, spacing) if not self_supervised else np.arange(len(scans))
         plan.append((sid, gid, fmt, [scans[i] for i in keep], xy[keep], heading[keep]))
 
-    total = sum(len(p[3]) for p in plan) * (1 + (copies if self_supervised else 0))
+    total = sum(len(p[3]) for p in plan) * (1 + (copies if self_supervised else variants))
     done = 0
     bevs, xys, heads, grp, sess, frm, src = [], [], [], [], [], [], []
     row = 0
@@ -266,6 +293,15 @@ def load_training_data(
                         meta_xy.append(off[None])
                         # Points turned by +a: the sensor is turned by -a.
                         meta_head.append(np.array([-a]))
+                        meta_src.append(rows[i : i + 1])
+                clouds = clouds + extra
+            if variants:
+                extra = []
+                for _ in range(variants):
+                    for i, pts in enumerate(clouds[:n]):
+                        extra.append(augment_scan(pts, aug_rng, augment))
+                        meta_xy.append(xy[start + i : start + i + 1])
+                        meta_head.append(heading[start + i : start + i + 1])
                         meta_src.append(rows[i : i + 1])
                 clouds = clouds + extra
             vox = polar_bev_batch(clouds, bev_config, threads=threads)

@@ -6,6 +6,12 @@ exact on a polar grid), drops a random share of its cells (sparser sensors), and
 minimizes L_quad + lambda * L_rot. After `hard_after` epochs
 half of the negatives are the query's nearest signatures among its true negatives.
 
+Augmentation beyond the paper's: with `augment_p > 0` each sampled scan is replaced, with
+that probability, by one of its augmented copies (`data.load_training_data(variants=N)`:
+fewer beams, fewer points, tilted, shifted in z); with `occlude_p > 0` a BEV loses a
+random wedge of 30-90 degrees (every height and ring of those sectors), as when a truck
+or a wall beside the car hides part of the view.
+
 A checkpoint is written after every epoch; `resume=True` continues from it. Every epoch's
 random numbers derive from (seed, epoch), so a resumed run draws what the uninterrupted
 run would have drawn.
@@ -60,6 +66,10 @@ class TrainOptions:
     lambda_verify: float = 0.0
     verify_candidates: int = 6
     verify_radius: float = 10.0
+    # Augmentation (0 = off): augmented copies made at load time, and wedge occlusion.
+    variants: int = 0
+    augment_p: float = 0.0
+    occlude_p: float = 0.0
 
 
 StepCallback = Callable[[int, int, int, dict[str, float]], None]
@@ -70,6 +80,17 @@ def _roll_batch(bevs: np.ndarray, rolls: np.ndarray) -> np.ndarray:
     s = bevs.shape[-1]
     cols = (np.arange(s)[None, :] - rolls[:, None]) % s
     return np.take_along_axis(bevs, cols[:, None, None, :], axis=-1)
+
+
+def _occlude(bevs: np.ndarray, p: float, rng: np.random.Generator) -> np.ndarray:
+    """Each BEV [H, R, S], with probability p, loses a wedge of 30-90 degrees of sectors."""
+    s = bevs.shape[-1]
+    hit = np.flatnonzero(rng.random(len(bevs)) < p)
+    for b in hit:
+        width = int(round(rng.uniform(30.0, 90.0) * s / 360.0))
+        cols = (int(rng.integers(0, s)) + np.arange(width)) % s
+        bevs[b][..., cols] = 0
+    return bevs
 
 
 def _pool_signatures(
@@ -130,6 +151,9 @@ def train(
     k = opts.negatives
     per = 3 + k
     sectors = data.sectors
+    variants = data.variant_table() if opts.augment_p > 0 else None
+    if variants is not None and variants.shape[1] == 0:
+        variants = None
     for epoch in range(start_epoch, opts.epochs):
         rng = np.random.default_rng([opts.seed, epoch])
         torch.manual_seed(opts.seed * 100_003 + epoch)
@@ -161,7 +185,16 @@ def train(
                 if vsets:
                     flat = np.concatenate([flat, *[v[1] for v in vsets]])
             rolls = rng.integers(0, sectors, size=len(flat))
-            x = torch.from_numpy(_roll_batch(data.float_bevs(flat), rolls)).to(device)
+            shown = flat
+            if variants is not None:
+                # Some scans are shown as one of their augmented copies (same pose).
+                pick = variants[flat, rng.integers(0, variants.shape[1], size=len(flat))]
+                swap = (rng.random(len(flat)) < opts.augment_p) & (pick >= 0)
+                shown = np.where(swap, pick, flat)
+            bevs = _roll_batch(data.float_bevs(shown), rolls)
+            if opts.occlude_p > 0:
+                bevs = _occlude(bevs, opts.occlude_p, rng)
+            x = torch.from_numpy(bevs).to(device)
             if opts.bev_dropout > 0:
                 # Domain randomization: drop occupied cells, as a sparser sensor would.
                 x = x * (torch.rand(x.shape, device=device) >= opts.bev_dropout)

@@ -1,0 +1,67 @@
+"""Any two-session worlds with the out-of-distribution suite's protocol, queries optionally
+tilted or shifted in z: how model selection and the tilt measurement of docs/model.md ran.
+
+    .venv/bin/python benchmarks/ood_eval.py WORLD... --models default ft.pt [--tilt 3] [--z 0.5]
+
+Each WORLD holds sessions 00 (the map) and 01 (the queries); a match is true within 5 m.
+Prints one line per model: Recall@1 / Recall@5 / mean yaw error (deg) per world.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import ood_suite as S  # noqa: E402
+
+
+class _Lift:
+    """Queries moved by dz metres in z (another mounting height); no rotation."""
+
+    def __init__(self, dz: float):
+        self.dz = dz
+
+    def rotation(self, i: int) -> np.ndarray:
+        return np.eye(4)
+
+    def __call__(self, pts: np.ndarray, i: int) -> np.ndarray:
+        from disco_cli.training.augment import shift_z
+
+        return shift_z(pts, self.dz)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("worlds", nargs="+", type=Path)
+    ap.add_argument("--models", nargs="+", default=["default", "spectral"])
+    ap.add_argument("--tilt", type=float, default=0.0, help="queries' roll and pitch within +-DEG")
+    ap.add_argument("--z", type=float, default=0.0, help="queries shifted by this (m)")
+    ap.add_argument("--seed", type=int, default=1, help="seed of the tilts")
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+
+    import torch
+
+    from disco_cli.model import load_model
+
+    torch.set_num_threads(args.threads)
+    for name in args.models:
+        model = load_model(name)
+        cells = []
+        for w in args.worlds:
+            mp, mpose = S.load_session(w / "00")
+            qp, qpose = S.load_session(w / "01")
+            tf = _Lift(args.z) if args.z else None
+            q = S.Queries(qp, qpose, args.tilt, seed=args.seed, transform=tf)
+            s = S.summarize(S.evaluate(model, mp, mpose, q, args.threads))
+            cells.append(f"{w.name} {s['r1']:.3f} / {s['r5']:.3f} / {s['yaw_mean']:.2f}")
+        print(S.model_key(name), " | ".join(cells), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
