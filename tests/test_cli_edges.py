@@ -161,7 +161,8 @@ def test_query_takes_a_folder_like_build_db(samples: Path, samples_spectral_db: 
     assert [r["query"] for r in rows] == _scans(samples / "01")
     # The same rows as asking for each file.
     files = CliRunner().invoke(
-        app, ["query", *_scans(samples / "01"), "-d", str(samples_spectral_db), "-k", "1"]
+        app,
+        ["query", *_scans(samples / "01"), "-d", str(samples_spectral_db), "-k", "1"]
         + ["--format", "jsonl"],
     )
     assert [json.loads(line) for line in files.stdout.splitlines()] == rows

@@ -138,8 +138,9 @@ def _flip_cases(size: int, seed: int = 0) -> list[list[tuple[int, int]]]:
         return int(rng.integers(1, 256))
 
     cases = [[(int(rng.integers(0, size)), mask())] for _ in range(12)]
-    cases += [[(int(rng.integers(0, pages)) * PAGE + int(rng.integers(0, 12)), mask())]
-              for _ in range(12)]
+    cases += [
+        [(int(rng.integers(0, pages)) * PAGE + int(rng.integers(0, 12)), mask())] for _ in range(12)
+    ]
     cases += [[(int(rng.integers(16, 100)), mask())] for _ in range(4)]
     cases += [[(int(rng.integers(0, size)), mask()) for _ in range(4)] for _ in range(4)]
     return cases

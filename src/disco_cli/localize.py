@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError, ScanReadError
+from disco_cli.poses.geometry import wrap_deg
 
 __all__ = ["Match", "PointCache", "euler_deg", "pose_columns", "refine_matches"]
 
@@ -67,16 +68,7 @@ def euler_deg(T: np.ndarray) -> tuple[float, float, float]:
     yaw = math.degrees(math.atan2(R[1, 0], R[0, 0]))
     pitch = math.degrees(math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])))
     roll = math.degrees(math.atan2(R[2, 1], R[2, 2]))
-    return _wrap(roll), pitch, _wrap(yaw)
-
-
-def _wrap(a: float) -> float:
-    a = math.fmod(a, 360.0)
-    if a <= -180.0:
-        a += 360.0
-    elif a > 180.0:
-        a -= 360.0
-    return a + 0.0  # no -0.0
+    return wrap_deg(roll), pitch, wrap_deg(yaw)
 
 
 def pose_fields(rp: Any) -> dict[str, Any]:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError
+from disco_cli.poses.geometry import wrap_deg
 
 
 class PoseError(DiscoError):
@@ -131,16 +132,6 @@ def _as_points(points: Any, what: str) -> np.ndarray:
 def _rot_z(yaw: float) -> np.ndarray:
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _wrap_deg(a: float) -> float:
-    """Angle in (-180, 180]."""
-    a = math.fmod(a, 360.0)
-    if a <= -180.0:
-        a += 360.0
-    elif a > 180.0:
-        a -= 360.0
-    return a
 
 
 def _hann(n: int) -> np.ndarray:
@@ -278,7 +269,7 @@ def _result(
             reasons.append(f"fitness {fitness:.2f} < {config.min_fitness:.2f}")
         if not rmse <= config.max_rmse:
             reasons.append(f"rmse {rmse:.2f} m > {config.max_rmse:.2f} m")
-    yaw = _wrap_deg(math.degrees(math.atan2(T[1, 0], T[0, 0])))
+    yaw = wrap_deg(math.degrees(math.atan2(T[1, 0], T[0, 0])))
     return RelativePose(
         T=T,
         dx=float(T[0, 3]),
