@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError
+from disco_cli.poses.geometry import keep_by_spacing
 
 __all__ = [
     "PROTOCOLS",
@@ -215,17 +216,6 @@ def find_session(protocol: Protocol | str, root: str | Path, name: str) -> tuple
     return scans, pose_file
 
 
-def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
-    """Indices of positions at least `spacing` metres of travel apart (all when <= 0)."""
-    if spacing <= 0 or len(xy) == 0:
-        return np.arange(len(xy))
-    keep = [0]
-    for i in range(1, len(xy)):
-        if np.linalg.norm(xy[i] - xy[keep[-1]]) >= spacing:
-            keep.append(i)
-    return np.asarray(keep)
-
-
 def load_session(
     protocol: Protocol | str,
     root: str | Path,
@@ -248,7 +238,7 @@ def load_session(
     if not has.any():
         raise DiscoError(f"{pose_file}: none of the {len(scans)} scans of {name} has a pose")
     scans, T = [s for s, h in zip(scans, has) if h], T[has]
-    keep = _keep_by_spacing(T[:, :2, 3], spacing)
+    keep = keep_by_spacing(T[:, :2, 3], spacing)
     return Session(name, [scans[i] for i in keep], T[keep])
 
 
@@ -289,12 +279,8 @@ def evaluate_sessions(
     search (`match_queries`, with the model's re-ranking), ground truth within `radius`
     metres in x, y, and `retrieval_evaluation`. `query_mask` picks the queries."""
     from disco_cli.database import MatchRows
-    from disco_cli.evaluation.metrics import (
-        one_percent_n,
-        retrieval_evaluation,
-        within_radius,
-        wrap_deg,
-    )
+    from disco_cli.evaluation.metrics import one_percent_n
+    from disco_cli.evaluation.runs import score_retrieval
     from disco_cli.poses import xy_yaw
     from disco_cli.search import SignatureIndex, match_queries
 
@@ -321,21 +307,7 @@ def evaluate_sessions(
     matches = match_queries(
         SignatureIndex(map_session.signatures), ids, _Memory(), model, q_sigs, q_feats, depth
     )
-    retrieved = np.full((len(sel), depth), -1, np.int64)
-    distances = np.full((len(sel), depth), np.inf)
-    yaw_est = np.full(len(sel), np.nan)
-    for i, found in enumerate(matches):
-        for m in found:
-            retrieved[i, m.rank - 1], distances[i, m.rank - 1] = m.row, m.distance
-        if found:
-            yaw_est[i] = found[0].yaw_deg
-    qx, qy, qyaw = xy_yaw(query_session.poses[sel])
-    truth = within_radius(np.c_[qx, qy], map_rows[:, :2], radius)
-    top1 = np.maximum(retrieved[:, 0], 0)
-    yaw_true = wrap_deg(np.degrees(qyaw - map_rows[top1, 3]))
-    ev = retrieval_evaluation(retrieved, distances, truth, yaw_est, yaw_true)
-    ev.metrics["recall@N"] = ev.metrics["recall@N"][:topk]
-    ev.metrics["topk"] = topk
+    ev = score_retrieval(matches, depth, topk, query_session.poses[sel], map_rows, radius)
     return ev.metrics
 
 

@@ -98,14 +98,8 @@ def multi_session(
 ) -> Any:
     """Recall@1..topk, Recall@1%, PR AUC, F1max and yaw error of `paths` (with their
     `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`."""
-    from disco_cli.evaluation.metrics import (
-        one_percent_n,
-        retrieval_evaluation,
-        within_radius,
-        wrap_deg,
-    )
+    from disco_cli.evaluation.metrics import one_percent_n
     from disco_cli.pipeline import embed_paths
-    from disco_cli.poses import xy_yaw
     from disco_cli.search import SignatureIndex, match_queries
 
     if len(query_poses) != len(paths):
@@ -117,20 +111,36 @@ def multi_session(
     sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
     depth = max(topk, one_percent_n(len(ids)))
     matches = match_queries(SignatureIndex(db_sigs), ids, db, model, sigs, feats, depth)
+    return score_retrieval(matches, depth, topk, query_poses, db_poses, radius)
 
-    retrieved = np.full((len(paths), depth), -1, np.int64)
-    distances = np.full((len(paths), depth), np.inf)
-    yaw_est = np.full(len(paths), np.nan)
+
+def score_retrieval(
+    matches: list,
+    depth: int,
+    topk: int,
+    query_poses: np.ndarray,
+    map_rows: np.ndarray,
+    radius: float,
+) -> Any:
+    """`retrieval_evaluation` of `match_queries`' results (searched `depth` deep): true
+    matches within `radius` m in x, y of the `[N, 4, 4]` `query_poses`, with the map's
+    scans as rows `[M, 4]` of x, y, z, yaw (radians); recall@N is cut at `topk`."""
+    from disco_cli.evaluation.metrics import retrieval_evaluation, within_radius, wrap_deg
+    from disco_cli.poses import xy_yaw
+
+    retrieved = np.full((len(matches), depth), -1, np.int64)
+    distances = np.full((len(matches), depth), np.inf)
+    yaw_est = np.full(len(matches), np.nan)
     for i, found in enumerate(matches):
         for m in found:
             retrieved[i, m.rank - 1], distances[i, m.rank - 1] = m.row, m.distance
         if found:
             yaw_est[i] = found[0].yaw_deg
     qx, qy, qyaw = xy_yaw(query_poses)
-    truth = within_radius(np.c_[qx, qy], db_poses[:, :2], radius)
+    truth = within_radius(np.c_[qx, qy], map_rows[:, :2], radius)
     top1 = np.maximum(retrieved[:, 0], 0)
     # Ground-truth yaw of T_match^-1 T_query for planar poses: the heading difference.
-    yaw_true = wrap_deg(np.degrees(qyaw - db_poses[top1, 3]))
+    yaw_true = wrap_deg(np.degrees(qyaw - map_rows[top1, 3]))
     ev = retrieval_evaluation(retrieved, distances, truth, yaw_est, yaw_true)
     # The search went deep enough for recall@1%; report recall@N up to the N asked for.
     ev.metrics["recall@N"] = ev.metrics["recall@N"][:topk]

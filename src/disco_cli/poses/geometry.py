@@ -134,3 +134,14 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
         q /= np.linalg.norm(q)
         out[k] = -q if q[3] < 0 else q
     return out.reshape(R.shape[:-2] + (4,))
+
+
+def keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
+    """Indices of positions at least `spacing` metres of travel apart (all when <= 0)."""
+    if spacing <= 0 or len(xy) == 0:
+        return np.arange(len(xy))
+    keep = [0]
+    for i in range(1, len(xy)):
+        if np.linalg.norm(xy[i] - xy[keep[-1]]) >= spacing:
+            keep.append(i)
+    return np.asarray(keep)

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError, PoseFileError
+from disco_cli.poses.geometry import keep_by_spacing
 from disco_cli.training.augment import AugmentConfig, augment_scan
 
 # Scans voxelized per call: bounds the memory held by raw point clouds.
@@ -158,17 +159,6 @@ def _read_poses(seq: Path, scans: list[Path]) -> np.ndarray:
     return T
 
 
-def _keep_by_spacing(xy: np.ndarray, spacing: float) -> np.ndarray:
-    """Indices of scans at least `spacing` metres of travel apart (all when spacing <= 0)."""
-    if spacing <= 0 or len(xy) == 0:
-        return np.arange(len(xy))
-    keep = [0]
-    for i in range(1, len(xy)):
-        if np.linalg.norm(xy[i] - xy[keep[-1]]) >= spacing:
-            keep.append(i)
-    return np.asarray(keep)
-
-
 def augment_points(
     points: np.ndarray,
     rng: np.random.Generator,
@@ -266,7 +256,7 @@ def load_training_data(
             xy = np.stack([x, y], axis=1)
             heading = np.degrees(yaw)
             gid = groups.setdefault(str(seq.resolve().parent), len(groups))
-        keep = _keep_by_spacing(xy, spacing) if not self_supervised else np.arange(len(scans))
+        keep = keep_by_spacing(xy, spacing) if not self_supervised else np.arange(len(scans))
         plan.append((sid, gid, fmt, [scans[i] for i in keep], xy[keep], heading[keep]))
 
     total = sum(len(p[3]) for p in plan) * (1 + (copies if self_supervised else variants))
