@@ -67,6 +67,8 @@ struct Binning {
     float ring_scale, sector_scale, height_scale, z_min_f, ring_min;
     float ring_margin, sector_margin, height_margin;
     float rings_f, heights_f;
+    // Bounds on the float x^2 + y^2 of a point that might be in the ring window.
+    float r2_lo, r2_hi;
 };
 
 Binning make_binning(const BEVConfig& c) {
@@ -98,6 +100,14 @@ Binning make_binning(const BEVConfig& c) {
     const double z_abs = std::max(std::abs(c.z_min), std::abs(c.z_max)) + b.height_w;
     b.height_margin = static_cast<float>(
         32.0 * eps * ((2.0 * z_abs + (c.z_max - c.z_min)) / b.height_w + b.heights + 2.0));
+    // The float x^2 + y^2 is within 1e-6 of the exact value, relatively (the float
+    // conversions of x and y and two roundings: under 4 * kFloatEps), so these bounds,
+    // 2e-5 outside the window, drop only points surely outside it. A low bound below
+    // the normal floats (where the float product is no longer relatively exact) is 0.
+    const double lo = c.min_range * (1.0 - 1e-5);
+    b.r2_lo = lo * lo >= 1e-30 ? static_cast<float>(lo * lo) : 0.0f;
+    const double hi = c.max_range * (1.0 + 1e-5);
+    b.r2_hi = static_cast<float>(hi * hi);
     return b;
 }
 
@@ -223,6 +233,55 @@ void fast_codes_plain(float* __restrict xs, float* __restrict ys, float* __restr
         const int32_t ok_mask = -static_cast<int32_t>(ok);
         const int32_t drop_mask = -static_cast<int32_t>(drop);
         codes[i] = (cell & ok_mask) | (kExact & ~ok_mask) | drop_mask;
+    }
+}
+
+// The plain kernel over one chunk, skipping what is surely dropped: a cheap first
+// pass marks the points that might be in the grid (r^2 and height windows, NaN out),
+// the groups of kGroup points with at least one such point are moved to the front,
+// and only those take the square root and polynomial of fast_codes_plain; the
+// codes of the other groups are kDrop. Scans come in sensor order, so the points
+// out of the window (mostly ground, under z_min) come in long runs, and nearly all
+// of them fall in whole groups that are skipped.
+constexpr int kGroup = 4;
+
+template <bool Small>
+void fast_codes_plain_skip(float* __restrict xs, float* __restrict ys, float* __restrict zs,
+                           int n, const Binning& bin, int32_t* __restrict codes) {
+    const int groups = (n + kGroup - 1) / kGroup;
+    for (int i = n; i < groups * kGroup; ++i) xs[i] = ys[i] = zs[i] = 0.0f;
+    const float r2_lo = bin.r2_lo, r2_hi = bin.r2_hi;
+    const float height_scale = bin.height_scale, z_min = bin.z_min_f;
+    const float height_lo = -bin.height_margin, height_hi = bin.heights_f + bin.height_margin;
+    alignas(64) int32_t keep[kChunk];
+    for (int i = 0; i < groups * kGroup; ++i) {
+        const float x = xs[i];
+        const float y = ys[i];
+        // The drop test of fast_codes_plain for the height, the same expression; for
+        // the ring, bounds on r^2 (see make_binning). NaN fails every comparison.
+        const float r2 = x * x + y * y;
+        const float a_height = (zs[i] - z_min) * height_scale;
+        keep[i] = (r2 >= r2_lo) & (r2 <= r2_hi) & (a_height >= height_lo) &
+                  (a_height <= height_hi);
+    }
+    int32_t where[kChunk / kGroup];
+    int kept = 0;
+    for (int g = 0; g < groups; ++g) {
+        int32_t any = 0;
+        for (int l = 0; l < kGroup; ++l) any |= keep[g * kGroup + l];
+        // In place (the destination group is never after the source): memmove of a
+        // constant size is one vector load and store.
+        std::memmove(xs + kept * kGroup, xs + g * kGroup, sizeof(float) * kGroup);
+        std::memmove(ys + kept * kGroup, ys + g * kGroup, sizeof(float) * kGroup);
+        std::memmove(zs + kept * kGroup, zs + g * kGroup, sizeof(float) * kGroup);
+        where[kept] = g;
+        kept += any;
+    }
+    alignas(64) int32_t packed[kChunk];
+    fast_codes_plain<Small>(xs, ys, zs, kept * kGroup, bin, packed);
+    for (int i = 0; i < groups * kGroup; ++i) codes[i] = kDrop;
+    for (int k = 0; k < kept; ++k) {
+        std::memcpy(codes + where[k] * kGroup, packed + k * kGroup, sizeof(int32_t) * kGroup);
     }
 }
 
@@ -793,8 +852,8 @@ void chunk_codes(int level, bool small, const T* row, Eigen::Index rs, Eigen::In
 #if DISCO_BEV_NEON
     if (level == 1) return fast_codes_neon(xs, ys, zs, m, b, codes);
 #endif
-    if (small) return fast_codes_plain<true>(xs, ys, zs, m, b, codes);
-    fast_codes_plain<false>(xs, ys, zs, m, b, codes);
+    if (small) return fast_codes_plain_skip<true>(xs, ys, zs, m, b, codes);
+    fast_codes_plain_skip<false>(xs, ys, zs, m, b, codes);
 }
 
 template <BEVMode Mode, typename T>
@@ -834,14 +893,24 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
         chunk_codes(level, small, row, rs, cs, m, b, xs, ys, zs, codes);
         row = base + start * rs;
         if constexpr (Mode == BEVMode::kOccupancy) {
-            for (int i = 0; i < m; ++i, row += rs) {
-                int32_t c = codes[i];
-                if (c == kExact) {
-                    c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
-                                   static_cast<double>(row[2 * cs]), b);
+            // Dropped points come in runs (see fast_codes_plain_skip): a group of
+            // kGroup of them is passed over whole.
+            for (int g = 0; g < m; g += kGroup) {
+                const int end = std::min(m, g + kGroup);
+                if (end - g == kGroup &&
+                    (codes[g] & codes[g + 1] & codes[g + 2] & codes[g + 3]) == kDrop) {
+                    continue;
                 }
-                float* dst = c >= 0 ? out + c : &sink;
-                *dst = 1.0f;
+                row = base + (start + g) * rs;
+                for (int i = g; i < end; ++i, row += rs) {
+                    int32_t c = codes[i];
+                    if (c == kExact) {
+                        c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
+                                       static_cast<double>(row[2 * cs]), b);
+                    }
+                    float* dst = c >= 0 ? out + c : &sink;
+                    *dst = 1.0f;
+                }
             }
             continue;  // the loop below is for density and max_height
         }
