@@ -239,15 +239,17 @@ void fast_codes_plain(float* __restrict xs, float* __restrict ys, float* __restr
 // The plain kernel over one chunk, skipping what is surely dropped: a cheap first
 // pass marks the points that might be in the grid (r^2 and height windows, NaN out),
 // the groups of kGroup points with at least one such point are moved to the front,
-// and only those take the square root and polynomial of fast_codes_plain; the
-// codes of the other groups are kDrop. Scans come in sensor order, so the points
-// out of the window (mostly ground, under z_min) come in long runs, and nearly all
-// of them fall in whole groups that are skipped.
+// and only those take the square root and polynomial of fast_codes_plain. Scans
+// come in sensor order, so the points out of the window (mostly ground, under z_min)
+// come in long runs, and nearly all of them fall in whole groups that are skipped.
+// Returns the number of groups kept: codes[k * kGroup + l] is the code of point
+// where[k] * kGroup + l (points past n have codes too, to be ignored).
 constexpr int kGroup = 4;
 
 template <bool Small>
-void fast_codes_plain_skip(float* __restrict xs, float* __restrict ys, float* __restrict zs,
-                           int n, const Binning& bin, int32_t* __restrict codes) {
+int fast_codes_plain_skip(float* __restrict xs, float* __restrict ys, float* __restrict zs,
+                          int n, const Binning& bin, int32_t* __restrict codes,
+                          int32_t* __restrict where) {
     const int groups = (n + kGroup - 1) / kGroup;
     for (int i = n; i < groups * kGroup; ++i) xs[i] = ys[i] = zs[i] = 0.0f;
     const float r2_lo = bin.r2_lo, r2_hi = bin.r2_hi;
@@ -264,7 +266,6 @@ void fast_codes_plain_skip(float* __restrict xs, float* __restrict ys, float* __
         keep[i] = (r2 >= r2_lo) & (r2 <= r2_hi) & (a_height >= height_lo) &
                   (a_height <= height_hi);
     }
-    int32_t where[kChunk / kGroup];
     int kept = 0;
     for (int g = 0; g < groups; ++g) {
         int32_t any = 0;
@@ -277,12 +278,8 @@ void fast_codes_plain_skip(float* __restrict xs, float* __restrict ys, float* __
         where[kept] = g;
         kept += any;
     }
-    alignas(64) int32_t packed[kChunk];
-    fast_codes_plain<Small>(xs, ys, zs, kept * kGroup, bin, packed);
-    for (int i = 0; i < groups * kGroup; ++i) codes[i] = kDrop;
-    for (int k = 0; k < kept; ++k) {
-        std::memcpy(codes + where[k] * kGroup, packed + k * kGroup, sizeof(int32_t) * kGroup);
-    }
+    fast_codes_plain<Small>(xs, ys, zs, kept * kGroup, bin, codes);
+    return kept;
 }
 
 // The tails of the SIMD kernels: fewer than 16 points, always on a small grid.
@@ -803,22 +800,27 @@ int detected_level() {
 #endif
 }
 
-// Stage 1 for one chunk: codes[i] for rows row[0 .. m).
+// Stage 1 for one chunk, codes for the rows row[0 .. m) in groups of kGroup: returns
+// the number of groups that hold codes (the others are surely dropped);
+// codes[k * kGroup + l] belongs to row where[k] * kGroup + l (ignored past m).
 template <typename T>
-void chunk_codes(int level, bool small, const T* row, Eigen::Index rs, Eigen::Index cs, int m,
-                 const Binning& b, float* xs, float* ys, float* zs, int32_t* codes) {
+int chunk_codes(int level, bool small, const T* row, Eigen::Index rs, Eigen::Index cs, int m,
+                const Binning& b, float* xs, float* ys, float* zs, int32_t* codes,
+                int32_t* where) {
+    const int groups = (m + kGroup - 1) / kGroup;
+    for (int g = 0; g < groups; ++g) where[g] = g;  // every group, for the SIMD kernels
     if constexpr (std::is_same_v<T, float>) {
         if (rs == 4 && cs == 1 && level >= 1) {
             const float* rows = row;
 #if DISCO_BEV_AVX2
-            if (level == 3) return fast_codes_xyzw16(rows, m, b, codes);
-            if (level == 2) return fast_codes_xyzw8(rows, m, b, codes);
+            if (level == 3) return fast_codes_xyzw16(rows, m, b, codes), groups;
+            if (level == 2) return fast_codes_xyzw8(rows, m, b, codes), groups;
 #endif
 #if DISCO_BEV_SSE2
-            return fast_codes_xyzw(rows, m, b, SimdBinning(b), codes);
+            return fast_codes_xyzw(rows, m, b, SimdBinning(b), codes), groups;
 #endif
 #if DISCO_BEV_NEON
-            return fast_codes_xyzw_neon(rows, m, b, codes);
+            return fast_codes_xyzw_neon(rows, m, b, codes), groups;
 #endif
         }
     }
@@ -843,17 +845,17 @@ void chunk_codes(int level, bool small, const T* row, Eigen::Index rs, Eigen::In
         }
     }
 #if DISCO_BEV_AVX2
-    if (level == 3) return fast_codes_simd16(xs, ys, zs, m, b, codes);
-    if (level == 2) return fast_codes_simd8(xs, ys, zs, m, b, codes);
+    if (level == 3) return fast_codes_simd16(xs, ys, zs, m, b, codes), groups;
+    if (level == 2) return fast_codes_simd8(xs, ys, zs, m, b, codes), groups;
 #endif
 #if DISCO_BEV_SSE2
-    if (level == 1) return fast_codes_simd(xs, ys, zs, m, b, SimdBinning(b), codes);
+    if (level == 1) return fast_codes_simd(xs, ys, zs, m, b, SimdBinning(b), codes), groups;
 #endif
 #if DISCO_BEV_NEON
-    if (level == 1) return fast_codes_neon(xs, ys, zs, m, b, codes);
+    if (level == 1) return fast_codes_neon(xs, ys, zs, m, b, codes), groups;
 #endif
-    if (small) return fast_codes_plain_skip<true>(xs, ys, zs, m, b, codes);
-    fast_codes_plain_skip<false>(xs, ys, zs, m, b, codes);
+    if (small) return fast_codes_plain_skip<true>(xs, ys, zs, m, b, codes, where);
+    return fast_codes_plain_skip<false>(xs, ys, zs, m, b, codes, where);
 }
 
 template <BEVMode Mode, typename T>
@@ -867,6 +869,7 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     alignas(64) float ys[kChunk];
     alignas(64) float zs[kChunk];
     alignas(64) int32_t codes[kChunk];
+    int32_t where[kChunk / kGroup];
     float sink = 0.0f;  // occupancy: dropped points write here, so the scatter has no branch
     float peak = 0.0f;
     // Density and max_height read-modify-write a cell, and consecutive points of a
@@ -890,20 +893,15 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     for (Eigen::Index start = 0; start < n; start += kChunk) {
         const int m = static_cast<int>(std::min<Eigen::Index>(kChunk, n - start));
         const T* row = base + start * rs;
-        chunk_codes(level, small, row, rs, cs, m, b, xs, ys, zs, codes);
-        row = base + start * rs;
-        if constexpr (Mode == BEVMode::kOccupancy) {
-            // Dropped points come in runs (see fast_codes_plain_skip): a group of
-            // kGroup of them is passed over whole.
-            for (int g = 0; g < m; g += kGroup) {
-                const int end = std::min(m, g + kGroup);
-                if (end - g == kGroup &&
-                    (codes[g] & codes[g + 1] & codes[g + 2] & codes[g + 3]) == kDrop) {
-                    continue;
-                }
-                row = base + (start + g) * rs;
-                for (int i = g; i < end; ++i, row += rs) {
-                    int32_t c = codes[i];
+        const int kept = chunk_codes(level, small, row, rs, cs, m, b, xs, ys, zs, codes, where);
+        for (int k = 0; k < kept; ++k) {
+            const int first = where[k] * kGroup;
+            const int end = std::min(m, first + kGroup);
+            const int32_t* code = codes + k * kGroup - first;
+            row = base + (start + first) * rs;
+            if constexpr (Mode == BEVMode::kOccupancy) {
+                for (int i = first; i < end; ++i, row += rs) {
+                    int32_t c = code[i];
                     if (c == kExact) {
                         c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
                                        static_cast<double>(row[2 * cs]), b);
@@ -911,27 +909,27 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
                     float* dst = c >= 0 ? out + c : &sink;
                     *dst = 1.0f;
                 }
+                continue;  // the loop below is for density and max_height
             }
-            continue;  // the loop below is for density and max_height
-        }
-        for (int i = 0; i < m; ++i, row += rs) {
-            int32_t c = codes[i];
-            if (c == kExact) {
-                c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
-                               static_cast<double>(row[2 * cs]), b);
-            }
-            if (c < 0) continue;
-            float v = 1.0f;
-            if constexpr (Mode == BEVMode::kMaxHeight) {
-                // z - z_min of the top point; rounding to float keeps the order.
-                v = static_cast<float>(static_cast<double>(row[2 * cs]) - b.z_min);
-            }
-            if (c == run_cell) {
-                run = Mode == BEVMode::kDensity ? run + v : std::max(run, v);
-            } else {
-                flush();
-                run_cell = c;
-                run = v;
+            for (int i = first; i < end; ++i, row += rs) {
+                int32_t c = code[i];
+                if (c == kExact) {
+                    c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
+                                   static_cast<double>(row[2 * cs]), b);
+                }
+                if (c < 0) continue;
+                float v = 1.0f;
+                if constexpr (Mode == BEVMode::kMaxHeight) {
+                    // z - z_min of the top point; rounding to float keeps the order.
+                    v = static_cast<float>(static_cast<double>(row[2 * cs]) - b.z_min);
+                }
+                if (c == run_cell) {
+                    run = Mode == BEVMode::kDensity ? run + v : std::max(run, v);
+                } else {
+                    flush();
+                    run_cell = c;
+                    run = v;
+                }
             }
         }
     }
