@@ -207,6 +207,47 @@ std::vector<double> edge_points(const disco::BEVConfig& c) {
     return xyz;
 }
 
+// Points just inside and just outside the ring and height windows, each repeated
+// 16 times in a row, so that whole SIMD vectors and groups of the kernels hold only
+// such points: a window test that skipped one surely-dropped group too many (its
+// r^2 bounds too tight) would lose them all.
+std::vector<double> window_runs(const disco::BEVConfig& c) {
+    std::vector<double> xyz;
+    auto add = [&](double x, double y, double z) {
+        for (int k = 0; k < 16; ++k) xyz.insert(xyz.end(), {x, y, z});
+    };
+    const double zs[] = {c.z_min, c.z_max};
+    for (double rel : {0.0, 1e-8, 1e-7, 1e-6, 5e-6, 1e-5, 2e-5, 3e-5, 1e-4}) {
+        for (double s : {-1.0, 1.0}) {
+            for (double bound : {c.min_range, c.max_range}) {
+                const double r = bound * (1.0 + s * rel);
+                add(r, 0.0, 1.0);
+                add(0.0, -r, 1.0);
+                add(-0.6 * r, 0.8 * r, 1.0);
+                add(0.28 * r, -0.96 * r, 1.0);
+            }
+            for (double z : zs) {
+                const double dz = s * rel * std::max(1.0, std::abs(z));
+                add(10.0, 3.0, z + dz);
+                add(-7.0, -20.0, z + dz);
+            }
+        }
+    }
+    for (double bound : {c.min_range, c.max_range}) {
+        for (double s : {-1.0, 1.0}) {
+            const auto f = static_cast<double>(std::nextafter(static_cast<float>(bound), s * 1e9f));
+            add(f, 0.0, 1.0);
+            add(0.0, f, 1.0);
+        }
+    }
+    for (double z : zs) {
+        for (double s : {-1.0, 1.0}) {
+            add(10.0, 3.0, static_cast<double>(std::nextafter(static_cast<float>(z), s * 1e9f)));
+        }
+    }
+    return xyz;
+}
+
 void check_voxel_downsample() {
     Rng rng{42};
     disco::Points3d points;
@@ -352,6 +393,7 @@ int main(int argc, char** argv) {
             check_bev("random seed " + std::to_string(seed) + " mode " + m,
                       random_scan(seed, 20003), c);
         check_bev("edges mode " + m, edge_points(c), c);
+        check_bev("window runs mode " + m, window_runs(c), c);
     }
     disco::BEVConfig odd;  // another grid: 7 rings, 360 sectors, 3 layers, no min range
     odd.rings = 7;
@@ -361,6 +403,7 @@ int main(int argc, char** argv) {
     odd.min_range = 0.0;
     check_bev("odd grid random", random_scan(11, 10000), odd);
     check_bev("odd grid edges", edge_points(odd), odd);
+    check_bev("odd grid window runs", window_runs(odd), odd);
     disco::BEVConfig big;  // >= 2^24 cells: the plain kernel's integer cell index
     big.rings = 4096;
     big.sectors = 4097;

@@ -67,6 +67,8 @@ struct Binning {
     float ring_scale, sector_scale, height_scale, z_min_f, ring_min;
     float ring_margin, sector_margin, height_margin;
     float rings_f, heights_f;
+    // Bounds on the float x^2 + y^2 of a point that might be in the ring window.
+    float r2_lo, r2_hi;
 };
 
 Binning make_binning(const BEVConfig& c) {
@@ -98,6 +100,14 @@ Binning make_binning(const BEVConfig& c) {
     const double z_abs = std::max(std::abs(c.z_min), std::abs(c.z_max)) + b.height_w;
     b.height_margin = static_cast<float>(
         32.0 * eps * ((2.0 * z_abs + (c.z_max - c.z_min)) / b.height_w + b.heights + 2.0));
+    // The float x^2 + y^2 is within 1e-6 of the exact value, relatively (the float
+    // conversions of x and y and two roundings: under 4 * kFloatEps), so these bounds,
+    // 2e-5 outside the window, drop only points surely outside it. A low bound below
+    // the normal floats (where the float product is no longer relatively exact) is 0.
+    const double lo = c.min_range * (1.0 - 1e-5);
+    b.r2_lo = lo * lo >= 1e-30 ? static_cast<float>(lo * lo) : 0.0f;
+    const double hi = c.max_range * (1.0 + 1e-5);
+    b.r2_hi = static_cast<float>(hi * hi);
     return b;
 }
 
@@ -226,6 +236,52 @@ void fast_codes_plain(float* __restrict xs, float* __restrict ys, float* __restr
     }
 }
 
+// The plain kernel over one chunk, skipping what is surely dropped: a cheap first
+// pass marks the points that might be in the grid (r^2 and height windows, NaN out),
+// the groups of kGroup points with at least one such point are moved to the front,
+// and only those take the square root and polynomial of fast_codes_plain. Scans
+// come in sensor order, so the points out of the window (mostly ground, under z_min)
+// come in long runs, and nearly all of them fall in whole groups that are skipped.
+// Returns the number of groups kept: codes[k * kGroup + l] is the code of point
+// where[k] * kGroup + l (points past n have codes too, to be ignored).
+constexpr int kGroup = 4;
+
+template <bool Small>
+int fast_codes_plain_skip(float* __restrict xs, float* __restrict ys, float* __restrict zs,
+                          int n, const Binning& bin, int32_t* __restrict codes,
+                          int32_t* __restrict where) {
+    const int groups = (n + kGroup - 1) / kGroup;
+    for (int i = n; i < groups * kGroup; ++i) xs[i] = ys[i] = zs[i] = 0.0f;
+    const float r2_lo = bin.r2_lo, r2_hi = bin.r2_hi;
+    const float height_scale = bin.height_scale, z_min = bin.z_min_f;
+    const float height_lo = -bin.height_margin, height_hi = bin.heights_f + bin.height_margin;
+    alignas(64) int32_t keep[kChunk];
+    for (int i = 0; i < groups * kGroup; ++i) {
+        const float x = xs[i];
+        const float y = ys[i];
+        // The drop test of fast_codes_plain for the height, the same expression; for
+        // the ring, bounds on r^2 (see make_binning). NaN fails every comparison.
+        const float r2 = x * x + y * y;
+        const float a_height = (zs[i] - z_min) * height_scale;
+        keep[i] = (r2 >= r2_lo) & (r2 <= r2_hi) & (a_height >= height_lo) &
+                  (a_height <= height_hi);
+    }
+    int kept = 0;
+    for (int g = 0; g < groups; ++g) {
+        int32_t any = 0;
+        for (int l = 0; l < kGroup; ++l) any |= keep[g * kGroup + l];
+        // In place (the destination group is never after the source): memmove of a
+        // constant size is one vector load and store.
+        std::memmove(xs + kept * kGroup, xs + g * kGroup, sizeof(float) * kGroup);
+        std::memmove(ys + kept * kGroup, ys + g * kGroup, sizeof(float) * kGroup);
+        std::memmove(zs + kept * kGroup, zs + g * kGroup, sizeof(float) * kGroup);
+        where[kept] = g;
+        kept += any;
+    }
+    fast_codes_plain<Small>(xs, ys, zs, kept * kGroup, bin, codes);
+    return kept;
+}
+
 // The tails of the SIMD kernels: fewer than 16 points, always on a small grid.
 void fast_codes(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
                 int32_t* codes) {
@@ -238,6 +294,16 @@ void fast_codes(const float* xs, const float* ys, const float* zs, int n, const 
     fast_codes_plain<true>(x, y, z, n, b, codes);
 }
 
+// The SIMD kernels skip as fast_codes_plain_skip does, a vector at a time: one whose
+// points all fail the cheap window test gets no codes. The tail, rows [i, n) with i
+// a multiple of kGroup, is coded whole: the groups it covers are appended to where.
+#if DISCO_BEV_SSE2 || DISCO_BEV_NEON
+int append_tail(int i, int n, int kept, int32_t* where) {
+    for (int g = i / kGroup; g * kGroup < n; ++g) where[kept++] = g;
+    return kept;
+}
+#endif
+
 #if DISCO_BEV_SSE2
 // The fast path on four points at once (SSE2, the x86-64 baseline): the same
 // arithmetic as fast_codes, lane by lane, with the cell index formed in float
@@ -248,6 +314,7 @@ struct SimdBinning {
     __m128 rings, sectors, heights;
     __m128 ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin,
         height_margin_hi;
+    __m128 r2_lo, r2_hi;
 
     explicit SimdBinning(const Binning& b)
         : ring_scale(_mm_set1_ps(b.ring_scale)),
@@ -267,8 +334,22 @@ struct SimdBinning {
           sector_margin(_mm_set1_ps(b.sector_margin)),
           sector_margin_hi(_mm_set1_ps(1.0f - b.sector_margin)),
           height_margin(_mm_set1_ps(b.height_margin)),
-          height_margin_hi(_mm_set1_ps(1.0f - b.height_margin)) {}
+          height_margin_hi(_mm_set1_ps(1.0f - b.height_margin)),
+          r2_lo(_mm_set1_ps(b.r2_lo)),
+          r2_hi(_mm_set1_ps(b.r2_hi)) {}
 };
+
+// Whether any of the four points might be in the grid: the window test of
+// fast_codes_plain_skip.
+inline bool any4(__m128 x, __m128 y, __m128 z, const SimdBinning& s) {
+    const __m128 r2 = _mm_add_ps(_mm_mul_ps(x, x), _mm_mul_ps(y, y));
+    const __m128 a_height = _mm_mul_ps(_mm_sub_ps(z, s.z_min), s.height_scale);
+    const __m128 keep =
+        _mm_and_ps(_mm_and_ps(_mm_cmpge_ps(r2, s.r2_lo), _mm_cmple_ps(r2, s.r2_hi)),
+                   _mm_and_ps(_mm_cmpge_ps(a_height, s.height_lo_out),
+                              _mm_cmple_ps(a_height, s.height_max_out)));
+    return _mm_movemask_ps(keep) != 0;
+}
 
 inline __m128 select4(__m128 mask, __m128 a, __m128 b) {
     return _mm_or_ps(_mm_and_ps(mask, a), _mm_andnot_ps(mask, b));
@@ -334,32 +415,38 @@ inline __m128i codes4(__m128 x, __m128 y, __m128 z, const SimdBinning& s) {
 }
 
 // Deinterleaved coordinates.
-void fast_codes_simd(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
-                     const SimdBinning& s, int32_t* codes) {
-    int i = 0;
+int fast_codes_simd(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
+                    const SimdBinning& s, int32_t* codes, int32_t* where) {
+    int i = 0, kept = 0;
     for (; i + 4 <= n; i += 4) {
-        const __m128i c = codes4(_mm_load_ps(xs + i), _mm_load_ps(ys + i), _mm_load_ps(zs + i), s);
-        _mm_store_si128(reinterpret_cast<__m128i*>(codes + i), c);
+        const __m128 x = _mm_load_ps(xs + i), y = _mm_load_ps(ys + i), z = _mm_load_ps(zs + i);
+        if (!any4(x, y, z, s)) continue;
+        _mm_store_si128(reinterpret_cast<__m128i*>(codes + kGroup * kept), codes4(x, y, z, s));
+        where[kept++] = i / kGroup;
     }
-    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
+    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + kGroup * kept);
+    return append_tail(i, n, kept, where);
 }
 
 // Packed x, y, z, w float rows (the KITTI layout), read in place.
-void fast_codes_xyzw(const float* rows, int n, const Binning& b, const SimdBinning& s,
-                     int32_t* codes) {
-    int i = 0;
+int fast_codes_xyzw(const float* rows, int n, const Binning& b, const SimdBinning& s,
+                    int32_t* codes, int32_t* where) {
+    int i = 0, kept = 0;
     for (; i + 4 <= n; i += 4) {
         __m128 p0 = _mm_loadu_ps(rows + 4 * i);
         __m128 p1 = _mm_loadu_ps(rows + 4 * i + 4);
         __m128 p2 = _mm_loadu_ps(rows + 4 * i + 8);
         __m128 p3 = _mm_loadu_ps(rows + 4 * i + 12);
         _MM_TRANSPOSE4_PS(p0, p1, p2, p3);  // now x, y, z, w
-        _mm_store_si128(reinterpret_cast<__m128i*>(codes + i), codes4(p0, p1, p2, s));
+        if (!any4(p0, p1, p2, s)) continue;
+        _mm_store_si128(reinterpret_cast<__m128i*>(codes + kGroup * kept), codes4(p0, p1, p2, s));
+        where[kept++] = i / kGroup;
     }
-    for (; i < n; ++i) {
-        const float* r = rows + 4 * i;
-        fast_codes(r, r + 1, r + 2, 1, b, codes + i);
+    for (int j = i; j < n; ++j) {
+        const float* r = rows + 4 * j;
+        fast_codes(r, r + 1, r + 2, 1, b, codes + kGroup * kept + (j - i));
     }
+    return append_tail(i, n, kept, where);
 }
 #endif
 
@@ -381,6 +468,7 @@ struct Binning8 {
     __m256 rings, sectors, heights;
     __m256 ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin,
         height_margin_hi;
+    __m256 r2_lo, r2_hi;
 
     DISCO_AVX2_FMA explicit Binning8(const Binning& b)
         : ring_scale(_mm256_set1_ps(b.ring_scale)),
@@ -400,8 +488,22 @@ struct Binning8 {
           sector_margin(_mm256_set1_ps(b.sector_margin)),
           sector_margin_hi(_mm256_set1_ps(1.0f - b.sector_margin)),
           height_margin(_mm256_set1_ps(b.height_margin)),
-          height_margin_hi(_mm256_set1_ps(1.0f - b.height_margin)) {}
+          height_margin_hi(_mm256_set1_ps(1.0f - b.height_margin)),
+          r2_lo(_mm256_set1_ps(b.r2_lo)),
+          r2_hi(_mm256_set1_ps(b.r2_hi)) {}
 };
+
+// Whether any of the eight points might be in the grid (see any4).
+DISCO_AVX2_FMA inline bool any8(__m256 x, __m256 y, __m256 z, const Binning8& s) {
+    const __m256 r2 = _mm256_add_ps(_mm256_mul_ps(x, x), _mm256_mul_ps(y, y));
+    const __m256 a_height = _mm256_mul_ps(_mm256_sub_ps(z, s.z_min), s.height_scale);
+    const __m256 keep =
+        _mm256_and_ps(_mm256_and_ps(_mm256_cmp_ps(r2, s.r2_lo, _CMP_GE_OQ),
+                                    _mm256_cmp_ps(r2, s.r2_hi, _CMP_LE_OQ)),
+                      _mm256_and_ps(_mm256_cmp_ps(a_height, s.height_lo_out, _CMP_GE_OQ),
+                                    _mm256_cmp_ps(a_height, s.height_max_out, _CMP_LE_OQ)));
+    return _mm256_movemask_ps(keep) != 0;
+}
 
 // trunc(a) and the mask of lanes where it is certainly the cell index. No clamp is
 // needed: a negative, NaN or huge `a` gives frac <= 0 or NaN, so the lane is not ok,
@@ -465,23 +567,28 @@ DISCO_AVX2_FMA inline __m256i codes8(__m256 x, __m256 y, __m256 z, const Binning
     return _mm256_or_si256(code, _mm256_castps_si256(drop));
 }
 
-DISCO_AVX2_FMA void fast_codes_simd8(const float* xs, const float* ys, const float* zs, int n,
-                                     const Binning& b, int32_t* codes) {
+DISCO_AVX2_FMA int fast_codes_simd8(const float* xs, const float* ys, const float* zs, int n,
+                                    const Binning& b, int32_t* codes, int32_t* where) {
     const Binning8 s(b);
-    int i = 0;
+    int i = 0, kept = 0;
     for (; i + 8 <= n; i += 8) {
-        const __m256i c =
-            codes8(_mm256_load_ps(xs + i), _mm256_load_ps(ys + i), _mm256_load_ps(zs + i), s);
-        _mm256_store_si256(reinterpret_cast<__m256i*>(codes + i), c);
+        const __m256 x = _mm256_load_ps(xs + i), y = _mm256_load_ps(ys + i);
+        const __m256 z = _mm256_load_ps(zs + i);
+        if (!any8(x, y, z, s)) continue;
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(codes + kGroup * kept), codes8(x, y, z, s));
+        where[kept++] = i / kGroup;
+        where[kept++] = i / kGroup + 1;
     }
-    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
+    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + kGroup * kept);
+    return append_tail(i, n, kept, where);
 }
 
-DISCO_AVX2_FMA void fast_codes_xyzw8(const float* rows, int n, const Binning& b, int32_t* codes) {
+DISCO_AVX2_FMA int fast_codes_xyzw8(const float* rows, int n, const Binning& b, int32_t* codes,
+                                    int32_t* where) {
     // Lanes come out as points 0 2 4 6 | 1 3 5 7; this puts them back in order.
     const __m256i unshuffle = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
     const Binning8 s(b);
-    int i = 0;
+    int i = 0, kept = 0;
     for (; i + 8 <= n; i += 8) {
         const float* r = rows + 4 * i;
         const __m256 a0 = _mm256_loadu_ps(r);            // p0 | p1
@@ -495,13 +602,17 @@ DISCO_AVX2_FMA void fast_codes_xyzw8(const float* rows, int n, const Binning& b,
         const __m256 x = _mm256_shuffle_ps(lo01, lo23, _MM_SHUFFLE(1, 0, 1, 0));
         const __m256 y = _mm256_shuffle_ps(lo01, lo23, _MM_SHUFFLE(3, 2, 3, 2));
         const __m256 z = _mm256_shuffle_ps(hi01, hi23, _MM_SHUFFLE(1, 0, 1, 0));
+        if (!any8(x, y, z, s)) continue;
         const __m256i c = _mm256_permutevar8x32_epi32(codes8(x, y, z, s), unshuffle);
-        _mm256_store_si256(reinterpret_cast<__m256i*>(codes + i), c);
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(codes + kGroup * kept), c);
+        where[kept++] = i / kGroup;
+        where[kept++] = i / kGroup + 1;
     }
-    for (; i < n; ++i) {
-        const float* r = rows + 4 * i;
-        fast_codes(r, r + 1, r + 2, 1, b, codes + i);
+    for (int j = i; j < n; ++j) {
+        const float* r = rows + 4 * j;
+        fast_codes(r, r + 1, r + 2, 1, b, codes + kGroup * kept + (j - i));
     }
+    return append_tail(i, n, kept, where);
 }
 #endif
 
@@ -522,6 +633,19 @@ DISCO_AVX512 inline __mmask16 ok16(__m512 a, __m512& i, float margin) {
     const __m512 frac = _mm512_sub_ps(a, i);
     const __mmask16 above = _mm512_cmp_ps_mask(frac, _mm512_set1_ps(margin), _CMP_GT_OQ);
     return _mm512_mask_cmp_ps_mask(above, frac, _mm512_set1_ps(1.0f - margin), _CMP_LT_OQ);
+}
+
+// Whether any of the sixteen points might be in the grid (see any4).
+DISCO_AVX512 inline bool any16(__m512 x, __m512 y, __m512 z, const Binning& b) {
+    const __m512 r2 = _mm512_add_ps(_mm512_mul_ps(x, x), _mm512_mul_ps(y, y));
+    const __m512 a_height =
+        _mm512_mul_ps(_mm512_sub_ps(z, _mm512_set1_ps(b.z_min_f)), _mm512_set1_ps(b.height_scale));
+    const __mmask16 keep =
+        _mm512_cmp_ps_mask(r2, _mm512_set1_ps(b.r2_lo), _CMP_GE_OQ) &
+        _mm512_cmp_ps_mask(r2, _mm512_set1_ps(b.r2_hi), _CMP_LE_OQ) &
+        _mm512_cmp_ps_mask(a_height, _mm512_set1_ps(-b.height_margin), _CMP_GE_OQ) &
+        _mm512_cmp_ps_mask(a_height, _mm512_set1_ps(b.heights_f + b.height_margin), _CMP_LE_OQ);
+    return keep != 0;
 }
 
 DISCO_AVX512 inline __m512i codes16(__m512 x, __m512 y, __m512 z, const Binning& b) {
@@ -570,25 +694,29 @@ DISCO_AVX512 inline __m512i codes16(__m512 x, __m512 y, __m512 z, const Binning&
     return _mm512_mask_mov_epi32(code, drop, _mm512_set1_epi32(kDrop));
 }
 
-DISCO_AVX512 void fast_codes_simd16(const float* xs, const float* ys, const float* zs, int n,
-                                    const Binning& b, int32_t* codes) {
-    int i = 0;
+DISCO_AVX512 int fast_codes_simd16(const float* xs, const float* ys, const float* zs, int n,
+                                   const Binning& b, int32_t* codes, int32_t* where) {
+    int i = 0, kept = 0;
     for (; i + 16 <= n; i += 16) {
-        const __m512i c =
-            codes16(_mm512_load_ps(xs + i), _mm512_load_ps(ys + i), _mm512_load_ps(zs + i), b);
-        _mm512_store_si512(codes + i, c);
+        const __m512 x = _mm512_load_ps(xs + i), y = _mm512_load_ps(ys + i);
+        const __m512 z = _mm512_load_ps(zs + i);
+        if (!any16(x, y, z, b)) continue;
+        _mm512_storeu_si512(codes + kGroup * kept, codes16(x, y, z, b));
+        for (int g = 0; g < 16 / kGroup; ++g) where[kept++] = i / kGroup + g;
     }
-    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
+    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + kGroup * kept);
+    return append_tail(i, n, kept, where);
 }
 
-DISCO_AVX512 void fast_codes_xyzw16(const float* rows, int n, const Binning& b, int32_t* codes) {
+DISCO_AVX512 int fast_codes_xyzw16(const float* rows, int n, const Binning& b, int32_t* codes,
+                                   int32_t* where) {
     // Two-source permutes pick x and y (then z) of 8 points out of 2 registers of
     // 4 points each; 256-bit halves are then joined. Point order is kept.
     const __m512i pick_xy =
         _mm512_setr_epi32(0, 4, 8, 12, 16, 20, 24, 28, 1, 5, 9, 13, 17, 21, 25, 29);
     const __m512i pick_z =
         _mm512_setr_epi32(2, 6, 10, 14, 18, 22, 26, 30, 3, 7, 11, 15, 19, 23, 27, 31);
-    int i = 0;
+    int i = 0, kept = 0;
     for (; i + 16 <= n; i += 16) {
         const float* r = rows + 4 * i;
         const __m512 a0 = _mm512_loadu_ps(r);
@@ -602,12 +730,15 @@ DISCO_AVX512 void fast_codes_xyzw16(const float* rows, int n, const Binning& b, 
         const __m512 x = _mm512_shuffle_f32x4(xy0, xy1, _MM_SHUFFLE(1, 0, 1, 0));
         const __m512 y = _mm512_shuffle_f32x4(xy0, xy1, _MM_SHUFFLE(3, 2, 3, 2));
         const __m512 z = _mm512_shuffle_f32x4(zw0, zw1, _MM_SHUFFLE(1, 0, 1, 0));
-        _mm512_store_si512(codes + i, codes16(x, y, z, b));
+        if (!any16(x, y, z, b)) continue;
+        _mm512_storeu_si512(codes + kGroup * kept, codes16(x, y, z, b));
+        for (int g = 0; g < 16 / kGroup; ++g) where[kept++] = i / kGroup + g;
     }
-    for (; i < n; ++i) {
-        const float* r = rows + 4 * i;
-        fast_codes(r, r + 1, r + 2, 1, b, codes + i);
+    for (int j = i; j < n; ++j) {
+        const float* r = rows + 4 * j;
+        fast_codes(r, r + 1, r + 2, 1, b, codes + kGroup * kept + (j - i));
     }
+    return append_tail(i, n, kept, where);
 }
 #if defined(__GNUC__) && !defined(__clang__)
 #pragma GCC diagnostic pop
@@ -624,6 +755,7 @@ struct BinningNeon {
     float32x4_t rings, sectors;
     float32x4_t ring_margin, ring_margin_hi, sector_margin, sector_margin_hi, height_margin,
         height_margin_hi;
+    float32x4_t r2_lo, r2_hi;
 
     explicit BinningNeon(const Binning& b)
         : ring_scale(vdupq_n_f32(b.ring_scale)),
@@ -642,8 +774,21 @@ struct BinningNeon {
           sector_margin(vdupq_n_f32(b.sector_margin)),
           sector_margin_hi(vdupq_n_f32(1.0f - b.sector_margin)),
           height_margin(vdupq_n_f32(b.height_margin)),
-          height_margin_hi(vdupq_n_f32(1.0f - b.height_margin)) {}
+          height_margin_hi(vdupq_n_f32(1.0f - b.height_margin)),
+          r2_lo(vdupq_n_f32(b.r2_lo)),
+          r2_hi(vdupq_n_f32(b.r2_hi)) {}
 };
+
+// Whether any of the four points might be in the grid (see any4).
+inline bool any_neon(float32x4_t x, float32x4_t y, float32x4_t z, const BinningNeon& s) {
+    const float32x4_t r2 = vaddq_f32(vmulq_f32(x, x), vmulq_f32(y, y));
+    const float32x4_t a_height = vmulq_f32(vsubq_f32(z, s.z_min), s.height_scale);
+    const uint32x4_t keep =
+        vandq_u32(vandq_u32(vcgeq_f32(r2, s.r2_lo), vcleq_f32(r2, s.r2_hi)),
+                  vandq_u32(vcgeq_f32(a_height, s.height_lo_out),
+                            vcleq_f32(a_height, s.height_max_out)));
+    return vmaxvq_u32(keep) != 0;
+}
 
 // trunc(a) and the lanes where it is certainly the index (NaN, Inf and huge values
 // give frac NaN or 0: not ok).
@@ -700,30 +845,36 @@ inline int32x4_t codes_neon(float32x4_t x, float32x4_t y, float32x4_t z, const B
     return vorrq_s32(code, vreinterpretq_s32_u32(drop));
 }
 
-void fast_codes_neon(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
-                     int32_t* codes) {
+int fast_codes_neon(const float* xs, const float* ys, const float* zs, int n, const Binning& b,
+                    int32_t* codes, int32_t* where) {
     const BinningNeon s(b);
-    int i = 0;
+    int i = 0, kept = 0;
     for (; i + 4 <= n; i += 4) {
-        vst1q_s32(codes + i, codes_neon(vld1q_f32(xs + i), vld1q_f32(ys + i), vld1q_f32(zs + i), s));
+        const float32x4_t x = vld1q_f32(xs + i), y = vld1q_f32(ys + i), z = vld1q_f32(zs + i);
+        if (!any_neon(x, y, z, s)) continue;
+        vst1q_s32(codes + kGroup * kept, codes_neon(x, y, z, s));
+        where[kept++] = i / kGroup;
     }
-    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + i);
+    if (i < n) fast_codes(xs + i, ys + i, zs + i, n - i, b, codes + kGroup * kept);
+    return append_tail(i, n, kept, where);
 }
 
 // Packed x, y, z, w float rows: one de-interleaving load (LD4) per four points.
-void fast_codes_xyzw_neon(const float* rows, int n, const Binning& b, int32_t* codes) {
+int fast_codes_xyzw_neon(const float* rows, int n, const Binning& b, int32_t* codes,
+                         int32_t* where) {
     const BinningNeon s(b);
-    int i = 0;
-    for (; i + 8 <= n; i += 8) {  // two independent groups in flight
+    int i = 0, kept = 0;
+    for (; i + 4 <= n; i += 4) {
         const float32x4x4_t p = vld4q_f32(rows + 4 * i);
-        const float32x4x4_t q = vld4q_f32(rows + 4 * i + 16);
-        vst1q_s32(codes + i, codes_neon(p.val[0], p.val[1], p.val[2], s));
-        vst1q_s32(codes + i + 4, codes_neon(q.val[0], q.val[1], q.val[2], s));
+        if (!any_neon(p.val[0], p.val[1], p.val[2], s)) continue;
+        vst1q_s32(codes + kGroup * kept, codes_neon(p.val[0], p.val[1], p.val[2], s));
+        where[kept++] = i / kGroup;
     }
-    for (; i < n; ++i) {
-        const float* r = rows + 4 * i;
-        fast_codes(r, r + 1, r + 2, 1, b, codes + i);
+    for (int j = i; j < n; ++j) {
+        const float* r = rows + 4 * j;
+        fast_codes(r, r + 1, r + 2, 1, b, codes + kGroup * kept + (j - i));
     }
+    return append_tail(i, n, kept, where);
 }
 #endif
 
@@ -744,22 +895,25 @@ int detected_level() {
 #endif
 }
 
-// Stage 1 for one chunk: codes[i] for rows row[0 .. m).
+// Stage 1 for one chunk, codes for the rows row[0 .. m) in groups of kGroup: returns
+// the number of groups that hold codes (the others are surely dropped);
+// codes[k * kGroup + l] belongs to row where[k] * kGroup + l (ignored past m).
 template <typename T>
-void chunk_codes(int level, bool small, const T* row, Eigen::Index rs, Eigen::Index cs, int m,
-                 const Binning& b, float* xs, float* ys, float* zs, int32_t* codes) {
+int chunk_codes(int level, bool small, const T* row, Eigen::Index rs, Eigen::Index cs, int m,
+                const Binning& b, float* xs, float* ys, float* zs, int32_t* codes,
+                int32_t* where) {
     if constexpr (std::is_same_v<T, float>) {
         if (rs == 4 && cs == 1 && level >= 1) {
             const float* rows = row;
 #if DISCO_BEV_AVX2
-            if (level == 3) return fast_codes_xyzw16(rows, m, b, codes);
-            if (level == 2) return fast_codes_xyzw8(rows, m, b, codes);
+            if (level == 3) return fast_codes_xyzw16(rows, m, b, codes, where);
+            if (level == 2) return fast_codes_xyzw8(rows, m, b, codes, where);
 #endif
 #if DISCO_BEV_SSE2
-            return fast_codes_xyzw(rows, m, b, SimdBinning(b), codes);
+            return fast_codes_xyzw(rows, m, b, SimdBinning(b), codes, where);
 #endif
 #if DISCO_BEV_NEON
-            return fast_codes_xyzw_neon(rows, m, b, codes);
+            return fast_codes_xyzw_neon(rows, m, b, codes, where);
 #endif
         }
     }
@@ -784,17 +938,17 @@ void chunk_codes(int level, bool small, const T* row, Eigen::Index rs, Eigen::In
         }
     }
 #if DISCO_BEV_AVX2
-    if (level == 3) return fast_codes_simd16(xs, ys, zs, m, b, codes);
-    if (level == 2) return fast_codes_simd8(xs, ys, zs, m, b, codes);
+    if (level == 3) return fast_codes_simd16(xs, ys, zs, m, b, codes, where);
+    if (level == 2) return fast_codes_simd8(xs, ys, zs, m, b, codes, where);
 #endif
 #if DISCO_BEV_SSE2
-    if (level == 1) return fast_codes_simd(xs, ys, zs, m, b, SimdBinning(b), codes);
+    if (level == 1) return fast_codes_simd(xs, ys, zs, m, b, SimdBinning(b), codes, where);
 #endif
 #if DISCO_BEV_NEON
-    if (level == 1) return fast_codes_neon(xs, ys, zs, m, b, codes);
+    if (level == 1) return fast_codes_neon(xs, ys, zs, m, b, codes, where);
 #endif
-    if (small) return fast_codes_plain<true>(xs, ys, zs, m, b, codes);
-    fast_codes_plain<false>(xs, ys, zs, m, b, codes);
+    if (small) return fast_codes_plain_skip<true>(xs, ys, zs, m, b, codes, where);
+    return fast_codes_plain_skip<false>(xs, ys, zs, m, b, codes, where);
 }
 
 template <BEVMode Mode, typename T>
@@ -808,6 +962,7 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     alignas(64) float ys[kChunk];
     alignas(64) float zs[kChunk];
     alignas(64) int32_t codes[kChunk];
+    int32_t where[kChunk / kGroup];
     float sink = 0.0f;  // occupancy: dropped points write here, so the scatter has no branch
     float peak = 0.0f;
     // Density and max_height read-modify-write a cell, and consecutive points of a
@@ -831,38 +986,43 @@ float voxelize(const BEVPointsView<T>& points, const Binning& b, float* out) {
     for (Eigen::Index start = 0; start < n; start += kChunk) {
         const int m = static_cast<int>(std::min<Eigen::Index>(kChunk, n - start));
         const T* row = base + start * rs;
-        chunk_codes(level, small, row, rs, cs, m, b, xs, ys, zs, codes);
-        row = base + start * rs;
-        if constexpr (Mode == BEVMode::kOccupancy) {
-            for (int i = 0; i < m; ++i, row += rs) {
-                int32_t c = codes[i];
+        const int kept = chunk_codes(level, small, row, rs, cs, m, b, xs, ys, zs, codes, where);
+        for (int k = 0; k < kept; ++k) {
+            const int first = where[k] * kGroup;
+            const int end = std::min(m, first + kGroup);
+            const int32_t* code = codes + k * kGroup - first;
+            row = base + (start + first) * rs;
+            if constexpr (Mode == BEVMode::kOccupancy) {
+                for (int i = first; i < end; ++i, row += rs) {
+                    int32_t c = code[i];
+                    if (c == kExact) {
+                        c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
+                                       static_cast<double>(row[2 * cs]), b);
+                    }
+                    float* dst = c >= 0 ? out + c : &sink;
+                    *dst = 1.0f;
+                }
+                continue;  // the loop below is for density and max_height
+            }
+            for (int i = first; i < end; ++i, row += rs) {
+                int32_t c = code[i];
                 if (c == kExact) {
                     c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
                                    static_cast<double>(row[2 * cs]), b);
                 }
-                float* dst = c >= 0 ? out + c : &sink;
-                *dst = 1.0f;
-            }
-            continue;  // the loop below is for density and max_height
-        }
-        for (int i = 0; i < m; ++i, row += rs) {
-            int32_t c = codes[i];
-            if (c == kExact) {
-                c = exact_cell(static_cast<double>(row[0]), static_cast<double>(row[cs]),
-                               static_cast<double>(row[2 * cs]), b);
-            }
-            if (c < 0) continue;
-            float v = 1.0f;
-            if constexpr (Mode == BEVMode::kMaxHeight) {
-                // z - z_min of the top point; rounding to float keeps the order.
-                v = static_cast<float>(static_cast<double>(row[2 * cs]) - b.z_min);
-            }
-            if (c == run_cell) {
-                run = Mode == BEVMode::kDensity ? run + v : std::max(run, v);
-            } else {
-                flush();
-                run_cell = c;
-                run = v;
+                if (c < 0) continue;
+                float v = 1.0f;
+                if constexpr (Mode == BEVMode::kMaxHeight) {
+                    // z - z_min of the top point; rounding to float keeps the order.
+                    v = static_cast<float>(static_cast<double>(row[2 * cs]) - b.z_min);
+                }
+                if (c == run_cell) {
+                    run = Mode == BEVMode::kDensity ? run + v : std::max(run, v);
+                } else {
+                    flush();
+                    run_cell = c;
+                    run = v;
+                }
             }
         }
     }
