@@ -2,6 +2,9 @@
 
     benchmarks/run_ood.sh [--quick] [--models default spectral scancontext PATH.pt ...]
 
+A model named `NAME+svM` is NAME with a map that stores side views M metres to each side
+of every map scan (`disco build-db --side-views M`); the default list has both.
+
 Simulated towns of held-out styles and generator settings, at scene-change levels 0,
 0.15, 0.30 and 0.45 between the mapping and the query session, seen by 16, 32 and 64
 beams; a hard set (16 beams, the queries tilted by up to +-3 degrees, revisits up to 3 m
@@ -43,6 +46,9 @@ RADIUS = 5.0
 BINS = [(0.0, 1.0), (1.0, 2.0), (2.0, 3.0), (3.0, 4.0), (4.0, 5.0)]
 CHANGES = (0.0, 0.15, 0.30, 0.45)
 SENSORS = {16: "vlp16", 32: "hdl32", 64: "hdl64"}
+# `+sv2.5`: the same model with a map that stores side views 2.5 m to each side
+# (`disco build-db --side-views 2.5`).
+DEFAULT_MODELS = ["default", "spectral", "scancontext", "default+sv2.5", "spectral+sv2.5"]
 
 # The suite's seeds, fixed before any training on changed worlds (docs/model.md#seeds).
 # One town per style for the beams x change grid; other towns for the hard set.
@@ -254,15 +260,31 @@ def embed(model, clouds_fn, n: int, threads: int, batch: int = 32):
     return np.concatenate(sigs), np.concatenate(feats)
 
 
-def evaluate(model, map_paths, map_poses, queries: Queries, threads: int) -> list[dict]:
-    """One row per query: nearest map scan, hits at 1, 5 and 1 %, yaw error."""
+def evaluate(
+    model, map_paths, map_poses, queries: Queries, threads: int, side_views: float = 0.0
+) -> list[dict]:
+    """One row per query: nearest map scan, hits at 1, 5 and 1 %, yaw error. With
+    `side_views`, the map stores side views (`disco build-db --side-views`)."""
     from disco_cli.database import Database, ModelInfo, ScanBatch
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import read_scan
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.search import match_queries
+    from disco_cli.side_views import index_for, side_offsets
 
     m_sig, m_feat = embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), threads)
+    offsets = side_offsets(side_views)
+    side_sigs = None
+    if offsets:
+        v = len(offsets)
+
+        def view(j: int) -> np.ndarray:
+            pts = read_scan(map_paths[j // v]).copy()
+            pts[:, 1] -= offsets[j % v]  # as side_views.side_view_bevs moves them
+            return pts
+
+        side_sigs, _ = embed(model, view, v * len(map_paths), threads)
+        side_sigs = side_sigs.reshape(len(map_paths), v, -1)
     mx, my, myaw = xy_yaw(map_poses)
     pose4 = np.c_[mx, my, map_poses[:, 2, 3], myaw]
     q_sig, q_feat = embed(model, queries.points, len(queries.paths), threads)
@@ -272,11 +294,18 @@ def evaluate(model, map_paths, map_poses, queries: Queries, threads: int) -> lis
         db = Database.create(
             Path(tmp) / "map.db",
             ModelInfo.of(model),
-            ScanBatch([str(p) for p in map_paths], m_sig, m_feat, pose4),
+            ScanBatch(
+                [str(p) for p in map_paths],
+                m_sig,
+                m_feat,
+                pose4,
+                side_offsets=offsets,
+                side_signatures=side_sigs,
+            ),
         )
         with db:
-            ids, sigs = db.signatures()
-            found = match_queries(SignatureIndex(sigs), ids, db, model, q_sig, q_feat, depth)
+            ids, index = index_for(db)
+            found = match_queries(index, ids, db, model, q_sig, q_feat, depth)
     n1p = one_percent_n(len(map_paths))
     rows = []
     for i, matches in enumerate(found):
@@ -302,7 +331,15 @@ def evaluate(model, map_paths, map_poses, queries: Queries, threads: int) -> lis
 
 
 def model_key(name: str) -> str:
-    return Path(name).stem if name.endswith(".pt") else name
+    base, sv = split_side_views(name)
+    key = Path(base).stem if base.endswith(".pt") else base
+    return f"{key}+sv{sv:g}" if sv else key
+
+
+def split_side_views(name: str) -> tuple[str, float]:
+    """`default+sv2.5` -> ("default", 2.5): the model with a map of side views."""
+    base, _, sv = name.partition("+sv")
+    return base, float(sv) if sv else 0.0
 
 
 def cached_rows(out: Path, data: str, model, name: str, compute) -> list[dict]:
@@ -414,9 +451,10 @@ def world_table(worlds, rows, models, caps) -> list[str]:
     return lines
 
 
-def target_lines(worlds, rows, real_rows, models) -> list[str]:
-    """Issue 12's targets, checked on the suite's own rows."""
-    if "default" not in models:
+def target_lines(worlds, rows, real_rows, models, dm="default", sm="spectral") -> list[str]:
+    """Issue 12's targets, checked on the suite's own rows, for the model `dm` against
+    `sm` (the same maps: both with side views or neither)."""
+    if dm not in models or sm not in models:
         return []
 
     def pool(sel, m):
@@ -427,39 +465,37 @@ def target_lines(worlds, rows, real_rows, models) -> list[str]:
     # defined by their offsets (--robot-offset 1.5 and 3).
     g30 = [w for w in worlds if w.group == "grid" and w.beams == 32 and w.change == 0.30]
     if g30:
-        d, s = summarize(pool(g30, "default")), summarize(pool(g30, "spectral"))
+        d, s = summarize(pool(g30, dm)), summarize(pool(g30, sm))
         ok = d["r1"] >= 0.85 and d["r1"] >= s["r1"] + 0.15
         out.append(
-            "| 30 % change, 32 beams, offsets <= 1.5 m: default R@1 >= 0.85 and >= spectral "
-            f"+ 0.15 | {f3(d['r1'])} vs spectral {f3(s['r1'])} ({d['n']} queries) "
+            f"| 30 % change, 32 beams, offsets <= 1.5 m: {dm} R@1 >= 0.85 and >= {sm} "
+            f"+ 0.15 | {f3(d['r1'])} vs {f3(s['r1'])} ({d['n']} queries) "
             f"| {'yes' if ok else 'no'} |"
         )
     h30 = [w for w in worlds if w.group == "hard" and w.change == 0.30]
     if h30:
-        d = summarize(pool(h30, "default"))
+        d = summarize(pool(h30, dm))
         ok = d["r1"] >= 0.75
         out.append(
-            f"| 30 % change, 16 beams, offsets <= 3 m, tilt +-3 deg: default R@1 >= 0.75 "
+            f"| 30 % change, 16 beams, offsets <= 3 m, tilt +-3 deg: {dm} R@1 >= 0.75 "
             f"| {f3(d['r1'])} ({d['n']} queries) | {'yes' if ok else 'no'} |"
         )
     z = [w for w in worlds if w.change == 0.0]
     if z:
-        d, s = summarize(pool(z, "default")), summarize(pool(z, "spectral"))
+        d, s = summarize(pool(z, dm)), summarize(pool(z, sm))
         out.append(
             f"| 0 % change: no worse than today (pooled over {len(z)} worlds) "
-            f"| {f3(d['r1'])} (spectral {f3(s['r1'])}, {d['n']} queries) | compare |"
+            f"| {f3(d['r1'])} ({sm} {f3(s['r1'])}, {d['n']} queries) | compare |"
         )
-    worst = max(
-        (summarize(rows[(w.name, "default")])["yaw_mean"] for w in worlds), default=float("nan")
-    )
+    worst = max((summarize(rows[(w.name, dm)])["yaw_mean"] for w in worlds), default=float("nan"))
     out.append(
-        f"| mean yaw error <= 1.0 deg on every world | worst world {f2(worst)} deg "
+        f"| {dm}: mean yaw error <= 1.0 deg on every world | worst world {f2(worst)} deg "
         f"| {'yes' if worst <= 1.0 else 'no'} |"
     )
     if real_rows:
-        d = summarize([r for k, rs in real_rows.items() if k[1] == "default" for r in rs])
+        d = summarize([r for k, rs in real_rows.items() if k[1] == dm for r in rs])
         out.append(
-            f"| real scans: default R@1 >= 0.95, mean yaw error <= 0.5 deg "
+            f"| real scans: {dm} R@1 >= 0.95, mean yaw error <= 0.5 deg "
             f"| {f3(d['r1'])} / {f2(d['yaw_mean'])} deg ({d['n']} queries) "
             f"| {'yes' if d['r1'] >= 0.95 and d['yaw_mean'] <= 0.5 else 'no'} |"
         )
@@ -491,10 +527,11 @@ def main(argv: list[str] | None = None) -> int:
     from disco_cli.model import load_model
 
     torch.set_num_threads(args.threads)
-    models = args.models or ["default", "spectral", "scancontext"]
-    loaded = {}
+    models = args.models or DEFAULT_MODELS
+    loaded, side = {}, {}
     for name in models:
-        loaded[model_key(name)] = load_model(name)
+        loaded[model_key(name)] = load_model(split_side_views(name)[0])
+        side[model_key(name)] = split_side_views(name)[1]
     keys = list(loaded)
     caps = simulator_options(args.disco)
     worlds, notes = plan_worlds(args.quick, caps)
@@ -514,7 +551,9 @@ def main(argv: list[str] | None = None) -> int:
                 w.name,
                 model,
                 k,
-                lambda model=model: evaluate(model, map_paths, map_poses, queries, args.threads),
+                lambda model=model, sv=side[k]: evaluate(
+                    model, map_paths, map_poses, queries, args.threads, sv
+                ),
             )
 
     real_rows: dict[tuple[str, str], list[dict]] = {}
@@ -535,7 +574,9 @@ def main(argv: list[str] | None = None) -> int:
                     f"kitti00-{kind}",
                     model,
                     k,
-                    lambda model=model, q=queries: evaluate(model, mp, mpose, q, args.threads),
+                    lambda model=model, q=queries, sv=side[k]: evaluate(
+                        model, mp, mpose, q, args.threads, sv
+                    ),
                 )
     elif not args.no_real:
         notes.append(f"{kitti}: absent, the real-scan rows are skipped")
@@ -588,9 +629,10 @@ def main(argv: list[str] | None = None) -> int:
         lines.append("")
     lines += ["**every world**", ""]
     lines += world_table(worlds, rows, keys, caps)
-    tl = target_lines(worlds, rows, real_rows, keys)
-    if tl:
-        lines += ["", "**issue 12's targets**", ""] + tl
+    for dm, sm in (("default", "spectral"), ("default+sv2.5", "spectral+sv2.5")):
+        tl = target_lines(worlds, rows, real_rows, keys, dm, sm)
+        if tl:
+            lines += ["", f"**issue 12's targets: {dm} against {sm}**", ""] + tl
     text = "\n".join(lines) + "\n"
     out.mkdir(parents=True, exist_ok=True)
     (out / "tables.md").write_text(text)

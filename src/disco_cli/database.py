@@ -13,6 +13,9 @@ Layout (format version 1):
   time and pose NULL when unknown, `signature` float32 little-endian, `features`
   float16 little-endian divided by `feature_scale` (the largest magnitude, so that
   float16 neither overflows nor loses small features).
+- `side_views(scan_id, offset_m, signature)`: only in a map built with side views
+  (meta `side_views_m`, a JSON list of offsets in metres): the signatures of each scan
+  re-centred `offset_m` to its side (`side_views.py`), searched beside the scans'.
 
 Every append is one transaction, so a crash or Ctrl-C leaves every finished batch and
 nothing half-written; readers opened meanwhile see a consistent state (WAL). A new
@@ -63,6 +66,14 @@ CREATE TABLE scans (
     feature_scale REAL NOT NULL,
     rel_path TEXT
 );
+"""
+_SIDE_SCHEMA = """
+CREATE TABLE side_views (
+    scan_id INTEGER NOT NULL,
+    offset_m REAL NOT NULL,
+    signature BLOB NOT NULL,
+    PRIMARY KEY (scan_id, offset_m)
+)
 """
 _SCAN_COLUMNS = {
     "id",
@@ -120,9 +131,22 @@ class ScanBatch:
     poses: np.ndarray | None = None
     times: np.ndarray | None = None
     rel_paths: list[str | None] | None = None  # relative to the database's folder
+    # Side views (`side_views.py`): the offsets and `[B, V, D]` signatures, or none.
+    side_offsets: tuple[float, ...] = ()
+    side_signatures: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         b = len(self.paths)
+        self.side_offsets = tuple(float(o) for o in self.side_offsets)
+        if self.side_offsets:
+            v = len(self.side_offsets)
+            self.side_signatures = np.asarray(self.side_signatures, dtype=np.float32)
+            if self.side_signatures.shape[:2] != (b, v) or self.side_signatures.ndim != 3:
+                raise ValueError(
+                    f"side signatures must be [{b}, {v}, D], got {self.side_signatures.shape}"
+                )
+        elif self.side_signatures is not None and np.size(self.side_signatures):
+            raise ValueError("side signatures given without their offsets")
         if self.rel_paths is None:
             self.rel_paths = [None] * b
         if len(self.rel_paths) != b:
@@ -207,6 +231,18 @@ class Database:
             raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
         # Databases written before relative paths were stored lack the column.
         self._has_rel = "rel_path" in columns
+        try:
+            offsets = json.loads(meta.get("side_views_m", "[]"))
+            self.side_offsets: tuple[float, ...] = tuple(float(o) for o in offsets)
+        except (ValueError, TypeError):
+            raise DatabaseError(path, "corrupt database: unreadable side_views_m") from None
+        if self.side_offsets:
+            try:
+                tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
+            except sqlite3.DatabaseError as exc:
+                raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
+            if "side_views" not in tables:
+                raise DatabaseError(path, "corrupt database: side views named but not stored")
 
     # -- opening --------------------------------------------------------------
 
@@ -275,6 +311,8 @@ class Database:
             "feature_dtype": "float16",
             **(extra_meta or {}),
         }
+        if first.side_offsets:
+            meta["side_views_m"] = json.dumps(list(first.side_offsets))
         try:
             tmp.unlink(missing_ok=True)
             conn = sqlite3.connect(tmp)
@@ -283,6 +321,8 @@ class Database:
                     for stmt in _SCHEMA.strip().split(";"):
                         if stmt.strip():
                             conn.execute(stmt)
+                    if first.side_offsets:
+                        conn.execute(_SIDE_SCHEMA)
                     conn.executemany("INSERT INTO meta VALUES (?, ?)", sorted(meta.items()))
                 cls(path, conn, meta).append(first)
             finally:
@@ -351,6 +391,18 @@ class Database:
             raise DatabaseError(
                 self.path, f"holds features {self.feature_shape}, got {batch.features.shape[1:]}"
             )
+        if batch.side_offsets != self.side_offsets:
+
+            def said(offsets: tuple[float, ...]) -> str:
+                return f"side views at {max(offsets):g} m" if offsets else "no side views"
+
+            raise DatabaseError(
+                self.path,
+                f"holds {said(self.side_offsets)}, got scans with {said(batch.side_offsets)}; "
+                "add them with the map's --side-views setting or build a new map",
+            )
+        if batch.side_offsets and batch.side_signatures.shape[2] != self.signature_dim:  # type: ignore[union-attr]
+            raise DatabaseError(self.path, "side view signatures have another dimension")
 
     # -- writing ----------------------------------------------------------------
 
@@ -383,7 +435,16 @@ class Database:
         marks = ", ".join("?" * len(rows[0]))
         try:
             with self._conn:
-                self._conn.executemany(f"INSERT INTO scans ({columns}) VALUES ({marks})", rows)
+                if not batch.side_offsets:
+                    self._conn.executemany(f"INSERT INTO scans ({columns}) VALUES ({marks})", rows)
+                    return
+                views = []
+                for i, row in enumerate(rows):
+                    cur = self._conn.execute(f"INSERT INTO scans ({columns}) VALUES ({marks})", row)
+                    for k, offset in enumerate(batch.side_offsets):
+                        sig = batch.side_signatures[i, k].astype(_SIG_DTYPE).tobytes()  # type: ignore[index]
+                        views.append((cur.lastrowid, offset, sig))
+                self._conn.executemany("INSERT INTO side_views VALUES (?, ?, ?)", views)
         except sqlite3.IntegrityError as exc:
             raise DatabaseError(self.path, f"cannot append: {exc}") from None
         except sqlite3.Error as exc:
@@ -471,6 +532,30 @@ class Database:
         return ids, sigs
 
     @_sql_errors
+    def side_signatures(self) -> tuple[np.ndarray, np.ndarray]:
+        """`(scan ids [M], signatures [M, D])` of the stored side views (none: empty)."""
+        if not self.side_offsets:
+            return np.empty(0, np.int64), np.empty((0, self.signature_dim), np.float32)
+        rows = self._conn.execute(
+            "SELECT scan_id, signature FROM side_views ORDER BY scan_id, offset_m"
+        ).fetchall()
+        nbytes = self.signature_dim * _SIG_DTYPE.itemsize
+        ids = np.empty(len(rows), dtype=np.int64)
+        sigs = np.empty((len(rows), self.signature_dim), dtype=np.float32)
+        for i, (rid, blob) in enumerate(rows):
+            if not isinstance(blob, bytes) or len(blob) != nbytes:
+                raise DatabaseError(self.path, f"scan {rid}: a side view has a wrong size")
+            ids[i] = rid
+            sigs[i] = np.frombuffer(blob, dtype=_SIG_DTYPE)
+        with np.errstate(over="ignore", invalid="ignore"):
+            norms = np.einsum("ij,ij->i", sigs, sigs, dtype=np.float64)
+        bad = ~(np.isfinite(norms) & (norms < np.finfo(np.float32).max))
+        if bad.any():
+            rid = int(ids[np.argmax(bad)])
+            raise DatabaseError(self.path, f"scan {rid}: a side view is not finite (damaged?)")
+        return ids, sigs
+
+    @_sql_errors
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """`(poses [N, 4] x, y, z, yaw rad, times [N])` in id order, NaN where unknown."""
         rows = self._conn.execute("SELECT x, y, z, yaw, time FROM scans ORDER BY id").fetchall()
@@ -547,6 +632,18 @@ class Database:
                 problems.append(f"scan {rid} ({path}): features are not finite")
             if not (isinstance(scale, float) and np.isfinite(scale) and scale > 0):
                 problems.append(f"scan {rid} ({path}): bad feature scale {scale!r}")
+        if self.side_offsets:
+            counts = dict(
+                self._conn.execute("SELECT scan_id, COUNT(*) FROM side_views GROUP BY scan_id")
+            )
+            for rid, sig in self._conn.execute("SELECT scan_id, signature FROM side_views"):
+                if not isinstance(sig, bytes) or len(sig) != nsig:
+                    problems.append(f"scan {rid}: a side view is not {nsig} bytes")
+                elif not np.isfinite(np.frombuffer(sig, dtype=_SIG_DTYPE)).all():
+                    problems.append(f"scan {rid}: a side view is not finite")
+            lacking = len(self) - sum(1 for c in counts.values() if c == len(self.side_offsets))
+            if lacking:
+                problems.append(f"{lacking} scans lack some of their side views")
         return problems
 
 

@@ -25,6 +25,7 @@ import numpy as np
 from disco_cli.database import Database, ModelInfo, ScanBatch
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.localize import Match, PointCache, as_match, refine_matches
+from disco_cli.side_views import side_offsets
 
 __all__ = [
     "Map",
@@ -73,16 +74,31 @@ def _load_model(model: Any, device: str) -> Any:
 
 
 def open_for_adding(
-    path: Path, names: list[str], model: Any = "default", *, append: bool = False, device="cpu"
+    path: Path,
+    names: list[str],
+    model: Any = "default",
+    *,
+    append: bool = False,
+    device="cpu",
+    side_views: float | None = None,
 ) -> tuple[Map, int, int]:
     """`disco build-db`'s map: `path` opened to add the scan files `names` (a new map when
     there is no file), with how many files they are and how many of them it holds
     already (by absolute path). A map that holds other scans is refused unless `append`,
-    so that a resumed build never mixes in another."""
+    so that a resumed build never mixes in another. `side_views` (metres, None: the
+    map's own setting, 0 for a new map) must agree with an existing map's."""
     given = {os.path.abspath(p) for p in names}
     if not Path(path).exists():
-        return Map.create(path, model, device=device), len(given), 0
+        return Map.create(path, model, device=device, side_views=side_views or 0.0), len(given), 0
     m = Map.open(path, writable=True, model=model, device=device)
+    if side_views is not None and side_offsets(side_views) != m.side_offsets:
+        have = m.side_views
+        m.close()
+        raise DatabaseError(
+            path,
+            f"was built with --side-views {have:g}, not {side_views:g}; "
+            "keep the map's setting or build a new map",
+        )
     stored = {os.path.abspath(p) for p in m.names()}  # an old map's relative paths too
     if not append and not stored.issubset(given):
         m.close()
@@ -195,6 +211,7 @@ class Map:
         self._overwrite = overwrite
         self._closed = False
         self._snapshot: tuple[np.ndarray, Any] | None = None  # ids, SignatureIndex
+        self.side_offsets: tuple[float, ...] = () if db is None else db.side_offsets
         self._xy: np.ndarray | None = None  # stored x, y of the snapshot's scans
         self._real: np.ndarray | None = None  # their files' real paths
         self._points = PointCache(self._read_match, size=32)
@@ -207,16 +224,31 @@ class Map:
 
     @classmethod
     def create(
-        cls, path: str | Path, model: Any = "default", *, overwrite: bool = False, device="cpu"
+        cls,
+        path: str | Path,
+        model: Any = "default",
+        *,
+        overwrite: bool = False,
+        device="cpu",
+        side_views: float = 0.0,
     ) -> Map:
         """A new, empty map at `path` for `model` (a name, a checkpoint path or a model
         object). The file appears with the first batch added; an existing file is refused
-        unless `overwrite` (it is replaced when the first batch is written)."""
+        unless `overwrite` (it is replaced when the first batch is written).
+        `side_views` (metres, 0 = none) also stores each scan's signatures seen from that
+        far to its left and right, for queries that drive beside the map's line
+        (`side_views.py`; about 3x the embedding time when adding)."""
         path = Path(path)
         if path.exists() and not overwrite:
             raise DatabaseError(path, "already exists; use Map.open to add to it")
+        try:
+            offsets = side_offsets(side_views)
+        except ValueError as exc:
+            raise DiscoError(str(exc)) from None
         net = _load_model(model, device)
-        return cls(path, None, net, _model_source(model), True, overwrite)
+        m = cls(path, None, net, _model_source(model), True, overwrite)
+        m.side_offsets = offsets
+        return m
 
     @classmethod
     def open(
@@ -267,6 +299,11 @@ class Map:
     def model(self) -> Any:
         """The model that embeds scans for this map (`load_model`'s protocol)."""
         return self._model
+
+    @property
+    def side_views(self) -> float:
+        """How far to each side the map's side views look (metres; 0: none)."""
+        return max((abs(o) for o in self.side_offsets), default=0.0)
 
     @property
     def database(self) -> Database | None:
@@ -341,6 +378,7 @@ class Map:
         one transaction per `batch` scans (as `disco build-db`); returns their ids.
         An unnamed scan is called `scan-<id>`."""
         from disco_cli.pipeline import array_points, scan_bev
+        from disco_cli.side_views import side_view_bevs
 
         self._check_writable()
         ids: list[int] = []
@@ -349,7 +387,9 @@ class Map:
             points, name, pose, time = (*item, None, None)[:4] if len(item) < 4 else item
             label = name or f"scan-{len(self) + len(part) + 1}"
             pts = array_points(points, label)
-            part.append((label, scan_bev(pts, self._model.bev_config, label), pose, time))
+            bev = scan_bev(pts, self._model.bev_config, label)
+            sides = side_view_bevs(pts, self._model.bev_config, self.side_offsets)
+            part.append((label, bev, pose, time, sides))
             if len(part) >= batch:
                 ids += self._write_bevs(part)
                 part = []
@@ -452,6 +492,7 @@ class Map:
             workers=workers,
             prefetch=max(2 * batch, 4 * workers),
             scan_format=scan_format,
+            side_offsets=self.side_offsets,
         )
         try:
             for chunk in embed_stream(loaded, self._model, batch):
@@ -471,6 +512,8 @@ class Map:
                             features=chunk.features,
                             poses=poses[rows],
                             times=times[rows],
+                            side_offsets=self.side_offsets,
+                            side_signatures=chunk.side_signatures,
                         )
                     )
                     result.written += len(rows)
@@ -487,17 +530,31 @@ class Map:
     def _write_bevs(self, part: list[tuple]) -> list[int]:
         from disco_cli.pipeline import pose_rows
 
-        sigs, feats = self._model.embed(np.stack([b for _, b, _, _ in part]))
+        sigs, feats = self._model.embed(np.stack([p[1] for p in part]))
+        sides = None
+        if self.side_offsets:
+            views = np.concatenate([p[4] for p in part])
+            sides = np.asarray(self._model.embed(views)[0], dtype=np.float32)
+            sides = sides.reshape(len(part), len(self.side_offsets), -1)
         rows = np.full((len(part), 4), np.nan)
-        for k, (label, _, pose, _) in enumerate(part):
+        for k, (label, _, pose, _, _) in enumerate(part):
             if pose is not None:
                 T = np.asarray(pose, dtype=np.float64)
                 if T.shape != (4, 4) or not np.isfinite(T).all():
                     raise DiscoError(f"{label}: pose must be a finite 4 x 4 matrix, got {T.shape}")
                 rows[k] = pose_rows(T[None])[0]
-        times = [np.nan if t is None else float(t) for _, _, _, t in part]
+        times = [np.nan if p[3] is None else float(p[3]) for p in part]
         first = 0 if self._db is None else len(self._db)
-        self._append(ScanBatch([p[0] for p in part], sigs, feats, rows, np.asarray(times)))
+        batch = ScanBatch(
+            [p[0] for p in part],
+            sigs,
+            feats,
+            rows,
+            np.asarray(times),
+            side_offsets=self.side_offsets,
+            side_signatures=sides,
+        )
+        self._append(batch)
         return list(range(first + 1, first + 1 + len(part)))
 
     def _append(self, part: ScanBatch) -> None:
@@ -527,14 +584,13 @@ class Map:
         self._snapshot = None
 
     def _index(self) -> tuple[np.ndarray, Any]:
-        from disco_cli.search import SignatureIndex
+        from disco_cli.side_views import index_for
 
         self._check_open()
         if self._db is None:
             raise DatabaseError(self.path, "the database is empty")
         if self._snapshot is None:
-            ids, sigs = self._db.signatures()
-            self._snapshot = (ids, SignatureIndex(sigs))
+            self._snapshot = index_for(self._db)
         return self._snapshot
 
     def _exclude_rows(self, exclude: Any) -> np.ndarray | None:

@@ -54,6 +54,7 @@ class Loaded:
     bev: np.ndarray | None = None
     error: DiscoError | None = None
     points: np.ndarray | None = None  # kept only when asked for (relative pose)
+    side_bevs: np.ndarray | None = None  # [V, ...] for a map with side views
 
 
 @dataclass
@@ -64,6 +65,7 @@ class Embedded:
     signatures: np.ndarray  # [B, D] float32
     features: np.ndarray  # [B, ...] float32
     errors: list[Loaded] = field(default_factory=list)
+    side_signatures: np.ndarray | None = None  # [B, V, D] float32 when side views were asked
 
 
 def load_bev(path: str, bev_config: Any, scan_format: str | None = None) -> np.ndarray:
@@ -144,11 +146,19 @@ def embed_paths(
 
 
 def _load_one(
-    index: int, path: str, bev_config: Any, scan_format: str | None, keep_points: bool
+    index: int,
+    path: str,
+    bev_config: Any,
+    scan_format: str | None,
+    keep_points: bool,
+    side_offsets: tuple[float, ...] = (),
 ) -> Loaded:
+    from disco_cli.side_views import side_view_bevs
+
     try:
         points, bev = _load_points_bev(path, bev_config, scan_format)
-        return Loaded(index, path, bev=bev, points=points if keep_points else None)
+        sides = side_view_bevs(points, bev_config, side_offsets) if side_offsets else None
+        return Loaded(index, path, bev=bev, points=points if keep_points else None, side_bevs=sides)
     except DiscoError as exc:
         return Loaded(index, path, error=exc)
     except (OSError, MemoryError) as exc:
@@ -162,8 +172,10 @@ def load_stream(
     prefetch: int = 8,
     scan_format: str | None = None,
     keep_points: bool = False,
+    side_offsets: tuple[float, ...] = (),
 ) -> Iterator[Loaded]:
     """Loaded scans in input order, each as soon as it (and those before it) are ready.
+    With `side_offsets`, each also carries the BEVs of its side views.
 
     `paths` is consumed on a feeder thread, so a slow producer (stdin) never holds back
     results that are ready already. At most `prefetch` scans are in flight.
@@ -187,7 +199,9 @@ def load_stream(
             for i, p in enumerate(paths):
                 if stop.is_set():
                     return
-                fut = pool.submit(_load_one, i, str(p), bev_config, scan_format, keep_points)
+                fut = pool.submit(
+                    _load_one, i, str(p), bev_config, scan_format, keep_points, side_offsets
+                )
                 if not put(fut):
                     return
         except BaseException as exc:  # e.g. stdin went away: the consumer re-raises it
@@ -241,9 +255,15 @@ def _embed(items: list[Loaded], model: Any) -> Embedded:
     sigs, feats = model.embed(bevs)
     sigs = np.ascontiguousarray(np.asarray(sigs, dtype=np.float32))
     feats = np.ascontiguousarray(np.asarray(feats, dtype=np.float32))
+    sides = None
+    if items[0].side_bevs is not None:
+        views = np.concatenate([it.side_bevs for it in items])  # type: ignore[misc]
+        v = len(items[0].side_bevs)  # type: ignore[arg-type]
+        side_sigs, _ = model.embed(views.astype(np.float32, copy=False))
+        sides = np.asarray(side_sigs, dtype=np.float32).reshape(len(items), v, -1)
     for it in items:
-        it.bev = None  # let the BEVs go now that they are embedded
-    return Embedded(items, sigs, feats)
+        it.bev = it.side_bevs = None  # let the BEVs go now that they are embedded
+    return Embedded(items, sigs, feats, side_signatures=sides)
 
 
 # -- inputs: folders, files and stdin ------------------------------------------

@@ -47,6 +47,7 @@ def info(
             ("signature_dim", db.signature_dim),
             ("feature_shape", " x ".join(map(str, db.feature_shape)) + " float16"),
             ("poses", "yes" if db.has_poses() else "no"),
+            ("side_views_m", max((abs(o) for o in db.side_offsets), default=0.0)),
             ("format_version", db.format_version),
             ("disco_version", db.meta.get("disco_version", "")),
             ("size", _size(db.size_bytes())),

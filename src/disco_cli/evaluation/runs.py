@@ -100,17 +100,18 @@ def multi_session(
     `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`."""
     from disco_cli.evaluation.metrics import one_percent_n
     from disco_cli.pipeline import embed_paths
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.search import match_queries
+    from disco_cli.side_views import index_for
 
     if len(query_poses) != len(paths):
         raise PoseFileError(f"{source}: {len(query_poses)} poses for {len(paths)} query scans")
     db_poses, _ = db.poses()
     if not np.isfinite(db_poses[:, :2]).all():
         raise DatabaseError(db.path, "some scans have no pose; build it with --poses")
-    ids, db_sigs = db.signatures()
+    ids, index = index_for(db)
     sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
     depth = max(topk, one_percent_n(len(ids)))
-    matches = match_queries(SignatureIndex(db_sigs), ids, db, model, sigs, feats, depth)
+    matches = match_queries(index, ids, db, model, sigs, feats, depth)
     return score_retrieval(matches, depth, topk, query_poses, db_poses, radius)
 
 

@@ -1,0 +1,127 @@
+"""Side views: map scans seen again from a few metres to their left and right.
+
+A later visit rarely drives the map's exact line. Recall falls with the lateral
+distance to the nearest map scan (issue 12: from 1.00 at 2-3 m to 0.61 at 3-4 m on
+the hard set), because a polar BEV changes with the sensor's position even where the
+scene does not. So a map can store, for each scan, the signatures of the same points
+re-centred on a virtual sensor `offset` metres along the scan's own y axis (left and
+right of the vehicle). They take part in the signature search only: a view that wins
+stands for its scan, and re-ranking, yaw and relative pose use the scan itself.
+
+The views come from the scan's own points (no other scan, no ground truth), so the
+occlusions are those seen from the real sensor: a view is an approximation that only
+has to bring the right scan into the top candidates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+__all__ = ["side_offsets", "side_view_bevs", "ViewIndex", "index_for"]
+
+
+def side_offsets(metres: float) -> tuple[float, ...]:
+    """The offsets stored for `--side-views METRES`: none for 0, else left and right."""
+    m = float(metres)
+    if not np.isfinite(m) or m < 0:
+        raise ValueError(f"side views: the offset must be a finite number >= 0, got {metres}")
+    return () if m == 0 else (m, -m)
+
+
+def side_view_bevs(points: np.ndarray, bev_config: Any, offsets: Sequence[float]) -> np.ndarray:
+    """`[V, H, R, S]` BEVs of `points` seen from a sensor moved by each offset along y.
+
+    A view with no point left in range is an all-zero BEV (it then matches nothing)."""
+    from disco_cli.bev import polar_bev
+
+    out = []
+    for offset in offsets:
+        moved = np.array(points, dtype=np.float32, copy=True)
+        moved[:, 1] -= np.float32(offset)
+        out.append(polar_bev(moved, bev_config))
+    if not out:
+        return np.empty((0, *polar_bev(points[:1], bev_config).shape), np.float32)
+    return np.stack(out).astype(np.float32, copy=False)
+
+
+class ViewIndex:
+    """A signature search over scans and their side views that answers in scans.
+
+    `search` has `SignatureIndex.search`'s contract over the scans' rows: each scan
+    appears at most once, at the distance of its closest signature (its own or a
+    view's); `limit` and `exclude` refer to scan rows.
+    """
+
+    def __init__(self, signatures: np.ndarray, view_owner: np.ndarray, view_signatures: np.ndarray):
+        from disco_cli.search import SignatureIndex
+
+        self.n_scans = len(signatures)
+        owner = np.asarray(view_owner, dtype=np.int64).reshape(-1)
+        if len(owner) != len(view_signatures):
+            raise ValueError("one owner row per view signature")
+        if len(owner) and (owner.min() < 0 or owner.max() >= self.n_scans):
+            raise ValueError("a view's owner row is out of range")
+        self.owner = np.concatenate([np.arange(self.n_scans, dtype=np.int64), owner])
+        views_per_scan = np.bincount(owner, minlength=self.n_scans) if len(owner) else None
+        self.most_views = 0 if views_per_scan is None else int(views_per_scan.max())
+        both = np.concatenate([np.asarray(signatures, np.float32), view_signatures], axis=0)
+        self._index = SignatureIndex(both)
+
+    def __len__(self) -> int:
+        return self.n_scans
+
+    @property
+    def dim(self) -> int:
+        return self._index.dim
+
+    def search(
+        self,
+        queries: np.ndarray,
+        k: int,
+        limit: Sequence[int] | np.ndarray | None = None,
+        exclude: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        q = np.asarray(queries, dtype=np.float32)
+        single = q.ndim == 1
+        q = np.atleast_2d(q)
+        b, n = len(q), self.n_scans
+        # A scan's rows are allowed iff the scan is: limits become a mask over all rows.
+        allowed = np.ones((b, n), dtype=bool)
+        if limit is not None:
+            lim = np.broadcast_to(np.asarray(limit, dtype=np.int64), (b,))
+            allowed &= np.arange(n)[None, :] < lim[:, None]
+        if exclude is not None:
+            ex = np.asarray(exclude, dtype=bool)
+            allowed &= ~np.broadcast_to(ex, (b, n))
+        mask = None if allowed.all() else ~allowed[:, self.owner]
+        # Deep enough that k distinct scans survive even when every one of them
+        # comes back with all its views.
+        deep = max(k, 0) * (1 + self.most_views)
+        rows, dists = self._index.search(q, deep, exclude=mask)
+        out_r = np.full((b, max(k, 0)), -1, dtype=np.int64)
+        out_d = np.full((b, max(k, 0)), np.inf)
+        for i in range(b):
+            keep = rows[i] >= 0
+            scans = self.owner[rows[i][keep]]
+            _, first = np.unique(scans, return_index=True)
+            first = np.sort(first)[:k]  # rows come sorted by distance: keep each scan's best
+            out_r[i, : len(first)] = scans[first]
+            out_d[i, : len(first)] = dists[i][keep][first]
+        return (out_r[0], out_d[0]) if single else (out_r, out_d)
+
+
+def index_for(db: Any) -> tuple[np.ndarray, Any]:
+    """`(ids, index)` to search a database with: a `ViewIndex` when it stores side
+    views, else a plain `SignatureIndex`."""
+    from disco_cli.search import SignatureIndex
+
+    ids, sigs = db.signatures()
+    if not db.side_offsets:
+        return ids, SignatureIndex(sigs)
+    owner_ids, view_sigs = db.side_signatures()
+    owner_rows = np.searchsorted(ids, owner_ids)
+    known = (owner_rows < len(ids)) & (ids[np.minimum(owner_rows, len(ids) - 1)] == owner_ids)
+    return ids, ViewIndex(sigs, owner_rows[known], view_sigs[known])
