@@ -1,6 +1,7 @@
 """build-db throughput: scans/s of `disco build-db` on 30k-point scans.
 
     .venv/bin/python benchmarks/bench_build_db.py [--scans 300] [--model default]
+        [--side-views 2.5]
 
 The `default` model when its weights are shipped; until then a checkpoint of the same
 architecture with untrained weights (the same compute). Scans are written to a temp
@@ -8,7 +9,9 @@ folder first (30k points each: boxes and poles around the sensor). Measured:
 
 1. `disco build-db` as a user runs it (fresh process; the rate it prints covers
    reading, voxelizing, the network and writing, overlapped), for --workers 1 and 2;
-2. the baseline in this process: the same stages one after the other, no overlap.
+2. the baseline in this process: the same stages one after the other, no overlap;
+3. with --side-views M: `disco build-db --side-views M` against the same command
+   without, in rate and file size.
 """
 
 from __future__ import annotations
@@ -25,7 +28,9 @@ import numpy as np
 from _common import model_arg, print_header, synthetic_scan
 
 
-def run_cli(scans: Path, out: Path, model: str, workers: int, batch: int) -> tuple[float, float]:
+def run_cli(
+    scans: Path, out: Path, model: str, workers: int, batch: int, extra: tuple[str, ...] = ()
+) -> tuple[float, float]:
     exe = Path(sys.executable).parent / "disco"
     t = time.perf_counter()
     proc = subprocess.run(
@@ -41,6 +46,7 @@ def run_cli(scans: Path, out: Path, model: str, workers: int, batch: int) -> tup
             str(workers),
             "--batch",
             str(batch),
+            *extra,
         ],
         capture_output=True,
         text=True,
@@ -99,6 +105,7 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=30000)
     ap.add_argument("--model", default="default")
     ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--side-views", type=float, default=0.0, help="also time --side-views M")
     args = ap.parse_args()
     import torch
 
@@ -127,6 +134,16 @@ def main() -> None:
                 f"disco build-db --workers {workers} --batch {args.batch}: {rate:.1f} scans/s "
                 f"(as printed; {args.scans / wall:.1f} scans/s including process start, "
                 f"{wall:.1f} s wall); {rate / base['rate']:.2f}x the serial baseline"
+            )
+        if args.side_views > 0:
+            plain_rate, _ = run_cli(scans, tmp / "plain.db", model, 1, args.batch)
+            sv = ("--side-views", f"{args.side_views:g}")
+            rate, _ = run_cli(scans, tmp / "sv.db", model, 1, args.batch, sv)
+            size = (tmp / "sv.db").stat().st_size / (tmp / "plain.db").stat().st_size
+            print(
+                f"disco build-db --workers 1 --side-views {args.side_views:g}: {rate:.1f} "
+                f"scans/s against {plain_rate:.1f} without ({rate / plain_rate:.2f}x, run "
+                f"just before); file {size:.2f}x the size"
             )
 
 

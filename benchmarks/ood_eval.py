@@ -3,6 +3,8 @@ tilted or shifted in z: how model selection and the tilt measurement of docs/mod
 
     .venv/bin/python benchmarks/ood_eval.py WORLD... --models default ft.pt [--tilt 3] [--z 0.5]
 
+`NAME+svM` is NAME with a map of side views M m to each side (as in ood_suite.py).
+
 Each WORLD holds sessions 00 (the map) and 01 (the queries); a match is true within 5 m.
 Prints one line per model: Recall@1 / Recall@5 / mean yaw error (deg) per world.
 """
@@ -50,14 +52,15 @@ def main() -> int:
 
     torch.set_num_threads(args.threads)
     for name in args.models:
-        model = load_model(name)
+        base, side_views = S.split_side_views(name)
+        model = load_model(base)
         cells = []
         for w in args.worlds:
             mp, mpose = S.load_session(w / "00")
             qp, qpose = S.load_session(w / "01")
             tf = _Lift(args.z) if args.z else None
             q = S.Queries(qp, qpose, args.tilt, seed=args.seed, transform=tf)
-            s = S.summarize(S.evaluate(model, mp, mpose, q, args.threads))
+            s = S.summarize(S.evaluate(model, mp, mpose, q, args.threads, side_views))
             cells.append(f"{w.name} {s['r1']:.3f} / {s['r5']:.3f} / {s['yaw_mean']:.2f}")
         print(S.model_key(name), " | ".join(cells), flush=True)
     return 0
