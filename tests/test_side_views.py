@@ -151,3 +151,20 @@ def test_build_db_with_side_views_cli(samples, tmp_path):
     )
     code, out = run("build-db", str(scans[0]), "-o", str(tmp_path / "x.db"), "--side-views", "-1")
     assert code != 0 and "--side-views" in out
+
+
+def test_a_damaged_side_view_is_refused_in_one_line(samples, tmp_path):
+    import sqlite3
+
+    db = tmp_path / "map.db"
+    scans = list_scans(samples / "00")
+    code, out = run("build-db", *map(str, scans[:6]), "-o", str(db), "--side-views", "2")
+    assert code == 0, out
+    nan = np.full(1024, np.nan, dtype="<f4").tobytes()
+    with sqlite3.connect(db) as conn:
+        conn.execute("UPDATE side_views SET signature = ? WHERE scan_id = 3", (nan,))
+    conn.close()
+    code, out = run("query", str(scans[0]), "--db", str(db))
+    assert code == 1 and "scan 3: a side view is not finite" in out and "Traceback" not in out
+    code, out = run("info", str(db), "--check")
+    assert code != 0 and "side view is not finite" in out

@@ -519,11 +519,8 @@ class Database:
         ids, sigs = ids[:i], sigs[:i]
         # SQLite keeps no checksum of a blob: a damaged signature (NaN, or so large that
         # its squared norm overflows float32) would derail the search, so it stops here.
-        with np.errstate(over="ignore", invalid="ignore"):
-            norms = np.einsum("ij,ij->i", sigs, sigs, dtype=np.float64)
-        bad = ~(np.isfinite(norms) & (norms < np.finfo(np.float32).max))
-        if bad.any():
-            rid = int(ids[np.argmax(bad)])
+        rid = _first_damaged(ids, sigs)
+        if rid is not None:
             raise DatabaseError(
                 self.path,
                 f"scan {rid}: signature is not finite or out of range (damaged?); "
@@ -547,11 +544,8 @@ class Database:
                 raise DatabaseError(self.path, f"scan {rid}: a side view has a wrong size")
             ids[i] = rid
             sigs[i] = np.frombuffer(blob, dtype=_SIG_DTYPE)
-        with np.errstate(over="ignore", invalid="ignore"):
-            norms = np.einsum("ij,ij->i", sigs, sigs, dtype=np.float64)
-        bad = ~(np.isfinite(norms) & (norms < np.finfo(np.float32).max))
-        if bad.any():
-            rid = int(ids[np.argmax(bad)])
+        rid = _first_damaged(ids, sigs)
+        if rid is not None:
             raise DatabaseError(self.path, f"scan {rid}: a side view is not finite (damaged?)")
         return ids, sigs
 
@@ -645,6 +639,15 @@ class Database:
             if lacking:
                 problems.append(f"{lacking} scans lack some of their side views")
         return problems
+
+
+def _first_damaged(ids: np.ndarray, sigs: np.ndarray) -> int | None:
+    """The id of the first signature that would derail the search (NaN, or so large that
+    its squared norm overflows float32), or None."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        norms = np.einsum("ij,ij->i", sigs, sigs, dtype=np.float64)
+    bad = ~(np.isfinite(norms) & (norms < np.finfo(np.float32).max))
+    return int(ids[np.argmax(bad)]) if bad.any() else None
 
 
 def _locate(
