@@ -168,3 +168,60 @@ def test_a_damaged_side_view_is_refused_in_one_line(samples, tmp_path):
     assert code == 1 and "scan 3: a side view is not finite" in out and "Traceback" not in out
     code, out = run("info", str(db), "--check")
     assert code != 0 and "side view is not finite" in out
+
+
+def test_view_index_grown_one_scan_at_a_time_answers_as_one_built_at_once():
+    rng = np.random.default_rng(11)
+    n, v, dim = 40, 2, 12
+    sigs = rng.normal(size=(n, dim)).astype(np.float32)
+    views = rng.normal(size=(n, v, dim)).astype(np.float32)
+    whole = ViewIndex(sigs, np.repeat(np.arange(n), v), views.reshape(-1, dim))
+    grown = ViewIndex(np.empty((0, dim), np.float32), np.empty(0, np.int64), np.empty((0, dim)))
+    for i in range(n):
+        grown.append(sigs[i][None], views[i][None])
+    q = rng.normal(size=(4, dim)).astype(np.float32)
+    for limit in (None, [n, 30, 10, 1]):
+        a_rows, a_d = whole.search(q, 6, limit=limit)
+        b_rows, b_d = grown.search(q, 6, limit=limit)
+        assert a_rows.tolist() == b_rows.tolist()
+        np.testing.assert_allclose(a_d, b_d)
+
+
+def test_loop_detector_with_side_views_closes_a_loop_driven_beside_the_first_pass(samples):
+    """A revisit exactly where a side view looks from (scan 2's points re-centred 2.5 m to
+    its left) closes with scan 2 at signature distance ~0 only with side views."""
+    from disco_cli import LoopDetector
+    from disco_cli.errors import DiscoError
+
+    clouds = [read_scan(p) for p in list_scans(samples / "00")[:8]]
+    revisit = clouds[2].copy()
+    revisit[:, 1] -= 2.5
+    found = {}
+    for views in (0.0, 2.5):
+        det = LoopDetector("spectral", exclude_frames=5, verify=False, side_views=views)
+        for c in clouds:
+            det.add(c)
+        found[views] = det.add(revisit)
+    assert found[2.5][0].match_index == 2 and found[2.5][0].distance < 1e-3
+    assert found[0.0][0].distance > 100 * max(found[2.5][0].distance, 1e-6)
+    det = LoopDetector("spectral", exclude_frames=5, verify=False, side_views=2.5)
+    with pytest.raises(DiscoError, match="side views"):
+        det.add_embedded(np.zeros(1024, np.float32), np.zeros((40, 120), np.float32))
+
+
+def test_loop_detector_with_side_views_streams_the_loops_of_disco_loops(samples):
+    from disco_cli import LoopDetector
+
+    args = ["--exclude-frames", "5", "--side-views", "2.5", "--format", "jsonl"]
+    code, out = run("loops", str(samples / "00"), *args)
+    want = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert code == 0 and want
+    det = LoopDetector(exclude_frames=5, verify=False, side_views=2.5)
+    got = []
+    for p in list_scans(samples / "00"):
+        got += det.add(read_scan(p), name=str(p))
+    assert [(g.query_index, g.match_index) for g in got] == [
+        (w["query_index"], w["match_index"]) for w in want
+    ]
+    for g, w in zip(got, want):
+        assert abs(g.distance - w["distance"]) < 1e-5 and abs(g.yaw_deg - w["yaw_deg"]) < 1e-4

@@ -126,6 +126,9 @@ class LoopDetector:
     pair's relative pose and keep the accepted ones; `pose=True` without `verify`
     estimates it and keeps every pair. `on_pose_error(message)` hears of a pair whose
     pose cannot be estimated (that pair is left out); by default it is a warning.
+    `side_views`: also search each earlier scan as seen from that many metres to its
+    left and right (`side_views.py`), for revisits in another lane (a map's stored
+    embeddings are then not reused: it holds no views of the sequence).
     """
 
     def __init__(
@@ -143,9 +146,11 @@ class LoopDetector:
         device: str = "cpu",
         pose_config: Any = None,
         on_pose_error: Callable[[str], None] | None = None,
+        side_views: float = 0.0,
     ):
         from disco_cli.map import _load_model
         from disco_cli.search import check_rerank
+        from disco_cli.side_views import side_offsets
 
         if exclude_frames is not None and (
             isinstance(exclude_frames, bool) or int(exclude_frames) != exclude_frames
@@ -158,6 +163,10 @@ class LoopDetector:
         if isinstance(topk, bool) or not isinstance(topk, int) or topk < 1:
             raise DiscoError(f"topk must be an integer >= 1, not {topk!r}")
         self.topk = topk
+        try:
+            self.side_offsets = side_offsets(side_views)
+        except ValueError as exc:
+            raise DiscoError(str(exc)) from None
         self.verify = bool(verify)
         self.estimate_pose = bool(verify or pose)
         self.pose_config = pose_config
@@ -191,8 +200,16 @@ class LoopDetector:
         label = name or f"scan-{len(self)}"
         pts = array_points(points, label)
         sig, feat = embed_one(pts, self._model, label)
+        sides = None
+        if self.side_offsets:
+            from disco_cli.side_views import side_view_bevs
+
+            views = side_view_bevs(pts, self._model.bev_config, self.side_offsets)
+            sides = np.asarray(self._model.embed(views)[0], dtype=np.float32)
         keep = np.ascontiguousarray(pts[:, :3]) if self.estimate_pose else None
-        return self.add_embedded(sig, feat, points=keep, pose=pose, time=time, name=label)
+        return self.add_embedded(
+            sig, feat, points=keep, pose=pose, time=time, name=label, side_signatures=sides
+        )
 
     def add_embedded(
         self,
@@ -203,16 +220,24 @@ class LoopDetector:
         pose: Any = None,
         time: float | None = None,
         name: str | None = None,
+        side_signatures: np.ndarray | None = None,
     ) -> list[Loop]:
         """`add` for a scan embedded already (by `model.embed`); `points` is its point
-        array or a function that reads it (needed when poses are estimated)."""
+        array or a function that reads it (needed when poses are estimated);
+        `side_signatures` `[V, D]` its side views' (when the detector has side views)."""
         from disco_cli.search import SignatureIndex, match_queries
+        from disco_cli.side_views import ViewIndex
 
         i = len(self)
         label = name or f"scan-{i}"
         t = self._time(time, label)
         travelled = self._travel(pose, label)
         sig = np.asarray(signature, dtype=np.float32).reshape(-1)
+        if self.side_offsets and (
+            side_signatures is None
+            or np.shape(side_signatures) != (len(self.side_offsets), len(sig))
+        ):
+            raise DiscoError(f"{label}: this detector has side views; give their signatures")
         if self.estimate_pose:
             if points is None:
                 raise DiscoError(f"{label}: no points to estimate the relative pose from")
@@ -234,9 +259,15 @@ class LoopDetector:
             )[0]
             loops = [lp for m in found if (lp := self._loop(i, label, t, m)) is not None]
         # Only now is the scan searchable: never by itself.
-        if self._index is None:
-            self._index = SignatureIndex(np.empty((0, len(sig)), np.float32))
-        self._index.append(sig[None])
+        empty = np.empty((0, len(sig)), np.float32)
+        if self._index is None and self.side_offsets:
+            self._index = ViewIndex(empty, np.empty(0, np.int64), empty)
+        elif self._index is None:
+            self._index = SignatureIndex(empty)
+        if self.side_offsets:
+            self._index.append(sig[None], np.asarray(side_signatures)[None])
+        else:
+            self._index.append(sig[None])
         self._store.append(features, label)
         self._times = np.append(self._times, t)
         self._travelled = np.append(self._travelled, travelled)
@@ -261,7 +292,7 @@ class LoopDetector:
         from disco_cli.readers import read_scan
 
         n = len(paths)
-        if stored is not None:
+        if stored is not None and not self.side_offsets:  # a map stores no sequence's views
             known, sigs, feats = stored
         else:
             known, sigs, feats = np.zeros(n, bool), None, None
@@ -269,10 +300,11 @@ class LoopDetector:
             [paths[i] for i in range(n) if not known[i]], batch, workers, scan_format
         )
         for i, path in enumerate(paths):
+            sides = None
             if known[i]:
                 sig, feat = sigs[i], feats[i]  # type: ignore[index]
             else:
-                sig, feat = next(fresh)
+                sig, feat, sides = next(fresh)
             if on_progress is not None:
                 on_progress(1)
 
@@ -285,11 +317,12 @@ class LoopDetector:
                 points=read if self.estimate_pose else None,
                 time=None if times is None else float(times[i]),
                 name=path,
+                side_signatures=sides,
             )
 
     def _embed_files(
         self, paths: list[str], batch: int, workers: int, scan_format: str | None
-    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
         from disco_cli.pipeline import embed_stream, load_stream
 
         if not paths:
@@ -300,13 +333,15 @@ class LoopDetector:
             workers=workers,
             prefetch=max(2 * batch, 4 * workers),
             scan_format=scan_format,
+            side_offsets=self.side_offsets,
         )
         try:
             for chunk in embed_stream(loaded, self._model, batch):
                 for item in chunk.errors:
                     raise item.error  # type: ignore[misc]
                 for j in range(len(chunk.items)):
-                    yield chunk.signatures[j], chunk.features[j]
+                    sides = None if chunk.side_signatures is None else chunk.side_signatures[j]
+                    yield chunk.signatures[j], chunk.features[j], sides
         finally:
             loaded.close()  # type: ignore[attr-defined]
 

@@ -73,6 +73,22 @@ class ViewIndex:
     def __len__(self) -> int:
         return self.n_scans
 
+    def append(self, signatures: np.ndarray, view_signatures: np.ndarray | None = None) -> None:
+        """Add scans `[m, D]` (rows n, n + 1, ...) with their views `[m, V, D]`, if any
+        (online loop detection grows the index one scan at a time)."""
+        sig = np.atleast_2d(np.asarray(signatures, dtype=np.float32))
+        m = len(sig)
+        rows = [sig]
+        owners = [np.arange(self.n_scans, self.n_scans + m, dtype=np.int64)]
+        if view_signatures is not None and np.size(view_signatures):
+            views = np.asarray(view_signatures, dtype=np.float32).reshape(m, -1, sig.shape[1])
+            rows.append(views.reshape(-1, sig.shape[1]))
+            owners.append(np.repeat(owners[0], views.shape[1]))
+            self.most_views = max(self.most_views, views.shape[1])
+        self._index.append(np.concatenate(rows))
+        self.owner = np.concatenate([self.owner, *owners])
+        self.n_scans += m
+
     @property
     def dim(self) -> int:
         return self._index.dim

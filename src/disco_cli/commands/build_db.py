@@ -25,6 +25,7 @@ from disco_cli.commands.options import (
     PosesFormatOpt,
     PoseTopicOpt,
     ScanFormatOpt,
+    SideViewsOpt,
     TopicOpt,
     WorkersOpt,
     batch_option,
@@ -69,17 +70,7 @@ def build_db(
             help="Add these scans to an existing database built from other scans (same model).",
         ),
     ] = False,
-    side_views: Annotated[
-        Optional[float],
-        opt(
-            "--side-views",
-            metavar="METRES",
-            panel=PANEL_IN,
-            help="Also store each scan's signatures seen from METRES to its left and right, "
-            "for revisits that drive beside the map's line (about 3x the embedding time, "
-            "1.3x the size; default: none, or the map's own setting when adding).",
-        ),
-    ] = None,
+    side_views: SideViewsOpt = None,
     batch: Annotated[int, batch_option("Scans per network batch and per transaction.")] = 32,
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
@@ -104,8 +95,6 @@ def build_db(
     scans = collect_scans(inputs, poses, times, calib, fmt, pose_opts, warn, topic, pose_topic)
     if not scans.paths:
         raise fail("no scans given")
-    if side_views is not None and not (0 <= side_views <= 20):
-        raise fail(f"--side-views must be between 0 and 20 m, got {side_views:g}")
     m, given, held = open_for_adding(
         output, scans.paths, model, append=append, device=device, side_views=side_views
     )

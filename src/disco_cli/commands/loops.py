@@ -24,6 +24,7 @@ from disco_cli.commands.options import (
     ReuseDbOpt,
     ScanFormatOpt,
     ScanRootOpt,
+    SideViewsOpt,
     ThresholdOpt,
     TimesOpt,
     TopicOpt,
@@ -64,6 +65,7 @@ def loops(
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
+    side_views: SideViewsOpt = None,
 ) -> None:
     """Detect loop closures along one sequence of scans (by default each scan searches the
     scans at least 50 frames before it)."""
@@ -101,11 +103,14 @@ def loops(
         rerank=rerank,
         device=device,
         on_pose_error=lambda msg: (error(msg), pose_failures.append(msg)),
+        side_views=side_views or 0.0,
     )
     columns, keys = loop_columns(with_pose, verbose)
     writer = RowWriter(columns, fmt, title=f"loops in {sequence}")
     reuse = None
-    if db_path is not None:
+    if db_path is not None and side_views:
+        warn(f"{db_path}: not reused with --side-views (a map holds no views of the sequence)")
+    elif db_path is not None:
         reuse = stored_embeddings(db_path, paths, detector.model, scan_root=scan_root, warn=warn)
     with steps("loops", len(paths)) as advance:
         stream = detector.add_files(

@@ -153,6 +153,21 @@ def apply_rerank(model: Any, rerank: int | None) -> Any:
     return model
 
 
+SideViewsOpt = Annotated[
+    Optional[float],
+    typer.Option(
+        "--side-views",
+        metavar="METRES",
+        min=0.0,
+        max=20.0,
+        help="Side views: each scan also seen from METRES to its left and right, for "
+        "revisits that drive beside the first pass (about 3x the embedding time; a map "
+        "keeps its own setting when adding; default: none).",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
+
+
 def opt(*flags: str, help: str, panel: str | None = None, **kw: Any) -> Any:
     """A typer.Option declared in one call: flags, help text, help panel."""
     return typer.Option(*flags, help=help, rich_help_panel=panel, **kw)
