@@ -270,7 +270,7 @@ def evaluate(
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import read_scan
     from disco_cli.search import match_queries
-    from disco_cli.side_views import index_for, side_offsets
+    from disco_cli.side_views import index_for, seen_from, side_offsets
 
     m_sig, m_feat = embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), threads)
     offsets = side_offsets(side_views)
@@ -279,9 +279,7 @@ def evaluate(
         v = len(offsets)
 
         def view(j: int) -> np.ndarray:
-            pts = read_scan(map_paths[j // v]).copy()
-            pts[:, 1] -= offsets[j % v]  # as side_views.side_view_bevs moves them
-            return pts
+            return seen_from(read_scan(map_paths[j // v]), offsets[j % v])
 
         side_sigs, _ = embed(model, view, v * len(map_paths), threads)
         side_sigs = side_sigs.reshape(len(map_paths), v, -1)

@@ -392,9 +392,10 @@ class Database:
                 self.path, f"holds features {self.feature_shape}, got {batch.features.shape[1:]}"
             )
         if batch.side_offsets != self.side_offsets:
+            from disco_cli.side_views import side_views_m
 
             def said(offsets: tuple[float, ...]) -> str:
-                return f"side views at {max(offsets):g} m" if offsets else "no side views"
+                return f"side views at {side_views_m(offsets):g} m" if offsets else "no side views"
 
             raise DatabaseError(
                 self.path,

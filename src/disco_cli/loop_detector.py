@@ -202,10 +202,11 @@ class LoopDetector:
         sig, feat = embed_one(pts, self._model, label)
         sides = None
         if self.side_offsets:
+            from disco_cli.pipeline import embed_side_views
             from disco_cli.side_views import side_view_bevs
 
             views = side_view_bevs(pts, self._model.bev_config, self.side_offsets)
-            sides = np.asarray(self._model.embed(views)[0], dtype=np.float32)
+            sides = embed_side_views([views], self._model)[0]
         keep = np.ascontiguousarray(pts[:, :3]) if self.estimate_pose else None
         return self.add_embedded(
             sig, feat, points=keep, pose=pose, time=time, name=label, side_signatures=sides
@@ -323,27 +324,19 @@ class LoopDetector:
     def _embed_files(
         self, paths: list[str], batch: int, workers: int, scan_format: str | None
     ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
-        from disco_cli.pipeline import embed_stream, load_stream
+        from disco_cli.pipeline import embedded
 
         if not paths:
             return
-        loaded = load_stream(
-            iter(paths),
-            self._model.bev_config,
-            workers=workers,
-            prefetch=max(2 * batch, 4 * workers),
-            scan_format=scan_format,
-            side_offsets=self.side_offsets,
-        )
-        try:
-            for chunk in embed_stream(loaded, self._model, batch):
+        with embedded(
+            iter(paths), self._model, batch, workers, scan_format, side_offsets=self.side_offsets
+        ) as chunks:
+            for chunk in chunks:
                 for item in chunk.errors:
                     raise item.error  # type: ignore[misc]
                 for j in range(len(chunk.items)):
                     sides = None if chunk.side_signatures is None else chunk.side_signatures[j]
                     yield chunk.signatures[j], chunk.features[j], sides
-        finally:
-            loaded.close()  # type: ignore[attr-defined]
 
     # -- the pieces ----------------------------------------------------------------
 

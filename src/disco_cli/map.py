@@ -25,7 +25,7 @@ import numpy as np
 from disco_cli.database import Database, ModelInfo, ScanBatch
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.localize import Match, PointCache, as_match, refine_matches
-from disco_cli.side_views import side_offsets
+from disco_cli.side_views import side_offsets, side_views_m
 
 __all__ = [
     "Map",
@@ -303,7 +303,7 @@ class Map:
     @property
     def side_views(self) -> float:
         """How far to each side the map's side views look (metres; 0: none)."""
-        return max((abs(o) for o in self.side_offsets), default=0.0)
+        return side_views_m(self.side_offsets)
 
     @property
     def database(self) -> Database | None:
@@ -388,7 +388,11 @@ class Map:
             label = name or f"scan-{len(self) + len(part) + 1}"
             pts = array_points(points, label)
             bev = scan_bev(pts, self._model.bev_config, label)
-            sides = side_view_bevs(pts, self._model.bev_config, self.side_offsets)
+            sides = (
+                side_view_bevs(pts, self._model.bev_config, self.side_offsets)
+                if self.side_offsets
+                else None
+            )
             part.append((label, bev, pose, time, sides))
             if len(part) >= batch:
                 ids += self._write_bevs(part)
@@ -484,18 +488,13 @@ class Map:
         on_skip,
         result,
     ) -> None:
-        from disco_cli.pipeline import embed_stream, load_stream
+        from disco_cli.pipeline import embedded
 
-        loaded = load_stream(
-            (paths[i] for i in todo),
-            self._model.bev_config,
-            workers=workers,
-            prefetch=max(2 * batch, 4 * workers),
-            scan_format=scan_format,
-            side_offsets=self.side_offsets,
-        )
-        try:
-            for chunk in embed_stream(loaded, self._model, batch):
+        todo_paths = (paths[i] for i in todo)
+        with embedded(
+            todo_paths, self._model, batch, workers, scan_format, side_offsets=self.side_offsets
+        ) as chunks:
+            for chunk in chunks:
                 for item in chunk.errors:
                     if not skip_bad:
                         raise item.error  # type: ignore[misc]
@@ -519,8 +518,6 @@ class Map:
                     result.written += len(rows)
                 if on_progress is not None:
                     on_progress(result.written + len(result.bad), result.written)  # type: ignore[arg-type]
-        finally:
-            loaded.close()  # type: ignore[attr-defined]
 
     def _check_writable(self) -> None:
         self._check_open()
@@ -528,14 +525,10 @@ class Map:
             raise DatabaseError(self.path, "opened read-only; use Map.open(path, writable=True)")
 
     def _write_bevs(self, part: list[tuple]) -> list[int]:
-        from disco_cli.pipeline import pose_rows
+        from disco_cli.pipeline import embed_side_views, pose_rows
 
         sigs, feats = self._model.embed(np.stack([p[1] for p in part]))
-        sides = None
-        if self.side_offsets:
-            views = np.concatenate([p[4] for p in part])
-            sides = np.asarray(self._model.embed(views)[0], dtype=np.float32)
-            sides = sides.reshape(len(part), len(self.side_offsets), -1)
+        sides = embed_side_views([p[4] for p in part], self._model) if self.side_offsets else None
         rows = np.full((len(part), 4), np.nan)
         for k, (label, _, pose, _, _) in enumerate(part):
             if pose is not None:
@@ -715,19 +708,13 @@ class Map:
         A scan that fails yields its error and the others go on. `exclude(index, path)`
         gives the match ids to leave out for each query. With `pose`, rows whose pose
         could not be estimated have `T` None and the reason in `reason`."""
-        from disco_cli.pipeline import embed_stream, load_stream
+        from disco_cli.pipeline import embedded
 
         self._check_open()
-        loaded = load_stream(
-            paths,
-            self._model.bev_config,
-            workers=workers,
-            prefetch=2 * workers,
-            scan_format=scan_format,
-            keep_points=pose,
-        )
-        try:
-            for chunk in embed_stream(loaded, self._model, batch=1):
+        with embedded(
+            paths, self._model, 1, workers, scan_format, prefetch=2 * workers, keep_points=pose
+        ) as chunks:
+            for chunk in chunks:
                 for item in chunk.errors:
                     yield QueryResult(item.index, item.path, [], item.error)
                 for j, item in enumerate(chunk.items):
@@ -745,5 +732,3 @@ class Map:
                         matches = [as_match(m) for m in found]
                     item.points = None
                     yield QueryResult(item.index, item.path, matches)
-        finally:
-            loaded.close()  # type: ignore[attr-defined]

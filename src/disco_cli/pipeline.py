@@ -14,6 +14,7 @@ import threading
 import warnings
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,8 @@ __all__ = [
     "Embedded",
     "load_stream",
     "embed_stream",
+    "embedded",
+    "embed_side_views",
     "load_bev",
     "scan_bev",
     "array_points",
@@ -131,17 +134,14 @@ def embed_paths(
     """`(signatures [N, D], features [N, ...])` of scan files, in order; the first
     unreadable one raises its `ScanReadError`. `on_progress(k)` after each batch of k."""
     sigs, feats = [], []
-    loaded = load_stream(map(str, paths), model.bev_config, workers, scan_format=scan_format)
-    try:
-        for out in embed_stream(loaded, model, batch):
+    with embedded(map(str, paths), model, batch, workers, scan_format, prefetch=8) as chunks:
+        for out in chunks:
             if out.errors:
                 raise out.errors[0].error  # type: ignore[misc]
             sigs.append(out.signatures)
             feats.append(out.features)
             if on_progress is not None:
                 on_progress(len(out.items))
-    finally:
-        loaded.close()  # type: ignore[attr-defined]
     return np.concatenate(sigs), np.concatenate(feats)
 
 
@@ -226,6 +226,36 @@ def load_stream(
         pool.shutdown(wait=False, cancel_futures=True)
 
 
+@contextmanager
+def embedded(
+    paths: Iterable[str],
+    model: Any,
+    batch: int,
+    workers: int = 1,
+    scan_format: str | None = None,
+    *,
+    prefetch: int | None = None,
+    keep_points: bool = False,
+    side_offsets: tuple[float, ...] = (),
+) -> Iterator[Iterator[Embedded]]:
+    """`load_stream` then `embed_stream` over scan files, as one stream of batches; the
+    readers stop when the block ends. By default `2 * batch` scans (at least 4 per
+    worker) are read ahead, so the next batch is ready when the network is."""
+    loaded = load_stream(
+        paths,
+        model.bev_config,
+        workers=workers,
+        prefetch=max(2 * batch, 4 * workers) if prefetch is None else prefetch,
+        scan_format=scan_format,
+        keep_points=keep_points,
+        side_offsets=side_offsets,
+    )
+    try:
+        yield embed_stream(loaded, model, batch)
+    finally:
+        loaded.close()  # type: ignore[attr-defined]
+
+
 def embed_stream(loaded: Iterable[Loaded], model: Any, batch: int) -> Iterator[Embedded]:
     """Group loaded scans into batches of up to `batch` and run the model on each.
 
@@ -250,6 +280,14 @@ def embed_stream(loaded: Iterable[Loaded], model: Any, batch: int) -> Iterator[E
         yield _embed(items, model)
 
 
+def embed_side_views(side_bevs: list[np.ndarray], model: Any) -> np.ndarray:
+    """`[B, V, D]` signatures of B scans' side views (`[V, ...]` BEVs each), in one
+    network batch."""
+    views = np.concatenate(side_bevs).astype(np.float32, copy=False)
+    sigs = np.asarray(model.embed(views)[0], dtype=np.float32)
+    return sigs.reshape(len(side_bevs), len(side_bevs[0]), -1)
+
+
 def _embed(items: list[Loaded], model: Any) -> Embedded:
     bevs = np.stack([it.bev for it in items]).astype(np.float32, copy=False)
     sigs, feats = model.embed(bevs)
@@ -257,10 +295,7 @@ def _embed(items: list[Loaded], model: Any) -> Embedded:
     feats = np.ascontiguousarray(np.asarray(feats, dtype=np.float32))
     sides = None
     if items[0].side_bevs is not None:
-        views = np.concatenate([it.side_bevs for it in items])  # type: ignore[misc]
-        v = len(items[0].side_bevs)  # type: ignore[arg-type]
-        side_sigs, _ = model.embed(views.astype(np.float32, copy=False))
-        sides = np.asarray(side_sigs, dtype=np.float32).reshape(len(items), v, -1)
+        sides = embed_side_views([it.side_bevs for it in items], model)  # type: ignore[misc]
     for it in items:
         it.bev = it.side_bevs = None  # let the BEVs go now that they are embedded
     return Embedded(items, sigs, feats, side_signatures=sides)

@@ -20,7 +20,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["side_offsets", "side_view_bevs", "ViewIndex", "index_for"]
+__all__ = [
+    "side_offsets",
+    "side_views_m",
+    "seen_from",
+    "side_view_bevs",
+    "ViewIndex",
+    "index_for",
+]
 
 
 def side_offsets(metres: float) -> tuple[float, ...]:
@@ -31,19 +38,27 @@ def side_offsets(metres: float) -> tuple[float, ...]:
     return () if m == 0 else (m, -m)
 
 
-def side_view_bevs(points: np.ndarray, bev_config: Any, offsets: Sequence[float]) -> np.ndarray:
-    """`[V, H, R, S]` BEVs of `points` seen from a sensor moved by each offset along y.
+def side_views_m(offsets: Sequence[float]) -> float:
+    """The M of `--side-views M` that gave `offsets` (0: none)."""
+    return max((abs(float(o)) for o in offsets), default=0.0)
 
-    A view with no point left in range is an all-zero BEV (it then matches nothing)."""
+
+def seen_from(points: np.ndarray, offset: float) -> np.ndarray:
+    """A copy of `points` as a sensor moved `offset` m along the scan's y axis sees them."""
+    moved = np.array(points, dtype=np.float32, copy=True)
+    moved[:, 1] -= np.float32(offset)
+    return moved
+
+
+def side_view_bevs(points: np.ndarray, bev_config: Any, offsets: Sequence[float]) -> np.ndarray:
+    """`[V, H, R, S]` BEVs of `points` seen from a sensor moved by each offset along y
+    (at least one offset). A view with no point left in range is an all-zero BEV (it
+    then matches nothing)."""
     from disco_cli.bev import polar_bev
 
-    out = []
-    for offset in offsets:
-        moved = np.array(points, dtype=np.float32, copy=True)
-        moved[:, 1] -= np.float32(offset)
-        out.append(polar_bev(moved, bev_config))
-    if not out:
-        return np.empty((0, *polar_bev(points[:1], bev_config).shape), np.float32)
+    if not offsets:
+        raise ValueError("side views: no offsets")
+    out = [polar_bev(seen_from(points, offset), bev_config) for offset in offsets]
     return np.stack(out).astype(np.float32, copy=False)
 
 

@@ -37,6 +37,7 @@ def info(
 
     from disco_cli.console import OutputFormat, RowWriter, resolve_format
     from disco_cli.database import Database
+    from disco_cli.side_views import side_views_m
 
     with Database.open(db_path) as db:
         rows = [
@@ -47,7 +48,7 @@ def info(
             ("signature_dim", db.signature_dim),
             ("feature_shape", " x ".join(map(str, db.feature_shape)) + " float16"),
             ("poses", "yes" if db.has_poses() else "no"),
-            ("side_views_m", max((abs(o) for o in db.side_offsets), default=0.0)),
+            ("side_views_m", side_views_m(db.side_offsets)),
             ("format_version", db.format_version),
             ("disco_version", db.meta.get("disco_version", "")),
             ("size", _size(db.size_bytes())),
