@@ -120,14 +120,15 @@ class ViewIndex:
         q = np.atleast_2d(q)
         b, n = len(q), self.n_scans
         # A scan's rows are allowed iff the scan is: limits become a mask over all rows.
-        allowed = np.ones((b, n), dtype=bool)
-        if limit is not None:
-            lim = np.broadcast_to(np.asarray(limit, dtype=np.int64), (b,))
-            allowed &= np.arange(n)[None, :] < lim[:, None]
-        if exclude is not None:
-            ex = np.asarray(exclude, dtype=bool)
-            allowed &= ~np.broadcast_to(ex, (b, n))
-        mask = None if allowed.all() else ~allowed[:, self.owner]
+        mask = None
+        if limit is not None or exclude is not None:
+            allowed = np.ones((b, n), dtype=bool)
+            if limit is not None:
+                lim = np.broadcast_to(np.asarray(limit, dtype=np.int64), (b,))
+                allowed &= np.arange(n)[None, :] < lim[:, None]
+            if exclude is not None:
+                allowed &= ~np.broadcast_to(np.asarray(exclude, dtype=bool), (b, n))
+            mask = ~allowed[:, self.owner]
         # Deep enough that k distinct scans survive even when every one of them
         # comes back with all its views.
         deep = max(k, 0) * (1 + self.most_views)
