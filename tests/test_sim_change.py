@@ -198,7 +198,7 @@ def _objects(town: Town, cls: str) -> list[np.ndarray]:
 
 
 def test_each_style_has_what_it_claims():
-    styles = ("grid", "suburban", "industrial", "park", "parking")
+    styles = ("grid", "suburban", "industrial", "park", "parking", "terrace")
     towns = {s: Town(5, TownParams(**SMALL, style=s)) for s in styles}
     streets_km = {s: sum(st.length for st in t.streets) / 1000 for s, t in towns.items()}
     for style, town in towns.items():  # each makes a street scene a sensor sees
@@ -242,6 +242,20 @@ def test_each_style_has_what_it_claims():
         )
         square += abs(np.cos(yaw - near.yaw)) < 0.05
     assert square > 100
+    # Terrace: narrow houses in a row, 0.3 m apart, each within 0.8 m of its neighbours'
+    # height, and more cars parked along the kerbs than in the grid town.
+    rows = [b[0] for b in _objects(towns["terrace"], "buildings") if b[0, 6] > 2]
+    widths = np.array([2 * r[4] for r in rows])
+    assert len(rows) > 60 and np.median(widths) < 7.0
+    neighbours = 0
+    for i, a in enumerate(rows):
+        for b in rows[i + 1 :]:
+            gap = np.hypot(a[1] - b[1], a[2] - b[2]) - (a[4] + b[4])
+            if abs(gap - 0.3) < 0.05 and abs(np.cos(a[7] - b[7])) > 0.999:
+                neighbours += 1
+                assert abs(a[6] - b[6]) <= 0.4 + 1e-9  # half heights: within 0.8 m
+    assert neighbours > 0.5 * len(rows)
+    assert len(towns["terrace"]._parking) > 1.5 * len(towns["grid"]._parking)
 
 
 def test_varied_terrain_crowns_the_roads_and_the_car_rides_on_them():

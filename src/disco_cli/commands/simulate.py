@@ -22,6 +22,7 @@ class Style(str, Enum):
     industrial = "industrial"
     park = "park"
     parking = "parking"
+    terrace = "terrace"
 
 
 class Terrain(str, Enum):
@@ -105,7 +106,7 @@ def simulate(
         typer.Option(
             "--style",
             help="Town style: grid (mixed streets, the default), suburban, industrial, "
-            "park or parking.",
+            "park, parking or terrace (rows of alike houses).",
             rich_help_panel="World",
         ),
     ] = None,

@@ -91,6 +91,10 @@ class Scenery(Layout):
             tree_gap = extra.uniform(5.0, 8.0)
         light_gap = rng.uniform(18, 40)
         parking = rng.uniform(0.3, 0.9) if s.half_width >= 5.0 and rng.random() < 0.7 else 0.0
+        street_height = 0.0
+        if style == "terrace":  # one height per street; cars parked along both kerbs
+            street_height = extra.uniform(hmin, hmax)
+            parking = extra.uniform(0.75, 0.95) if s.half_width >= 4.0 else 0.0
         sidewalk_refl = rng.uniform(0.3, 0.45)
 
         b = self._builder()
@@ -104,8 +108,9 @@ class Scenery(Layout):
         # Building lots, one after the other along the street.
         t = t0 + rng.uniform(0, 6)
         while t < t1 - 6:
-            width = min(rng.uniform(*LOT_WIDTH.get(style, (8, 28))), t1 - t)
-            if width < 6:
+            lots = LOT_WIDTH.get(style, (8, 28))
+            width = min(rng.uniform(*lots), t1 - t)
+            if width < min(6, lots[0]):
                 break
             if rng.random() < density:
                 depth = rng.uniform(*DEPTH.get(style, (8, 24)))
@@ -114,6 +119,11 @@ class Scenery(Layout):
                 height = rng.uniform(hmin, hmax)
                 turn = rng.normal(0, 0.03) if rng.random() < 0.3 else 0.0
                 house = width - rng.uniform(0.5, 3)
+                if style == "terrace":  # houses in one line, of one height, a passage apart
+                    height = street_height + extra.uniform(-0.4, 0.4)
+                    turn, house = 0.0, width - 0.3
+                    off = back + setback + depth / 2
+                    centre = s.a + s.dir * (t + width / 2) + s.left * side * off
                 if style == "suburban":  # a detached house, with garden on either side
                     house = width * extra.uniform(0.45, 0.65)
                     centre = centre + s.dir * extra.uniform(-0.5, 0.5) * (width - house - 2.0)
@@ -303,9 +313,12 @@ class Scenery(Layout):
         style: str,
         outward: np.ndarray,
     ) -> None:
-        if not self._site_free(centre, width / 2, depth / 2, yaw):
+        # Row houses stand 0.3 m apart: a narrower footprint keeps the 1 m occupancy
+        # raster from seeing each house's neighbour where it stands.
+        hx = width / 2 - (0.8 if style == "terrace" else 0.0)
+        if not self._site_free(centre, hx, depth / 2, yaw):
             return
-        self._occupied.mark(centre, width / 2, depth / 2, yaw)
+        self._occupied.mark(centre, hx, depth / 2, yaw)
         self._last_built = True
         first = b.mark()
         glass = {"downtown": 0.25, "industrial": 0.02, "hall": 0.02}.get(style, 0.08) * rng.uniform(

@@ -1,7 +1,8 @@
 """What each town style is made of (see `TownParams.style` and docs/simulator.md).
 
 A grid town mixes five characters of street side; the other styles are each made
-of their own. A side style sets building heights (m), density (share of lots
+of their own. `terrace` is the repetitive one: rows of joined houses of one height,
+front gardens, a tree row and cars parked along both kerbs, street after street. A side style sets building heights (m), density (share of lots
 built), setback (m), frontage shares (none / wall / fence / hedge), the chance of
 a tree row, lot width and building depth (m).
 """
@@ -17,6 +18,7 @@ SIDE_STYLES: dict[str, tuple[list[str], list[float]]] = {
     "industrial": (["hall", "industrial"], [0.8, 0.2]),
     "park": (["parkroad"], [1.0]),
     "parking": (["lot", "mixed"], [0.7, 0.3]),
+    "terrace": (["terrace"], [1.0]),
 }
 HEIGHTS = {
     "downtown": (12, 40),
@@ -28,6 +30,7 @@ HEIGHTS = {
     "hall": (7, 14),
     "parkroad": (3, 5),
     "lot": (4, 9),
+    "terrace": (7, 10),  # one height per street, each house within 0.4 m of it
 }
 DENSITY = {
     "downtown": 1.0,
@@ -39,6 +42,7 @@ DENSITY = {
     "hall": 0.9,
     "parkroad": 0.06,
     "lot": 0.5,
+    "terrace": 1.0,
 }
 SETBACK = {
     "downtown": (0.3, 1.0),
@@ -50,6 +54,7 @@ SETBACK = {
     "hall": (4.0, 12.0),
     "parkroad": (10.0, 20.0),
     "lot": (2.0, 4.0),
+    "terrace": (2.0, 3.5),
 }
 _FRONTAGE = [0.3, 0.25, 0.2, 0.25]
 FRONTAGE = {
@@ -62,10 +67,18 @@ FRONTAGE = {
     "hall": [0.2, 0.1, 0.7, 0.0],
     "parkroad": [0.4, 0.0, 0.1, 0.5],
     "lot": [0.5, 0.0, 0.2, 0.3],
+    "terrace": [0.1, 0.3, 0.15, 0.45],
 }
-TREE_ROW = {"park": 0.95, "residential": 0.7, "suburban": 0.6, "hall": 0.15, "parkroad": 1.0}
-LOT_WIDTH = {"suburban": (14, 24), "hall": (30, 70)}
-DEPTH = {"suburban": (8, 12), "hall": (20, 45)}
+TREE_ROW = {
+    "park": 0.95,
+    "residential": 0.7,
+    "suburban": 0.6,
+    "hall": 0.15,
+    "parkroad": 1.0,
+    "terrace": 0.8,
+}
+LOT_WIDTH = {"suburban": (14, 24), "hall": (30, 70), "terrace": (5.0, 7.0)}
+DEPTH = {"suburban": (8, 12), "hall": (20, 45), "terrace": (9, 11)}
 # Around and inside the blocks: one thing per so many m2, the shares of trees / bushes / mounds
 # (the rest are sheds or halls) and the size of those (width, depth, height ranges).
 OUTSKIRTS = {
@@ -74,4 +87,5 @@ OUTSKIRTS = {
     "industrial": (200, (0.3, 0.4, 0.5), ((20, 60), (15, 40), (6, 14))),
     "park": (110, (0.75, 0.92, 0.98), ((3, 8), (3, 6), (2.5, 4))),
     "parking": (200, (0.5, 0.65, 0.8), ((8, 30), (8, 20), (3, 8))),
+    "terrace": (200, (0.55, 0.8, 0.88), ((4, 10), (4, 8), (2.5, 5))),
 }
