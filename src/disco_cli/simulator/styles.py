@@ -1,10 +1,11 @@
 """What each town style is made of (see `TownParams.style` and docs/simulator.md).
 
 A grid town mixes five characters of street side; the other styles are each made
-of their own. `terrace` is the repetitive one: rows of joined houses of one height,
-front gardens, a tree row and cars parked along both kerbs, street after street. A side style sets building heights (m), density (share of lots
-built), setback (m), frontage shares (none / wall / fence / hedge), the chance of
-a tree row, lot width and building depth (m).
+of their own. `terrace` is the repetitive one: rows of houses of one height, 0.3 m
+apart, front gardens, a tree row and cars parked along both kerbs, street after
+street. A side style sets building heights (m), density (share of lots built),
+setback (m), frontage shares (none / wall / fence / hedge), the chance of a tree
+row, lot width and building depth (m).
 """
 
 from __future__ import annotations
