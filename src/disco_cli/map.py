@@ -437,23 +437,41 @@ class Map:
         result = AddResult(already=sum(p in stored for p in absolute), bad=[])
         if not todo:
             return result
+        from disco_cli.pipeline import embedded
+
+        def embed_and_write() -> None:  # reads and writes add_files' own state
+            todo_paths = (paths[i] for i in todo)
+            with embedded(
+                todo_paths, self._model, batch, workers, scan_format, side_offsets=self.side_offsets
+            ) as chunks:
+                for chunk in chunks:
+                    for item in chunk.errors:
+                        if not skip_bad:
+                            raise item.error  # type: ignore[misc]
+                        if on_skip is not None:
+                            on_skip(item.error)  # type: ignore[arg-type]
+                        result.bad.append(item.path)  # type: ignore[union-attr]
+                    if chunk.items:
+                        rows = [todo[it.index] for it in chunk.items]
+                        self._append(
+                            ScanBatch(
+                                paths=[absolute[r] for r in rows],
+                                rel_paths=[rel_paths[r] for r in rows],
+                                signatures=chunk.signatures,
+                                features=chunk.features,
+                                poses=poses[rows],
+                                times=times[rows],
+                                side_offsets=self.side_offsets,
+                                side_signatures=chunk.side_signatures,
+                            )
+                        )
+                        result.written += len(rows)
+                    if on_progress is not None:
+                        on_progress(result.written + len(result.bad), result.written)  # type: ignore[arg-type]
+
         before = self._count()
         try:
-            self._add_todo(
-                paths,
-                todo,
-                absolute,
-                rel_paths,
-                poses,
-                times,
-                batch,
-                workers,
-                scan_format,
-                skip_bad,
-                on_progress,
-                on_skip,
-                result,
-            )
+            embed_and_write()
         except KeyboardInterrupt:
             now = self._count()
             raise Interrupted(None if now is None else now - (before or 0)) from None
@@ -471,53 +489,6 @@ class Map:
                 return len(fresh)
         except DatabaseError:
             return 0
-
-    def _add_todo(
-        self,
-        paths,
-        todo,
-        absolute,
-        rel_paths,
-        poses,
-        times,
-        batch,
-        workers,
-        scan_format,
-        skip_bad,
-        on_progress,
-        on_skip,
-        result,
-    ) -> None:
-        from disco_cli.pipeline import embedded
-
-        todo_paths = (paths[i] for i in todo)
-        with embedded(
-            todo_paths, self._model, batch, workers, scan_format, side_offsets=self.side_offsets
-        ) as chunks:
-            for chunk in chunks:
-                for item in chunk.errors:
-                    if not skip_bad:
-                        raise item.error  # type: ignore[misc]
-                    if on_skip is not None:
-                        on_skip(item.error)  # type: ignore[arg-type]
-                    result.bad.append(item.path)  # type: ignore[union-attr]
-                if chunk.items:
-                    rows = [todo[it.index] for it in chunk.items]
-                    self._append(
-                        ScanBatch(
-                            paths=[absolute[r] for r in rows],
-                            rel_paths=[rel_paths[r] for r in rows],
-                            signatures=chunk.signatures,
-                            features=chunk.features,
-                            poses=poses[rows],
-                            times=times[rows],
-                            side_offsets=self.side_offsets,
-                            side_signatures=chunk.side_signatures,
-                        )
-                    )
-                    result.written += len(rows)
-                if on_progress is not None:
-                    on_progress(result.written + len(result.bad), result.written)  # type: ignore[arg-type]
 
     def _check_writable(self) -> None:
         self._check_open()
