@@ -491,6 +491,15 @@ def target_lines(worlds, rows, real_rows, models, dm="default", sm="spectral") -
             f"| 30 % change, 16 beams, offsets <= 3 m, tilt +-3 deg: {dm} R@1 >= 0.75 "
             f"| {f3(d['r1'])} ({d['n']} queries) | {'yes' if ok else 'no'} |"
         )
+        # Not a target of its own: the lead over the floor on each hard world at 30 %
+        # change, where the floor falls (the issue's +0.15 asked of the 32-beam worlds).
+        gaps = []
+        for w in h30:
+            dw, sw = summarize(rows[(w.name, dm)]), summarize(rows[(w.name, sm)])
+            gaps.append(f"{w.style} {dw['r1'] - sw['r1']:+.3f}")
+        out.append(
+            f"| (for reference) the same, {dm} - {sm} R@1 per style | {', '.join(gaps)} | - |"
+        )
     z = [w for w in worlds if w.change == 0.0 and w.group != "stress"]
     if z:
         d, s = summarize(pool(z, dm)), summarize(pool(z, sm))
