@@ -58,8 +58,8 @@ HARD_SEEDS = {"suburban": 7201, "industrial": 7202, "park": 7203, "parking": 720
 # Added with the `terrace` style (rows of alike houses), before any training that followed.
 STYLE_SEEDS["terrace"], HARD_SEEDS["terrace"] = 7106, 7206
 HELD_OUT_STYLES = ("suburban", "industrial", "park", "parking", "terrace")
-# Beyond the grid: every changeable object of every class changed (32 beams, the
-# grid's towns), to see which model still holds when nothing but the static town is left.
+# Beyond the levels: every changeable object of every class changed (32 beams, the
+# towns of the beams x change grid), to see which model holds on the static town alone.
 STRESS_CHANGE = 1.0
 REAL_SEED = 7301
 

@@ -6,7 +6,8 @@
 
 Over the queries whose top match lies within --radius of them (the suite's protocol),
 prints the mean, median and largest error of the refined `yaw_deg` (the yaw of
-T_match<-query) and how many are off by more than 5 and 90 degrees. The out-of-distribution
+T_match<-query) and how many are off by more than 5 and 90 degrees: over all of them,
+and over those whose pose was accepted (what `--verify` keeps). The out-of-distribution
 suite scores the phase-correlation yaw that `disco eval` reports; this is what a user who
 asks for `--pose` gets on the same worlds (docs/model.md).
 """
@@ -40,7 +41,7 @@ def main() -> int:
         )
 
     map_poses, query_poses = poses("00"), poses("01")
-    errors = []
+    errors, accepted = [], []
     for line in args.jsonl.read_text().splitlines():
         row = json.loads(line)
         if row.get("rank", 1) != 1 or "yaw_deg" not in row:
@@ -51,15 +52,18 @@ def main() -> int:
             continue  # a wrong place: no yaw to score
         truth = yaw_deg(np.linalg.inv(Tm) @ Tq)
         errors.append(abs((row["yaw_deg"] - truth + 180.0) % 360.0 - 180.0))
-    e = np.array(errors)
+        accepted.append(bool(row.get("accepted")))
+    e, ok = np.array(errors), np.array(accepted, bool)
     if not len(e):
         print("no correct top-1 match")
         return 1
-    print(
-        f"{len(e)} correct top-1 matches: refined yaw error mean {e.mean():.2f}, "
-        f"median {np.median(e):.2f}, max {e.max():.1f} deg; "
-        f"{(e > 5).sum()} over 5 deg, {(e > 90).sum()} over 90 deg"
-    )
+    for label, sel in (("correct top-1 matches", e), ("of them accepted", e[ok])):
+        if len(sel):
+            print(
+                f"{len(sel)} {label}: refined yaw error mean {sel.mean():.2f}, "
+                f"median {np.median(sel):.2f}, max {sel.max():.1f} deg; "
+                f"{(sel > 5).sum()} over 5 deg, {(sel > 90).sum()} over 90 deg"
+            )
     return 0
 
 
