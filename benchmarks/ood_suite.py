@@ -274,10 +274,17 @@ def embed(model, clouds_fn, n: int, threads: int, batch: int = 32):
 
 
 def evaluate(
-    model, map_paths, map_poses, queries: Queries, threads: int, side_views: float = 0.0
+    model,
+    map_paths,
+    map_poses,
+    queries: Queries,
+    threads: int,
+    side_views: float = 0.0,
+    refine_yaw: int = 1,
 ) -> list[dict]:
     """One row per query: nearest map scan, hits at 1, 5 and 1 %, yaw error. With
-    `side_views`, the map stores side views (`disco build-db --side-views`)."""
+    `side_views`, the map stores side views (`disco build-db --side-views`); the best
+    `refine_yaw` matches get the parallax-free yaw (`disco query --refine-yaw`)."""
     from disco_cli.database import Database, ModelInfo, ScanBatch
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
     from disco_cli.poses import xy_yaw
@@ -316,7 +323,9 @@ def evaluate(
         )
         with db:
             ids, index = index_for(db)
-            found = match_queries(index, ids, db, model, q_sig, q_feat, depth)
+            found = match_queries(
+                index, ids, db, model, q_sig, q_feat, depth, refine_yaw=refine_yaw
+            )
     n1p = one_percent_n(len(map_paths))
     rows = []
     for i, matches in enumerate(found):
@@ -353,17 +362,27 @@ def split_side_views(name: str) -> tuple[str, float]:
     return base, float(sv) if sv else 0.0
 
 
-def cached_rows(out: Path, data: str, model, name: str, compute) -> list[dict]:
+def cached_rows(
+    out: Path, data: str, model, name: str, compute, refine_yaw: int = 1
+) -> list[dict]:
+    """Rows of one (world, model), computed once: reused while the model's fingerprint
+    and the search settings that change them are the same."""
     f = out / "rows" / f"{data}--{model_key(name)}.jsonl"
+    head = {
+        "data": data,
+        "model": name,
+        "fingerprint": model.fingerprint,
+        "refine_yaw": refine_yaw,
+    }
     if f.is_file():
         lines = f.read_text().splitlines()
-        head = json.loads(lines[0])
-        if head.get("fingerprint") == model.fingerprint:
+        old = json.loads(lines[0])
+        # Rows written before --refine-yaw existed had the plain phase-correlation yaw.
+        if {**old, "refine_yaw": old.get("refine_yaw", 0)} == head:
             return [json.loads(x) for x in lines[1:]]
     t0 = time.monotonic()
     rows = compute()
     f.parent.mkdir(parents=True, exist_ok=True)
-    head = {"data": data, "model": name, "fingerprint": model.fingerprint}
     tmp = f.with_suffix(".partial")
     tmp.write_text("\n".join(json.dumps(r) for r in [head, *rows]) + "\n")
     tmp.replace(f)
@@ -540,6 +559,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-real", action="store_true", help="skip the real scans")
     ap.add_argument(
+        "--refine-yaw",
+        type=int,
+        default=1,
+        help="matches per query with the parallax-free yaw (0: plain phase correlation)",
+    )
+    ap.add_argument(
         "--update-docs", action="store_true", help="write the tables into docs/results.md"
     )
     args = ap.parse_args(argv)
@@ -574,8 +599,9 @@ def main(argv: list[str] | None = None) -> int:
                 model,
                 k,
                 lambda model=model, sv=side[k]: evaluate(
-                    model, map_paths, map_poses, queries, args.threads, sv
+                    model, map_paths, map_poses, queries, args.threads, sv, args.refine_yaw
                 ),
+                args.refine_yaw,
             )
 
     real_rows: dict[tuple[str, str], list[dict]] = {}
@@ -597,8 +623,9 @@ def main(argv: list[str] | None = None) -> int:
                     model,
                     k,
                     lambda model=model, q=queries, sv=side[k]: evaluate(
-                        model, mp, mpose, q, args.threads, sv
+                        model, mp, mpose, q, args.threads, sv, args.refine_yaw
                     ),
+                    args.refine_yaw,
                 )
     elif not args.no_real:
         notes.append(f"{kitti}: absent, the real-scan rows are skipped")

@@ -285,6 +285,11 @@ class Match:
     pose: np.ndarray  # x, y, z, yaw (rad) of the match, NaN where unknown
 
 
+# How many of a query's best matches get the parallax-free yaw (model/yaw_refine.py):
+# about 2 ms each, so only the best one by default.
+REFINE_YAW = 1
+
+
 def check_rerank(model: Any, rerank: int) -> int:
     """`rerank` when the model can re-rank that many candidates; `DiscoError` otherwise."""
     rerank = int(rerank)
@@ -316,11 +321,18 @@ def match_queries(
     exclude: np.ndarray | None = None,
     max_distance: float | None = None,
     rerank: int | None = None,
+    refine_yaw: int = REFINE_YAW,
 ) -> list[list[Match]]:
     """Top-k matches of each query with their yaw: signature search, then the model's
     `rerank` hook when it asks for one (DiSCO, Scan Context), then yaw from the stored
     features of the top rows only. `db` is a `Database` (anything with `rows(ids)`).
-    `rerank` overrides the model's re-ranking depth."""
+    `rerank` overrides the model's re-ranking depth. The yaw of the best `refine_yaw`
+    matches is re-estimated without parallax when the model can (`refine_yaw` hook)."""
+    if int(refine_yaw) < 0:
+        from disco_cli.errors import DiscoError
+
+        raise DiscoError(f"refine_yaw must be >= 0, not {refine_yaw}")
+    refine_n = int(refine_yaw) if hasattr(model, "refine_yaw") else 0
     rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
     wide = max(k, rerank_n) if rerank_n > 0 else k
     rows, dists = index.search(signatures, wide, limit=limit, exclude=exclude)
@@ -349,6 +361,10 @@ def match_queries(
                 yaw = yaw[ok]
         if len(r) and yaw is None:
             yaw = np.asarray(model.yaw(features[i], stored.features[sel]), dtype=np.float64)
+        if len(r) and refine_n > 0:
+            n = min(refine_n, len(r))
+            yaw = yaw.copy()
+            yaw[:n] = model.refine_yaw(features[i], stored.features[sel[:n]])
         out.append(
             [
                 Match(

@@ -14,6 +14,7 @@ from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet import DiscoNet
 from disco_cli.model.verify import aligned_correlation
 from disco_cli.model.yaw import estimate_yaw
+from disco_cli.model.yaw_refine import refine_yaw
 
 # Scans per forward pass at inference: large enough to amortize, small enough for memory.
 _BATCH = 64
@@ -131,6 +132,11 @@ class DiscoModel:
 
     def yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
         return estimate_yaw(self._g(query_features), self._g(match_features))
+
+    def refine_yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
+        """`yaw` with the parallax of the two sensors' offset removed (yaw_refine.py)."""
+        g = self._g(match_features)
+        return refine_yaw(self._g(query_features), g, self.bev_config.max_range)
 
     def rerank(
         self, query_features: np.ndarray, candidate_features: np.ndarray

@@ -15,6 +15,7 @@ import numpy as np
 
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.yaw import estimate_yaw
+from disco_cli.model.yaw_refine import refine_yaw
 
 
 class SpectralModel:
@@ -53,3 +54,7 @@ class SpectralModel:
 
     def yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
         return estimate_yaw(query_features, match_features)
+
+    def refine_yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
+        """`yaw` with the parallax of the two sensors' offset removed (yaw_refine.py)."""
+        return refine_yaw(query_features, match_features, self.bev_config.max_range)

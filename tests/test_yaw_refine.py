@@ -1,0 +1,105 @@
+"""Parallax-free yaw: the re-centred polar image and the yaw of scans taken metres apart."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import map_coordinates
+
+from disco_cli.bev import BEVConfig, polar_bev
+from disco_cli.model.yaw import estimate_yaw, wrap_deg
+from disco_cli.model.yaw_refine import recentre, refine_one, refine_yaw
+from disco_cli.readers import read_scan
+
+R, S, MAX_RANGE = 40, 120, 80.0
+
+
+def reference_recentre(image: np.ndarray, position: tuple[float, float]) -> np.ndarray:
+    """Cell by cell: the point at the cell's centre seen from `position`, sampled with
+    scipy's linear interpolation (empty beyond the rings on both sides, sectors wrap)."""
+    dr, ds = MAX_RANGE / R, 2 * np.pi / S
+    out = np.zeros((R, S))
+    wrapped = np.concatenate([image, image[:, :1]], axis=1)
+    for i in range(R):
+        for j in range(S):
+            r, t = (i + 0.5) * dr, (j + 0.5) * ds
+            x, y = r * np.cos(t) + position[0], r * np.sin(t) + position[1]
+            ri = np.hypot(x, y) / dr - 0.5
+            si = (np.arctan2(y, x) % (2 * np.pi)) / ds - 0.5
+            if si < 0:
+                si += S
+            out[i, j] = map_coordinates(wrapped, [[ri], [si]], order=1, mode="grid-constant")[0]
+    return out
+
+
+def test_recentre_at_the_origin_is_the_image():
+    img = np.random.default_rng(0).random((R, S)).astype(np.float32)
+    got = recentre(img, np.zeros((1, 2)), MAX_RANGE)[0]
+    np.testing.assert_allclose(got, img, atol=1e-4)
+
+
+@pytest.mark.parametrize("position", [(3.0, 0.0), (-1.3, 2.7), (0.4, -4.1)])
+def test_recentre_agrees_with_a_cell_by_cell_reference(position):
+    img = np.random.default_rng(1).random((R, S)).astype(np.float32)
+    got = recentre(img, np.array([position]), MAX_RANGE)[0]
+    np.testing.assert_allclose(got, reference_recentre(img, position), atol=1e-4)
+
+
+def moved(points: np.ndarray, xy: tuple[float, float], yaw_deg: float) -> np.ndarray:
+    """The scan as a sensor at `xy` (in the scan's frame) headed `yaw_deg` would see it."""
+    a = np.radians(yaw_deg)
+    c, s = np.cos(a), np.sin(a)
+    out = points.copy()
+    dx, dy = points[:, 0] - xy[0], points[:, 1] - xy[1]
+    out[:, 0] = c * dx + s * dy
+    out[:, 1] = -s * dx + c * dy
+    return out
+
+
+def yaw_errors(points: np.ndarray, cases) -> tuple[np.ndarray, np.ndarray, list]:
+    """Plain and refined yaw errors (deg) of the scan seen from each (xy, yaw) in `cases`
+    against the scan itself, on the training-free images (BEV summed over heights)."""
+    cfg = BEVConfig()
+    match = polar_bev(points, cfg).sum(axis=0)
+    plain, refined, found = [], [], []
+    for xy, yaw in cases:
+        query = polar_bev(moved(points, xy, yaw), cfg).sum(axis=0)
+        plain.append(abs(wrap_deg(estimate_yaw(query, match[None])[0] - yaw)))
+        got, where, _ = refine_one(query, match, cfg.max_range)
+        refined.append(abs(wrap_deg(got - yaw)))
+        found.append(where)
+    return np.array(plain), np.array(refined), found
+
+
+CASES = [((0.0, 3.0), 37.0), ((0.5, -2.5), -120.0), ((-2.0, 2.0), 171.0), ((2.5, 0.0), 5.0)]
+
+
+def test_scans_metres_apart_get_their_yaw_without_parallax(samples):
+    points = read_scan(samples / "00" / "velodyne" / "000010.bin")
+    plain, refined, found = yaw_errors(points, CASES)
+    # Within a third of a 3-degree sector, and better than the plain phase correlation.
+    assert refined.max() <= 1.0 and refined.mean() <= 0.5, refined
+    assert refined.mean() < plain.mean(), (refined, plain)
+    # The winning position is the match's sensor seen from the query: -xy turned by -yaw.
+    for (xy, yaw), where in zip(CASES, found):
+        a = np.radians(yaw)
+        truth = -np.array([np.cos(a) * xy[0] + np.sin(a) * xy[1], -np.sin(a) * xy[0] + np.cos(a) * xy[1]])
+        assert np.hypot(*(where - truth)) <= 1.0, (xy, yaw, where, truth)
+
+
+def test_real_scan_metres_apart_gets_its_yaw(realdata):
+    points = read_scan(sorted((realdata / "kitti00").rglob("*.bin"))[0])
+    plain, refined, _ = yaw_errors(points, CASES)
+    assert refined.max() <= 1.0 and refined.mean() <= 0.5, refined
+    assert refined.mean() < plain.mean(), (refined, plain)
+
+
+def test_refine_yaw_is_batched_and_in_range():
+    rng = np.random.default_rng(4)
+    match = rng.random((R, S)).astype(np.float32)
+    query = np.roll(match, S // 2, axis=-1)  # half a turn: +180, never -180
+    got = refine_yaw(query, np.stack([match, np.roll(match, 10, axis=-1)]), MAX_RANGE)
+    assert got.shape == (2,)
+    assert got[0] == pytest.approx(180.0, abs=0.2)
+    # The query is the second match rolled by a further 50 sectors: -150 degrees.
+    assert abs(wrap_deg(got[1] + 150.0)) <= 0.2
