@@ -51,31 +51,59 @@ def recentre(image: np.ndarray, positions: np.ndarray, max_range: float) -> np.n
     the inner ring's centre, is empty (0).
     """
     img = np.asarray(image, dtype=np.float32)
-    rings, sectors = img.shape
-    x0, y0 = _grid(rings, sectors, float(max_range))
+    return _sample(img, _sampling(*img.shape, float(max_range), positions))
+
+
+def _sampling(rings: int, sectors: int, max_range: float, positions: np.ndarray) -> tuple:
+    """Where `recentre` reads: flat indices into `_pairs`' table and the weights."""
+    x0, y0 = _grid(rings, sectors, max_range)
     pos = np.asarray(positions, dtype=np.float32).reshape(-1, 2)
     x = x0[None] + pos[:, 0, None, None]
     y = y0[None] + pos[:, 1, None, None]
-    # Fractional ring index, shifted by one for the zero row padded in front.
+    # Fractional ring index, shifted by one for the zero row padded in front; sector
+    # index shifted by one turn so that it is positive (arctan2 >= -pi).
     ring_f = np.sqrt(x * x + y * y) * np.float32(rings / max_range) + np.float32(0.5)
-    sector_f = np.arctan2(y, x) * np.float32(sectors / (2.0 * np.pi)) - np.float32(0.5)
-    r0 = np.minimum(ring_f.astype(np.int32), rings + 1)  # ring_f >= 0.5: truncation = floor
-    fr = ring_f - r0
-    s_floor = np.floor(sector_f)
-    fs = sector_f - s_floor
-    s0 = s_floor.astype(np.int32) % sectors
-    r1 = np.minimum(r0 + 1, rings + 1)
-    # Rows: a zero ring before the first and after the last; columns: sector 0 repeated
-    # after the last, so that s0 + 1 never wraps.
-    padded = np.zeros((rings + 2, sectors + 1), np.float32)
-    padded[1 : rings + 1, :sectors] = img
-    padded[1 : rings + 1, sectors] = img[:, 0]
-    flat = padded.ravel()
-    width = sectors + 1
+    sector_f = np.arctan2(y, x) * np.float32(sectors / (2.0 * np.pi)) + np.float32(sectors - 0.5)
+    # Both are >= 0: truncation is the floor. Weights stay float32 (int32 would promote).
+    ring_f = np.minimum(ring_f, np.float32(rings + 1))
+    r0 = ring_f.astype(np.int32)
+    s0 = sector_f.astype(np.int32)
+    fr = ring_f - r0.astype(np.float32)
+    fs = sector_f - s0.astype(np.float32)
+    width = 2 * sectors + 1
     i0 = r0 * width + s0
-    i1 = r1 * width + s0
-    near = flat[i0] + (flat[i0 + 1] - flat[i0]) * fs
-    far = flat[i1] + (flat[i1 + 1] - flat[i1]) * fs
+    i1 = np.minimum(r0 + 1, rings + 1) * width + s0
+    return i0, i1, fs, fr
+
+
+@lru_cache(maxsize=8)
+def _coarse_sampling(rings: int, sectors: int, max_range: float) -> tuple[np.ndarray, tuple]:
+    """The first search grid's positions [M, 2] and their `_sampling`, computed once."""
+    k = np.arange(-COARSE_REACH, COARSE_REACH + 1e-6, COARSE_STEP, dtype=np.float32)
+    positions = np.stack(np.meshgrid(k, k, indexing="ij"), -1).reshape(-1, 2)
+    return positions, _sampling(rings, sectors, max_range, positions)
+
+
+def _pairs(img: np.ndarray) -> np.ndarray:
+    """The image padded (a zero ring before the first and after the last; the sectors
+    twice and the first once more, so that sector indices in [S - 1, 2 S] never wrap),
+    each cell paired with its next sector and read as one float64: two gathers, not four."""
+    rings, sectors = img.shape
+    padded = np.zeros((rings + 2, 2 * sectors + 1), np.float32)
+    padded[1 : rings + 1, :sectors] = img
+    padded[1 : rings + 1, sectors : 2 * sectors] = img
+    padded[1 : rings + 1, 2 * sectors] = img[:, 0]
+    flat = padded.ravel()
+    return np.stack([flat[:-1], flat[1:]], axis=-1).view(np.float64).ravel()
+
+
+def _sample(img: np.ndarray, sampling: tuple, pairs: np.ndarray | None = None) -> np.ndarray:
+    i0, i1, fs, fr = sampling
+    table = _pairs(img) if pairs is None else pairs
+    near = np.take(table, i0).view(np.float32).reshape(*i0.shape, 2)
+    far = np.take(table, i1).view(np.float32).reshape(*i1.shape, 2)
+    near = near[..., 0] + (near[..., 1] - near[..., 0]) * fs
+    far = far[..., 0] + (far[..., 1] - far[..., 0]) * fs
     return near + (far - near) * fr
 
 
@@ -99,13 +127,15 @@ def refine_one(
     if q.ndim != 2 or q.shape != m.shape:
         raise ValueError(f"query and match must be [R, S] images of one shape: {q.shape}, {m.shape}")
     fm = scipy.fft.rfft(m, axis=-1)
-    k = np.arange(-COARSE_REACH, COARSE_REACH + 1e-6, COARSE_STEP, dtype=np.float32)
-    positions = np.stack(np.meshgrid(k, k, indexing="ij"), -1).reshape(-1, 2)
-    best_pos, best_val, best_curve = None, -np.inf, None
+    table = _pairs(q)
+    rings, sectors = q.shape
+    positions, sampling = _coarse_sampling(rings, sectors, float(max_range))
+    best_pos, best_val, best_curve = positions[0], -np.inf, None
     for step in (None, *FINE_STEPS):
         if step is not None:
             positions = best_pos + _NEIGHBOURS * np.float32(step)
-        curves = _curves(recentre(q, positions, max_range), fm)
+            sampling = _sampling(rings, sectors, float(max_range), positions)
+        curves = _curves(_sample(q, sampling, table), fm)
         peaks = curves.max(axis=1)
         i = int(np.argmax(peaks))
         if peaks[i] > best_val:
