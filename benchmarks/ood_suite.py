@@ -362,9 +362,7 @@ def split_side_views(name: str) -> tuple[str, float]:
     return base, float(sv) if sv else 0.0
 
 
-def cached_rows(
-    out: Path, data: str, model, name: str, compute, refine_yaw: int = 1
-) -> list[dict]:
+def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int = 1) -> list[dict]:
     """Rows of one (world, model), computed once: reused while the model's fingerprint
     and the search settings that change them are the same."""
     f = out / "rows" / f"{data}--{model_key(name)}.jsonl"

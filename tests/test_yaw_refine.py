@@ -83,7 +83,9 @@ def test_scans_metres_apart_get_their_yaw_without_parallax(samples):
     # The winning position is the match's sensor seen from the query: -xy turned by -yaw.
     for (xy, yaw), where in zip(CASES, found):
         a = np.radians(yaw)
-        truth = -np.array([np.cos(a) * xy[0] + np.sin(a) * xy[1], -np.sin(a) * xy[0] + np.cos(a) * xy[1]])
+        truth = -np.array(
+            [np.cos(a) * xy[0] + np.sin(a) * xy[1], -np.sin(a) * xy[0] + np.cos(a) * xy[1]]
+        )
         assert np.hypot(*(where - truth)) <= 1.0, (xy, yaw, where, truth)
 
 
@@ -103,3 +105,54 @@ def test_refine_yaw_is_batched_and_in_range():
     assert got[0] == pytest.approx(180.0, abs=0.2)
     # The query is the second match rolled by a further 50 sectors: -150 degrees.
     assert abs(wrap_deg(got[1] + 150.0)) <= 0.2
+
+
+def test_refine_yaw_option_chooses_which_matches_are_refined(samples_spectral_db, samples):
+    """`--refine-yaw 0` prints the plain phase-correlation yaw; `--refine-yaw 2` changes
+    the first two matches' yaw to the re-centred one and leaves the third alone."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from disco_cli.cli import app
+    from disco_cli.model import load_model
+
+    scan = samples / "01" / "velodyne" / "000005.bin"
+
+    def yaws(n: int) -> list[float]:
+        args = ["query", str(scan), "--db", str(samples_spectral_db), "--topk", "3"]
+        res = CliRunner().invoke(app, [*args, "--refine-yaw", str(n), "--format", "jsonl"])
+        assert res.exit_code == 0, res.output
+        return [json.loads(line)["yaw_deg"] for line in res.stdout.splitlines()]
+
+    plain, two = yaws(0), yaws(2)
+    # The truth, computed here: plain and re-centred yaw of the query's own images.
+    from disco_cli.bev import polar_bev
+    from disco_cli.readers import read_scan
+
+    model = load_model("spectral")
+    query = polar_bev(read_scan(scan), model.bev_config).sum(axis=0)
+    res = CliRunner().invoke(
+        app,
+        ["query", str(scan), "--db", str(samples_spectral_db), "--topk", "3", "--format", "jsonl"],
+    )
+    matches = [json.loads(line)["match"] for line in res.stdout.splitlines()]
+    images = [polar_bev(read_scan(m), model.bev_config).sum(axis=0) for m in matches]
+    want_plain = [estimate_yaw(query, im[None])[0] for im in images]
+    want_refined = refine_yaw(query, np.stack(images[:2]), model.bev_config.max_range)
+    assert plain == pytest.approx(want_plain, abs=0.01)
+    assert two[:2] == pytest.approx(list(want_refined), abs=0.01)
+    assert two[2] == pytest.approx(want_plain[2], abs=0.01)
+
+
+def test_negative_refine_yaw_is_one_clear_error(samples_spectral_db, samples):
+    from typer.testing import CliRunner
+
+    from disco_cli.cli import app
+
+    scan = samples / "01" / "velodyne" / "000005.bin"
+    res = CliRunner().invoke(
+        app, ["query", str(scan), "--db", str(samples_spectral_db), "--refine-yaw", "-1"]
+    )
+    assert res.exit_code != 0
+    assert "--refine-yaw" in res.output and "Traceback" not in res.output

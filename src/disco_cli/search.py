@@ -304,6 +304,16 @@ def check_rerank(model: Any, rerank: int) -> int:
     return rerank
 
 
+def check_refine_yaw(n: int) -> int:
+    """`n` when it is a valid count of matches to refine the yaw of; `DiscoError` otherwise."""
+    n = int(n)
+    if n < 0:
+        from disco_cli.errors import DiscoError
+
+        raise DiscoError(f"refine_yaw must be >= 0, not {n}")
+    return n
+
+
 def rerank_depth(model: Any) -> int:
     """How many nearest signatures the model re-ranks (0: none)."""
     return int(getattr(model, "rerank_candidates", 0) or 0)
@@ -321,18 +331,17 @@ def match_queries(
     exclude: np.ndarray | None = None,
     max_distance: float | None = None,
     rerank: int | None = None,
-    refine_yaw: int = REFINE_YAW,
+    refine_yaw: int | None = None,
 ) -> list[list[Match]]:
     """Top-k matches of each query with their yaw: signature search, then the model's
     `rerank` hook when it asks for one (DiSCO, Scan Context), then yaw from the stored
     features of the top rows only. `db` is a `Database` (anything with `rows(ids)`).
     `rerank` overrides the model's re-ranking depth. The yaw of the best `refine_yaw`
-    matches is re-estimated without parallax when the model can (`refine_yaw` hook)."""
-    if int(refine_yaw) < 0:
-        from disco_cli.errors import DiscoError
-
-        raise DiscoError(f"refine_yaw must be >= 0, not {refine_yaw}")
-    refine_n = int(refine_yaw) if hasattr(model, "refine_yaw") else 0
+    matches (default: the model's `refine_yaw_top`, else `REFINE_YAW`) is re-estimated
+    without parallax when the model can (its `refine_yaw` hook)."""
+    if refine_yaw is None:
+        refine_yaw = getattr(model, "refine_yaw_top", REFINE_YAW)
+    refine_n = check_refine_yaw(refine_yaw) if hasattr(model, "refine_yaw") else 0
     rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
     wide = max(k, rerank_n) if rerank_n > 0 else k
     rows, dists = index.search(signatures, wide, limit=limit, exclude=exclude)

@@ -27,10 +27,12 @@ from disco_cli.commands.options import (
     PoseTopicOpt,
     ProtocolOpt,
     RadiusOpt,
+    RefineYawOpt,
     ReportOpt,
     RerankOpt,
     ScanFormatOpt,
     TopicOpt,
+    apply_refine_yaw,
     apply_rerank,
     db_option,
     model_option,
@@ -76,6 +78,7 @@ def evaluate(
     topk: Annotated[int, topk_option("Recall@1..N up to this N.", panel=PANEL_PROTOCOL)] = 25,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
+    refine_yaw: RefineYawOpt = None,
     report: ReportOpt = None,
     fmt: MetricsFormatOpt = None,
 ) -> None:
@@ -93,6 +96,7 @@ def evaluate(
         if len(queries) != 1:
             raise DiscoError("--protocol takes one dataset folder")
         model = apply_rerank(load_model(model_name or "default", device=device), rerank)
+        apply_refine_yaw(model, refine_yaw)
         say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
         proto, results = run_protocol(
             protocol, queries[0], model, warn=warn, progress=say, oxford_scale=oxford_scale
@@ -113,6 +117,7 @@ def evaluate(
         steps("embedding", len(paths)) as step,
     ):
         apply_rerank(m.model, rerank)
+        apply_refine_yaw(m.model, refine_yaw)
         ev = multi_session(paths, q_poses, m.database, m.model, radius, topk, scan_format, step)
     run = {
         "protocol": "multi-session",

@@ -153,6 +153,28 @@ def apply_rerank(model: Any, rerank: int | None) -> Any:
     return model
 
 
+RefineYawOpt = Annotated[
+    Optional[int],
+    typer.Option(
+        "--refine-yaw",
+        min=0,
+        help="Give this many best matches per query the parallax-free yaw (the query "
+        "re-centred on the match, about 1.5 ms each; 0: plain phase correlation). "
+        "Default 1.",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
+
+
+def apply_refine_yaw(model: Any, n: int | None) -> Any:
+    """Set how many matches get the parallax-free yaw when --refine-yaw was given."""
+    if n is not None:
+        from disco_cli.search import check_refine_yaw
+
+        model.refine_yaw_top = check_refine_yaw(n)
+    return model
+
+
 SideViewsOpt = Annotated[
     Optional[float],
     typer.Option(

@@ -25,12 +25,14 @@ from disco_cli.commands.options import (
     OutputFormatOpt,
     PoseOpt,
     PosesFormatOpt,
+    RefineYawOpt,
     RerankOpt,
     ScanFormatOpt,
     ScanRootOpt,
     TopicOpt,
     VerifyMatchesOpt,
     WorkersOpt,
+    apply_refine_yaw,
     apply_rerank,
     db_option,
     model_option,
@@ -81,6 +83,7 @@ def query(
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
+    refine_yaw: RefineYawOpt = None,
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
@@ -100,6 +103,7 @@ def query(
     with Map.open(db_path, model=model, device=device, scan_root=scan_root) as m:
         m.on_missing_scan = warn
         apply_rerank(m.model, rerank)
+        apply_refine_yaw(m.model, refine_yaw)
         if exclude_radius is not None:  # the query's own scan, and those near its pose
             opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
             poses_of = QueryPoses(query_poses, opts, known, warn=error)

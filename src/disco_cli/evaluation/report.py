@@ -131,10 +131,17 @@ def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
 
 
 def model_run(model: Any) -> dict[str, Any]:
-    """What a report's "run" says about the model: its name, fingerprint and re-ranking."""
-    from disco_cli.search import rerank_depth
+    """What a report's "run" says about the model: its name, fingerprint, re-ranking and
+    how many matches per query got the parallax-free yaw."""
+    from disco_cli.search import REFINE_YAW, rerank_depth
 
-    return {"model": model.name, "fingerprint": model.fingerprint, "rerank": rerank_depth(model)}
+    refine = getattr(model, "refine_yaw_top", REFINE_YAW) if hasattr(model, "refine_yaw") else 0
+    return {
+        "model": model.name,
+        "fingerprint": model.fingerprint,
+        "rerank": rerank_depth(model),
+        "refine_yaw": refine,
+    }
 
 
 def report_and_print(ev: Evaluation, run: dict[str, Any], directory: Path | None, fmt: Any) -> None:

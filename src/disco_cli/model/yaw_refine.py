@@ -125,7 +125,9 @@ def refine_one(
     q = np.asarray(query, dtype=np.float32)
     m = np.asarray(match, dtype=np.float32)
     if q.ndim != 2 or q.shape != m.shape:
-        raise ValueError(f"query and match must be [R, S] images of one shape: {q.shape}, {m.shape}")
+        raise ValueError(
+            f"query and match must be [R, S] images of one shape: {q.shape}, {m.shape}"
+        )
     fm = scipy.fft.rfft(m, axis=-1)
     table = _pairs(q)
     rings, sectors = q.shape
