@@ -156,3 +156,22 @@ def test_negative_refine_yaw_is_one_clear_error(samples_spectral_db, samples):
     )
     assert res.exit_code != 0
     assert "--refine-yaw" in res.output and "Traceback" not in res.output
+
+
+def test_map_query_refines_the_yaw_of_as_many_matches_as_asked(samples, tmp_path):
+    """Map.query(refine_yaw=N) changes the yaw of the N best matches only; the default
+    is the best one."""
+    from disco_cli.map import Map
+
+    points = read_scan(samples / "01" / "velodyne" / "000005.bin")
+    with Map.create(tmp_path / "m.db", model="spectral") as m:
+        for p in sorted((samples / "00" / "velodyne").glob("*.bin")):
+            m.add(read_scan(p), name=p.name)
+        plain = m.query(points, topk=3, refine_yaw=0)
+        one = m.query(points, topk=3)
+        three = m.query(points, topk=3, refine_yaw=3)
+    assert [x.name for x in plain] == [x.name for x in one] == [x.name for x in three]
+    assert one[0].yaw_deg == pytest.approx(three[0].yaw_deg, abs=1e-4)
+    assert one[1].yaw_deg == pytest.approx(plain[1].yaw_deg, abs=1e-4)
+    assert one[0].yaw_deg != pytest.approx(plain[0].yaw_deg, abs=1e-4)
+    assert [x.yaw_deg for x in three[1:]] != pytest.approx([x.yaw_deg for x in plain[1:]], abs=1e-4)

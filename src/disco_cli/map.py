@@ -610,6 +610,7 @@ class Map:
         rerank: int | None,
         exclude: Any,
         max_distance: float | None,
+        refine_yaw: int | None = None,
     ) -> list:
         from disco_cli.search import match_queries
 
@@ -625,6 +626,7 @@ class Map:
             exclude=self._exclude_rows(exclude),
             max_distance=max_distance,
             rerank=rerank,
+            refine_yaw=refine_yaw,
         )[0]
 
     def query(
@@ -638,6 +640,7 @@ class Map:
         exclude: Any = None,
         max_distance: float | None = None,
         name: str = "points",
+        refine_yaw: int | None = None,
     ) -> list[Match]:
         """The `topk` best matches of one scan (an N x 3 or N x 4 array), best first.
 
@@ -646,13 +649,14 @@ class Map:
         `pose`). `rerank`: how many nearest signatures to re-rank (default: the
         model's). `exclude`: match ids (or a boolean mask over the map) to leave out;
         `max_distance` drops worse matches. `name` names the scan in errors.
+        `refine_yaw`: how many best matches get the parallax-free yaw (default 1).
         """
         from disco_cli.pipeline import array_points, embed_one
 
         self._check_open()
         pts = array_points(points, name)
         sig, feat = embed_one(pts, self._model, name)
-        found = self._search(sig, feat, topk, rerank, exclude, max_distance)
+        found = self._search(sig, feat, topk, rerank, exclude, max_distance, refine_yaw)
         if not (pose or verify):
             return [as_match(m) for m in found]
         return refine_matches(found, pts, self._points.get, verify=verify)
@@ -673,6 +677,7 @@ class Map:
         max_distance: float | None = None,
         workers: int = 1,
         scan_format: str | None = None,
+        refine_yaw: int | None = None,
     ) -> Iterator[QueryResult]:
         """Query scan files, streamed: reading and voxelizing run ahead on `workers`
         threads, and each result is yielded as soon as it is ready, in input order.
@@ -692,7 +697,13 @@ class Map:
                     try:
                         ex = None if exclude is None else exclude(item.index, item.path)
                         found = self._search(
-                            chunk.signatures[j], chunk.features[j], topk, rerank, ex, max_distance
+                            chunk.signatures[j],
+                            chunk.features[j],
+                            topk,
+                            rerank,
+                            ex,
+                            max_distance,
+                            refine_yaw,
                         )
                     except DiscoError as exc:
                         yield QueryResult(item.index, item.path, [], exc)
