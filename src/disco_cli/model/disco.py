@@ -134,9 +134,21 @@ class DiscoModel:
         return estimate_yaw(self._g(query_features), self._g(match_features))
 
     def refine_yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
-        """`yaw` with the parallax of the two sensors' offset removed (yaw_refine.py)."""
-        g = self._g(match_features)
-        return refine_yaw(self._g(query_features), g, self.bev_config.max_range)
+        """`yaw` with the parallax of the two sensors' offset removed (yaw_refine.py).
+
+        A residual network's G - U is the BEV summed over heights: its sharp edges
+        resample better than the learned G (mean error 0.12 against 0.24 degrees on the
+        terrace hard set, docs/model.md), so that image is re-centred when there is one."""
+        return refine_yaw(
+            self._geometry(query_features),
+            self._geometry(match_features),
+            self.bev_config.max_range,
+        )
+
+    def _geometry(self, features: np.ndarray) -> np.ndarray:
+        """The image that `refine_yaw` re-centres: G - U for a residual network, else G."""
+        f = np.asarray(features, dtype=np.float32)
+        return f[..., 0, :, :] - f[..., 1, :, :] if self.two_channel else f
 
     def rerank(
         self, query_features: np.ndarray, candidate_features: np.ndarray
