@@ -175,3 +175,19 @@ def test_map_query_refines_the_yaw_of_as_many_matches_as_asked(samples, tmp_path
     assert one[1].yaw_deg == pytest.approx(plain[1].yaw_deg, abs=1e-4)
     assert one[0].yaw_deg != pytest.approx(plain[0].yaw_deg, abs=1e-4)
     assert [x.yaw_deg for x in three[1:]] != pytest.approx([x.yaw_deg for x in plain[1:]], abs=1e-4)
+
+
+def test_shipped_network_re_centres_the_bev_it_was_given(samples):
+    """The residual network's `refine_yaw` re-centres G - U, which is the BEV summed over
+    heights: the same yaw as re-centring that sum computed here directly."""
+    from disco_cli.model import load_model
+
+    model = load_model("default")
+    if not getattr(model, "two_channel", False):
+        pytest.skip("the default model is not a residual (two-channel) network")
+    q = polar_bev(read_scan(samples / "01" / "velodyne" / "000005.bin"), model.bev_config)
+    m = polar_bev(read_scan(samples / "00" / "velodyne" / "000004.bin"), model.bev_config)
+    fq, fm = model.features(np.stack([q, m]))
+    got = model.refine_yaw(fq, fm[None])
+    want = refine_yaw(q.sum(axis=0), m.sum(axis=0)[None], model.bev_config.max_range)
+    assert got == pytest.approx(want, abs=0.02)
