@@ -1,0 +1,80 @@
+"""Which image the parallax-free yaw should re-centre: the shipped network's G, U or G - U.
+
+    .venv/bin/python benchmarks/yaw_refine_images.py out/ood/worlds/hard-terrace-16b-c30 --tilt 3
+
+On a world of the out-of-distribution suite (`benchmarks/run_ood.sh` makes them under
+out/ood/worlds), each query of session 01 (tilted as the suite tilts the hard set's) is
+compared with its nearest map scan of session 00 within 5 m: the plain phase-correlation
+yaw of G, and `yaw_refine.refine_one` on G, on U and on G - U (the BEV summed over
+heights). Prints mean, median and largest absolute error against the ground truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("world", type=Path, help="a folder of `disco simulate` with sessions 00, 01")
+    ap.add_argument("--tilt", type=float, default=0.0, help="query tilt (deg; the hard set: 3)")
+    ap.add_argument("--seed", type=int, default=7206, help="seed of the query tilts")
+    ap.add_argument("--model", default="default")
+    args = ap.parse_args()
+
+    import ood_suite as suite
+    from _common import print_header
+
+    from disco_cli.model import load_model
+    from disco_cli.model.yaw import estimate_yaw, wrap_deg
+    from disco_cli.model.yaw_refine import refine_one
+    from disco_cli.poses import xy_yaw
+    from disco_cli.readers import read_scan
+
+    print_header("yaw_refine_images")
+    model = load_model(args.model)
+    if not getattr(model, "two_channel", False):
+        sys.exit(f"{args.model}: not a residual (two-channel) network; nothing to compare")
+    max_range = model.bev_config.max_range
+    map_paths, map_poses = suite.load_session(args.world / "00")
+    q_paths, q_poses = suite.load_session(args.world / "01")
+    queries = suite.Queries(q_paths, q_poses, args.tilt, seed=args.seed)
+    _, mf = suite.embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), 2)
+    _, qf = suite.embed(model, queries.points, len(q_paths), 2)
+    mx, my, myaw = xy_yaw(map_poses)
+    qx, qy, qyaw = xy_yaw(queries.poses)
+    images = {
+        "re-centred G": lambda f: f[0],
+        "re-centred U": lambda f: f[1],
+        "re-centred G - U": lambda f: f[0] - f[1],
+    }
+    errors: dict[str, list[float]] = {"plain G": [], **{k: [] for k in images}}
+    for i in range(len(q_paths)):
+        d = np.hypot(mx - qx[i], my - qy[i])
+        j = int(d.argmin())
+        if d[j] > suite.RADIUS:
+            continue
+        true = float(wrap_deg(math.degrees(qyaw[i] - myaw[j])))
+        plain = estimate_yaw(qf[i][0], mf[j][0][None])[0]
+        errors["plain G"].append(abs(float(wrap_deg(plain - true))))
+        for name, image in images.items():
+            got = refine_one(image(qf[i]), image(mf[j]), max_range)[0]
+            errors[name].append(abs(float(wrap_deg(got - true))))
+    print(f"{args.world.name}: {len(errors['plain G'])} queries with a map scan within 5 m")
+    for name, e in errors.items():
+        v = np.array(e)
+        print(
+            f"  {name:18s} yaw error mean {v.mean():.2f}, median {np.median(v):.2f}, "
+            f"max {v.max():.1f} deg; {int((v > 90).sum())} over 90"
+        )
+
+
+if __name__ == "__main__":
+    main()
