@@ -1,11 +1,11 @@
 """Would re-ranking by the re-centred yaw's peak help? Recall@1 on one suite world.
 
     .venv/bin/python benchmarks/rerank_recentred.py \
-        out/ood/worlds/hard-terrace-16b-c45 --tilt 3 --top 3
+        out/ood/worlds/hard-terrace-16b-c45 --top 3
 
 On a world of the out-of-distribution suite (`benchmarks/run_ood.sh` makes them under
-out/ood/worlds; session 00 is the map, session 01 the queries, tilted as the suite tilts
-the hard set's with --tilt), the shipped search gives each query its 10 best matches.
+out/ood/worlds; session 00 is the map, session 01 the queries, as the suite queries them;
+--tilt adds a random tilt), the shipped search gives each query its 10 best matches.
 The best --top of them are re-ordered by the peak of `yaw_refine.refine_one` on G - U
 alone, and by that peak minus the learned distance; a match is true within 5 m.
 """
@@ -25,7 +25,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("world", type=Path, help="a folder of `disco simulate` with sessions 00, 01")
-    ap.add_argument("--tilt", type=float, default=0.0, help="query tilt (deg; the hard set: 3)")
+    ap.add_argument(
+        "--tilt",
+        type=float,
+        default=0.0,
+        help="extra random query tilt (deg) on top of the world's own (the suite adds none)",
+    )
     ap.add_argument("--top", type=int, default=3, help="how many best matches to re-order")
     args = ap.parse_args()
 

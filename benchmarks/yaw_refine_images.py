@@ -1,12 +1,13 @@
 """Which image the parallax-free yaw should re-centre: the shipped network's G, U or G - U.
 
-    .venv/bin/python benchmarks/yaw_refine_images.py out/ood/worlds/hard-terrace-16b-c30 --tilt 3
+    .venv/bin/python benchmarks/yaw_refine_images.py out/ood/worlds/hard-terrace-16b-c30
 
 On a world of the out-of-distribution suite (`benchmarks/run_ood.sh` makes them under
-out/ood/worlds), each query of session 01 (tilted as the suite tilts the hard set's) is
+out/ood/worlds), each query of session 01 (as the suite queries them; --tilt adds more) is
 compared with its nearest map scan of session 00 within 5 m: the plain phase-correlation
 yaw of G, and `yaw_refine.refine_one` on G, on U and on G - U (the BEV summed over
-heights). Prints mean, median and largest absolute error against the ground truth.
+heights). Prints mean, median and largest absolute error against the ground truth, and
+how far G - U's winning position lies from the map sensor's true position.
 """
 
 from __future__ import annotations
@@ -24,7 +25,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("world", type=Path, help="a folder of `disco simulate` with sessions 00, 01")
-    ap.add_argument("--tilt", type=float, default=0.0, help="query tilt (deg; the hard set: 3)")
+    ap.add_argument(
+        "--tilt",
+        type=float,
+        default=0.0,
+        help="extra random query tilt (deg) on top of the world's own (the suite adds none)",
+    )
     ap.add_argument("--seed", type=int, default=7206, help="seed of the query tilts")
     ap.add_argument("--model", default="default")
     args = ap.parse_args()
@@ -56,6 +62,7 @@ def main() -> None:
         "re-centred G - U": lambda f: f[0] - f[1],
     }
     errors: dict[str, list[float]] = {"plain G": [], **{k: [] for k in images}}
+    position_errors = []  # of G - U's winning position against the map sensor's true one
     for i in range(len(q_paths)):
         d = np.hypot(mx - qx[i], my - qy[i])
         j = int(d.argmin())
@@ -65,8 +72,14 @@ def main() -> None:
         plain = estimate_yaw(qf[i][0], mf[j][0][None])[0]
         errors["plain G"].append(abs(float(wrap_deg(plain - true))))
         for name, image in images.items():
-            got = refine_one(image(qf[i]), image(mf[j]), max_range)[0]
+            got, where, _ = refine_one(image(qf[i]), image(mf[j]), max_range)
             errors[name].append(abs(float(wrap_deg(got - true))))
+        # The map sensor in the query's frame: what the winning position estimates.
+        c, s = math.cos(qyaw[i]), math.sin(qyaw[i])
+        dx, dy = mx[j] - qx[i], my[j] - qy[i]
+        position_errors.append(
+            float(np.hypot(where[0] - (c * dx + s * dy), where[1] - (-s * dx + c * dy)))
+        )
     print(f"{args.world.name}: {len(errors['plain G'])} queries with a map scan within 5 m")
     for name, e in errors.items():
         v = np.array(e)
@@ -74,6 +87,8 @@ def main() -> None:
             f"  {name:18s} yaw error mean {v.mean():.2f}, median {np.median(v):.2f}, "
             f"max {v.max():.1f} deg; {int((v > 90).sum())} over 90"
         )
+    p = np.array(position_errors)
+    print(f"  G - U's winning position: {np.median(p):.2f} m from the map sensor (median)")
 
 
 if __name__ == "__main__":
