@@ -372,6 +372,10 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
         "fingerprint": model.fingerprint,
         "refine_yaw": refine_yaw,
     }
+    if refine_yaw:
+        from disco_cli.model.yaw_refine import VERSION
+
+        head["refine_version"] = VERSION
     if f.is_file():
         lines = f.read_text().splitlines()
         old = json.loads(lines[0])

@@ -23,6 +23,10 @@ import scipy.fft
 
 from disco_cli.model.yaw import _EPS_REL, peak_shift, ring_weights, shift_to_yaw
 
+# Bumped whenever the refined yaw can change for the same weights (cached evaluations
+# key on it: benchmarks/ood_suite.py).
+VERSION = 2
+
 # Search schedule (m): the first grid's spacing and half width, then the finer steps.
 COARSE_STEP = 3.0
 COARSE_REACH = 3.0
