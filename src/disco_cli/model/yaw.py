@@ -54,11 +54,21 @@ def correlation_curves(query: np.ndarray, matches: np.ndarray, workers: int = 1)
         raise ValueError(f"query [R, S] and matches [K, R, S] must agree: {q.shape} vs {m.shape}")
     fq = scipy.fft.rfft(q, axis=-1, workers=workers)
     fm = scipy.fft.rfft(m, axis=-1, workers=workers)
-    cross = fq[None] * np.conj(fm)
+    return curves_of_cross_power(
+        fq[None] * np.conj(fm), ring_weights(q.shape[0]), q.shape[-1], workers
+    )
+
+
+def curves_of_cross_power(
+    cross: np.ndarray, weights: np.ndarray, sectors: int, workers: int = 1
+) -> np.ndarray:
+    """Curves [K, S] from cross-power spectra [K, R, S // 2 + 1]: each whitened (divided
+    by its magnitude plus a floor relative to its largest), rings summed with `weights`
+    [R], transformed back."""
     mag = np.abs(cross)
     floor = _EPS_REL * mag.max(axis=(1, 2), keepdims=True) + 1e-12
-    spec = (cross / (mag + floor)) * ring_weights(q.shape[0])[None, :, None]
-    return scipy.fft.irfft(spec.sum(axis=1), n=q.shape[-1], axis=-1, workers=workers)
+    spec = (cross / (mag + floor)) * weights[None, :, None]
+    return scipy.fft.irfft(spec.sum(axis=1), n=sectors, axis=-1, workers=workers)
 
 
 def peak_shift(curves: np.ndarray) -> np.ndarray:

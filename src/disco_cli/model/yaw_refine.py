@@ -11,7 +11,7 @@ query sensor (bilinear in ring and sector, in the query's own frame, so the unkn
 stays a circular shift), each resampled image is phase-correlated with the match's, and
 the position whose correlation peaks highest wins: a 3 x 3 grid 3 m apart, then two
 rounds of its 8 neighbours at 1.5 m and 0.5 m. Its peak is the yaw. 25 resamplings of a
-40 x 120 image cost about 2 ms; docs/model.md has the figures.
+40 x 120 image cost about 1.5 ms; docs/model.md has the figures.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft
 
-from disco_cli.model.yaw import _EPS_REL, peak_shift, ring_weights, shift_to_yaw
+from disco_cli.model.yaw import curves_of_cross_power, peak_shift, ring_weights, shift_to_yaw
 
 # Bumped whenever the refined yaw can change for the same weights (cached evaluations
 # key on it: benchmarks/ood_suite.py).
@@ -112,14 +112,11 @@ def _sample(img: np.ndarray, sampling: tuple, pairs: np.ndarray | None = None) -
 
 
 def _curves(views: np.ndarray, match_spectrum: np.ndarray) -> np.ndarray:
-    """Phase-correlation curves [M, S] of views [M, R, S] against one match (as in yaw.py)."""
-    fq = scipy.fft.rfft(views, axis=-1)
-    cross = fq * np.conj(match_spectrum)[None]
-    mag = np.abs(cross)
-    floor = _EPS_REL * mag.max(axis=(1, 2), keepdims=True) + 1e-12
-    w = ring_weights(views.shape[1]).astype(np.float32)[None, :, None]
-    spec = (cross / (mag + floor) * w).sum(axis=1)
-    return scipy.fft.irfft(spec, n=views.shape[-1], axis=-1)
+    """Phase-correlation curves [M, S] of views [M, R, S] against one match's spectrum
+    (yaw.py's curves; float32 weights keep the sums in single precision)."""
+    cross = scipy.fft.rfft(views, axis=-1) * np.conj(match_spectrum)[None]
+    weights = ring_weights(views.shape[1]).astype(np.float32)
+    return curves_of_cross_power(cross, weights, views.shape[-1])
 
 
 def refine_one(
