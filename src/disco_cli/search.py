@@ -286,7 +286,7 @@ class Match:
 
 
 # How many of a query's best matches get the parallax-free yaw (model/yaw_refine.py):
-# about 2 ms each, so only the best one by default.
+# about 1.5 ms each, so only the best one by default.
 REFINE_YAW = 1
 
 
@@ -312,6 +312,13 @@ def check_refine_yaw(n: int) -> int:
 
         raise DiscoError(f"refine_yaw must be >= 0, not {n}")
     return n
+
+
+def refine_yaw_count(model: Any) -> int:
+    """How many best matches get the model's parallax-free yaw (0: it has none)."""
+    if not hasattr(model, "refine_yaw"):
+        return 0
+    return check_refine_yaw(getattr(model, "refine_yaw_top", REFINE_YAW))
 
 
 def rerank_depth(model: Any) -> int:
@@ -340,8 +347,9 @@ def match_queries(
     matches (default: the model's `refine_yaw_top`, else `REFINE_YAW`) is re-estimated
     without parallax when the model can (its `refine_yaw` hook)."""
     if refine_yaw is None:
-        refine_yaw = getattr(model, "refine_yaw_top", REFINE_YAW)
-    refine_n = check_refine_yaw(refine_yaw) if hasattr(model, "refine_yaw") else 0
+        refine_n = refine_yaw_count(model)
+    else:
+        refine_n = check_refine_yaw(refine_yaw) if hasattr(model, "refine_yaw") else 0
     rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
     wide = max(k, rerank_n) if rerank_n > 0 else k
     rows, dists = index.search(signatures, wide, limit=limit, exclude=exclude)
@@ -372,7 +380,6 @@ def match_queries(
             yaw = np.asarray(model.yaw(features[i], stored.features[sel]), dtype=np.float64)
         if len(r) and refine_n > 0:
             n = min(refine_n, len(r))
-            yaw = yaw.copy()
             yaw[:n] = model.refine_yaw(features[i], stored.features[sel[:n]])
         out.append(
             [

@@ -133,14 +133,13 @@ def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
 def model_run(model: Any) -> dict[str, Any]:
     """What a report's "run" says about the model: its name, fingerprint, re-ranking and
     how many matches per query got the parallax-free yaw."""
-    from disco_cli.search import REFINE_YAW, rerank_depth
+    from disco_cli.search import refine_yaw_count, rerank_depth
 
-    refine = getattr(model, "refine_yaw_top", REFINE_YAW) if hasattr(model, "refine_yaw") else 0
     return {
         "model": model.name,
         "fingerprint": model.fingerprint,
         "rerank": rerank_depth(model),
-        "refine_yaw": refine,
+        "refine_yaw": refine_yaw_count(model),
     }
 
 

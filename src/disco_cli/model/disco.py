@@ -140,12 +140,12 @@ class DiscoModel:
         resample better than the learned G (mean error 0.11 against 0.22 degrees on the
         terrace hard set, docs/model.md), so that image is re-centred when there is one."""
         return refine_yaw(
-            self._geometry(query_features),
-            self._geometry(match_features),
+            self.refine_image(query_features),
+            self.refine_image(match_features),
             self.bev_config.max_range,
         )
 
-    def _geometry(self, features: np.ndarray) -> np.ndarray:
+    def refine_image(self, features: np.ndarray) -> np.ndarray:
         """The image that `refine_yaw` re-centres: G - U for a residual network, else G."""
         f = np.asarray(features, dtype=np.float32)
         return f[..., 0, :, :] - f[..., 1, :, :] if self.two_channel else f
