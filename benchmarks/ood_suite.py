@@ -273,6 +273,33 @@ def embed(model, clouds_fn, n: int, threads: int, batch: int = 32):
     return np.concatenate(sigs), np.concatenate(feats)
 
 
+@dataclass
+class EmbeddedWorld:
+    """A simulated world's map session 00 and query session 01, embedded by one model."""
+
+    map_paths: list[Path]
+    map_poses: np.ndarray  # [N, 4, 4]
+    map_signatures: np.ndarray
+    map_features: np.ndarray
+    queries: Queries
+    query_signatures: np.ndarray
+    query_features: np.ndarray
+
+
+def embed_world(model, folder: Path, tilt_deg: float = 0.0, threads: int = 2) -> EmbeddedWorld:
+    """`folder` (from `disco simulate`) embedded as the suite queries it; `tilt_deg` adds
+    a random query tilt seeded by the world's own seed (the benchmarks' --tilt)."""
+    from disco_cli.readers import read_scan
+
+    seed = int(json.loads((folder / "world.json").read_text())["seed"])
+    map_paths, map_poses = load_session(folder / "00")
+    q_paths, q_poses = load_session(folder / "01")
+    queries = Queries(q_paths, q_poses, tilt_deg, seed=seed)
+    ms, mf = embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), threads)
+    qs, qf = embed(model, queries.points, len(q_paths), threads)
+    return EmbeddedWorld(map_paths, map_poses, ms, mf, queries, qs, qf)
+
+
 def evaluate(
     model,
     map_paths,

@@ -41,26 +41,24 @@ def main() -> None:
     from disco_cli.model import load_model
     from disco_cli.model.yaw_refine import refine_one
     from disco_cli.poses import xy_yaw
-    from disco_cli.readers import read_scan
     from disco_cli.search import SignatureIndex, match_queries
 
     print_header("rerank_recentred")
     model = load_model("default")
-    seed = int(__import__("json").loads((args.world / "world.json").read_text())["seed"])
-    map_paths, map_poses = suite.load_session(args.world / "00")
-    q_paths, q_poses = suite.load_session(args.world / "01")
-    queries = suite.Queries(q_paths, q_poses, args.tilt, seed=seed)
-    ms, mf = suite.embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), 2)
-    qs, qf = suite.embed(model, queries.points, len(q_paths), 2)
-    mx, my, myaw = xy_yaw(map_poses)
-    qx, qy, _ = xy_yaw(queries.poses)
-    pose4 = np.c_[mx, my, map_poses[:, 2, 3], myaw]
+    max_range = model.bev_config.max_range
+    world = suite.embed_world(model, args.world, args.tilt)
+    mf, qf = world.map_features, world.query_features
+    mx, my, myaw = xy_yaw(world.map_poses)
+    qx, qy, _ = xy_yaw(world.queries.poses)
+    pose4 = np.c_[mx, my, world.map_poses[:, 2, 3], myaw]
     with tempfile.TemporaryDirectory() as tmp:
-        batch = ScanBatch([str(p) for p in map_paths], ms, mf, pose4)
+        paths = [str(p) for p in world.map_paths]
+        batch = ScanBatch(paths, world.map_signatures, mf, pose4)
         with Database.create(Path(tmp) / "map.db", ModelInfo.of(model), batch) as db:
             ids, sigs = db.signatures()
-            found = match_queries(SignatureIndex(sigs), ids, db, model, qs, qf, 10, refine_yaw=0)
-    geometry = lambda f: f[0] - f[1]  # noqa: E731  (the BEV summed over heights)
+            found = match_queries(
+                SignatureIndex(sigs), ids, db, model, world.query_signatures, qf, 10, refine_yaw=0
+            )
     hits = {"shipped order": 0, "peak": 0, "peak - distance": 0}
     n = 0
     for i, matches in enumerate(found):
@@ -71,7 +69,12 @@ def main() -> None:
         top = matches[: args.top]
         rows = [m.row for m in top]
         dist = np.array([m.distance for m in top])
-        peak = np.array([refine_one(geometry(qf[i]), geometry(mf[r]), 80.0)[2] for r in rows])
+        peak = np.array(
+            [
+                refine_one(model.refine_image(qf[i]), model.refine_image(mf[r]), max_range)[2]
+                for r in rows
+            ]
+        )
         hits["shipped order"] += d[rows[0]] <= suite.RADIUS
         hits["peak"] += d[rows[int(np.argmax(peak))]] <= suite.RADIUS
         hits["peak - distance"] += d[rows[int(np.argmax(peak - dist))]] <= suite.RADIUS

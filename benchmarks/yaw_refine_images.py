@@ -31,7 +31,6 @@ def main() -> None:
         default=0.0,
         help="extra random query tilt (deg) on top of the world's own (the suite adds none)",
     )
-    ap.add_argument("--seed", type=int, default=7206, help="seed of the query tilts")
     ap.add_argument("--model", default="default")
     args = ap.parse_args()
 
@@ -42,20 +41,16 @@ def main() -> None:
     from disco_cli.model.yaw import estimate_yaw, wrap_deg
     from disco_cli.model.yaw_refine import refine_one
     from disco_cli.poses import xy_yaw
-    from disco_cli.readers import read_scan
 
     print_header("yaw_refine_images")
     model = load_model(args.model)
     if not getattr(model, "two_channel", False):
         sys.exit(f"{args.model}: not a residual (two-channel) network; nothing to compare")
     max_range = model.bev_config.max_range
-    map_paths, map_poses = suite.load_session(args.world / "00")
-    q_paths, q_poses = suite.load_session(args.world / "01")
-    queries = suite.Queries(q_paths, q_poses, args.tilt, seed=args.seed)
-    _, mf = suite.embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), 2)
-    _, qf = suite.embed(model, queries.points, len(q_paths), 2)
-    mx, my, myaw = xy_yaw(map_poses)
-    qx, qy, qyaw = xy_yaw(queries.poses)
+    world = suite.embed_world(model, args.world, args.tilt)
+    mf, qf = world.map_features, world.query_features
+    mx, my, myaw = xy_yaw(world.map_poses)
+    qx, qy, qyaw = xy_yaw(world.queries.poses)
     images = {
         "re-centred G": lambda f: f[0],
         "re-centred U": lambda f: f[1],
@@ -63,7 +58,7 @@ def main() -> None:
     }
     errors: dict[str, list[float]] = {"plain G": [], **{k: [] for k in images}}
     position_errors = []  # of G - U's winning position against the map sensor's true one
-    for i in range(len(q_paths)):
+    for i in range(len(qf)):
         d = np.hypot(mx - qx[i], my - qy[i])
         j = int(d.argmin())
         if d[j] > suite.RADIUS:
