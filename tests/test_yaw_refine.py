@@ -119,24 +119,21 @@ def test_refine_yaw_option_chooses_which_matches_are_refined(samples_spectral_db
 
     scan = samples / "01" / "velodyne" / "000005.bin"
 
-    def yaws(n: int) -> list[float]:
+    def rows(n: int) -> list[dict]:
         args = ["query", str(scan), "--db", str(samples_spectral_db), "--topk", "3"]
         res = CliRunner().invoke(app, [*args, "--refine-yaw", str(n), "--format", "jsonl"])
         assert res.exit_code == 0, res.output
-        return [json.loads(line)["yaw_deg"] for line in res.stdout.splitlines()]
+        return [json.loads(line) for line in res.stdout.splitlines()]
 
-    plain, two = yaws(0), yaws(2)
+    plain_rows, two_rows = rows(0), rows(2)
+    matches = [r["match"] for r in plain_rows]
+    assert [r["match"] for r in two_rows] == matches
+    plain, two = [r["yaw_deg"] for r in plain_rows], [r["yaw_deg"] for r in two_rows]
     # The truth, computed here: plain and re-centred yaw of the query's own images.
     from disco_cli.bev import polar_bev
-    from disco_cli.readers import read_scan
 
     model = load_model("spectral")
     query = polar_bev(read_scan(scan), model.bev_config).sum(axis=0)
-    res = CliRunner().invoke(
-        app,
-        ["query", str(scan), "--db", str(samples_spectral_db), "--topk", "3", "--format", "jsonl"],
-    )
-    matches = [json.loads(line)["match"] for line in res.stdout.splitlines()]
     images = [polar_bev(read_scan(m), model.bev_config).sum(axis=0) for m in matches]
     want_plain = [estimate_yaw(query, im[None])[0] for im in images]
     want_refined = refine_yaw(query, np.stack(images[:2]), model.bev_config.max_range)
