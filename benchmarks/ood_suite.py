@@ -403,6 +403,11 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
         from disco_cli.model.yaw_refine import VERSION
 
         head["refine_version"] = VERSION
+    from disco_cli.search import rerank_depth, rerank_wider
+
+    wider = rerank_wider(model, rerank_depth(model))
+    if wider[0]:  # rows from before the wider pass have no such key, and are redone
+        head["rerank_wider"] = list(wider)
     if f.is_file():
         lines = f.read_text().splitlines()
         old = json.loads(lines[0])

@@ -30,6 +30,7 @@ __all__ = [
     "match_queries",
     "check_rerank",
     "rerank_depth",
+    "rerank_wider",
 ]
 
 _EPS32 = float(np.finfo(np.float32).eps)
@@ -326,6 +327,15 @@ def rerank_depth(model: Any) -> int:
     return int(getattr(model, "rerank_candidates", 0) or 0)
 
 
+def rerank_wider(model: Any, first: int) -> tuple[int, float]:
+    """The model's second re-ranking pass after `first` candidates: (depth, distance), run
+    when the best of the first pass re-ranks worse than the distance; (0, inf) for none."""
+    depth = int(getattr(model, "rerank_wider", 0) or 0)
+    if first <= 0 or depth <= first:
+        return 0, float("inf")
+    return depth, float(model.rerank_wider_above)
+
+
 def match_queries(
     index: SignatureIndex,
     ids: np.ndarray,
@@ -343,7 +353,9 @@ def match_queries(
     """Top-k matches of each query with their yaw: signature search, then the model's
     `rerank` hook when it asks for one (DiSCO, Scan Context), then yaw from the stored
     features of the top rows only. `db` is a `Database` (anything with `rows(ids)`).
-    `rerank` overrides the model's re-ranking depth. The yaw of the best `refine_yaw`
+    `rerank` overrides the model's re-ranking depth; where the best of those re-ranks
+    worse than the model's `rerank_wider_above`, the candidates down to its
+    `rerank_wider` are re-ranked too (`rerank_wider`). The yaw of the best `refine_yaw`
     matches (default: the model's `refine_yaw_top`, else `REFINE_YAW`) is re-estimated
     without parallax when the model can (its `refine_yaw` hook)."""
     if refine_yaw is None:
@@ -351,12 +363,14 @@ def match_queries(
     else:
         refine_n = check_refine_yaw(refine_yaw) if hasattr(model, "refine_yaw") else 0
     rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
-    wide = max(k, rerank_n) if rerank_n > 0 else k
-    rows, dists = index.search(signatures, wide, limit=limit, exclude=exclude)
+    first = max(k, rerank_n) if rerank_n > 0 else k
+    wider_n, wider_above = rerank_wider(model, first if rerank_n > 0 else 0)
+    rows, dists = index.search(signatures, max(first, wider_n), limit=limit, exclude=exclude)
     out: list[list[Match]] = []
     for i in range(len(rows)):
         keep = rows[i] >= 0
-        r, d = rows[i][keep], dists[i][keep]
+        r_all, d_all = rows[i][keep], dists[i][keep]
+        r, d = r_all[:first], d_all[:first]
         if len(r) == 0:
             out.append([])
             continue
@@ -365,6 +379,13 @@ def match_queries(
             d_new, yaw = model.rerank(features[i], stored.features)
             d_new = np.asarray(d_new, dtype=np.float64)
             yaw = np.asarray(yaw, dtype=np.float64)
+            if len(r_all) > len(r) and d_new.min() > wider_above:
+                # No candidate is a good match: re-rank the next ones too.
+                r = r_all
+                stored = db.rows(ids[r])
+                d_more, yaw_more = model.rerank(features[i], stored.features[len(d_new) :])
+                d_new = np.concatenate([d_new, np.asarray(d_more, dtype=np.float64)])
+                yaw = np.concatenate([yaw, np.asarray(yaw_more, dtype=np.float64)])
             order = np.lexsort((r, d_new))[:k]
             r, d, yaw = r[order], d_new[order], yaw[order]
             sel = order

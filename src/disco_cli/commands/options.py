@@ -138,7 +138,8 @@ RerankOpt = Annotated[
         "--rerank",
         min=0,
         help="Re-rank this many nearest signatures (0: signature order only, as in the "
-        "paper); default: the model's own (10 for DiSCO and Scan Context).",
+        "paper); default: the model's own (10 for DiSCO and Scan Context). DiSCO re-ranks "
+        "down to 40 when none of them matches well (distance above 0.7).",
         rich_help_panel=PANEL_RUN,
     ),
 ]

@@ -133,14 +133,15 @@ def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
 def model_run(model: Any) -> dict[str, Any]:
     """What a report's "run" says about the model: its name, fingerprint, re-ranking and
     how many matches per query got the parallax-free yaw."""
-    from disco_cli.search import refine_yaw_count, rerank_depth
+    from disco_cli.search import refine_yaw_count, rerank_depth, rerank_wider
 
-    return {
-        "model": model.name,
-        "fingerprint": model.fingerprint,
-        "rerank": rerank_depth(model),
-        "refine_yaw": refine_yaw_count(model),
-    }
+    depth = rerank_depth(model)
+    wider, above = rerank_wider(model, depth)
+    run = {"model": model.name, "fingerprint": model.fingerprint, "rerank": depth}
+    if wider:
+        run["rerank_wider"] = {"depth": wider, "above": above}
+    run["refine_yaw"] = refine_yaw_count(model)
+    return run
 
 
 def report_and_print(ev: Evaluation, run: dict[str, Any], directory: Path | None, fmt: Any) -> None:

@@ -20,6 +20,11 @@ from disco_cli.model.yaw_refine import refine_yaw
 _BATCH = 64
 # Nearest signatures re-ranked by the aligned correlation of their features (verify.py).
 RERANK_CANDIDATES = 10
+# Where even the best of those re-ranks worse than RERANK_WIDER_ABOVE, the place may have
+# changed more than the signature tolerates: the search re-ranks down to RERANK_WIDER.
+# Chosen on the selection worlds 5001-5008 (docs/model.md, "Re-ranking wider when unsure").
+RERANK_WIDER = 40
+RERANK_WIDER_ABOVE = 0.7
 
 
 def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
@@ -77,6 +82,8 @@ class DiscoModel:
         self.name = name
         self.two_channel = bool(self.model_config.get("residual", False))
         self.rerank_candidates = RERANK_CANDIDATES
+        self.rerank_wider = RERANK_WIDER
+        self.rerank_wider_above = RERANK_WIDER_ABOVE
         # The name is left out: the same weights loaded as `default` or by path are one model.
         config = {k: v for k, v in self.config_dict().items() if k != "model"}
         self.fingerprint = weights_hash(self.net.state_dict(), config)

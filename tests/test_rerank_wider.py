@@ -1,0 +1,116 @@
+"""The second re-ranking pass: when none of the first candidates matches well, the search
+re-ranks the next ones down to the model's `rerank_wider` (search.match_queries)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from disco_cli.search import SignatureIndex, match_queries, rerank_wider
+
+N = 12
+
+
+@dataclass
+class _Rows:
+    ids: np.ndarray
+    paths: list[str]
+    poses: np.ndarray
+    features: np.ndarray
+
+
+class _Db:
+    """Map row i holds the re-ranking distance `scores[i]` as its only feature."""
+
+    def __init__(self, scores: np.ndarray):
+        self.scores = np.asarray(scores, np.float64)
+        self.fetched: list[int] = []
+
+    def rows(self, ids: np.ndarray) -> _Rows:
+        ids = np.asarray(ids)
+        self.fetched = [int(i) for i in ids]
+        return _Rows(ids, [f"scan{i}" for i in ids], np.zeros((len(ids), 4)), self.scores[ids])
+
+
+class _Model:
+    """Re-ranks by the stored score; yaw = 10 x the row's score (to see it follow the row)."""
+
+    name = "stub"
+
+    def __init__(self, first: int, wider: int, above: float):
+        self.rerank_candidates, self.rerank_wider, self.rerank_wider_above = first, wider, above
+        self.reranked = 0
+
+    def rerank(self, query_features: np.ndarray, features: np.ndarray):
+        self.reranked += len(features)
+        return features.copy(), 10.0 * features
+
+    def yaw(self, query_features: np.ndarray, features: np.ndarray) -> np.ndarray:
+        return np.zeros(len(features))
+
+
+def _search(scores, k=1, first=3, wider=6, above=0.5, rerank=None):
+    # Signature i sits at distance i from the query: the signature order is 0, 1, 2, ...
+    sigs = np.arange(N, dtype=np.float32)[:, None]
+    model, db = _Model(first, wider, above), _Db(scores)
+    (found,) = match_queries(
+        SignatureIndex(sigs),
+        np.arange(N),
+        db,
+        model,
+        np.zeros((1, 1), np.float32),
+        np.zeros((1, 1)),
+        k,
+        rerank=rerank,
+    )
+    return found, model
+
+
+def _truth(scores, k, n):
+    """The best k of the first n rows by score (ties by row)."""
+    order = np.lexsort((np.arange(n), np.asarray(scores[:n])))[:k]
+    return [int(i) for i in order]
+
+
+def test_rerank_goes_wider_when_no_first_candidate_matches_well() -> None:
+    scores = np.array([0.9, 0.8, 0.6, 0.7, 0.1, 0.3, 0.05, 0.9, 0.9, 0.9, 0.9, 0.9])
+    found, model = _search(scores, k=2)
+    # The first three re-rank at best 0.6 > 0.5: rows 3-5 are re-ranked too, not row 6.
+    assert [m.row for m in found] == _truth(scores, 2, 6) == [4, 5]
+    assert [m.distance for m in found] == [0.1, 0.3]
+    assert [m.yaw_deg for m in found] == pytest.approx([1.0, 3.0])
+    assert model.reranked == 6
+
+
+def test_rerank_stays_narrow_when_a_first_candidate_matches_well() -> None:
+    scores = np.array([0.9, 0.45, 0.6, 0.7, 0.1, 0.3, 0.05, 0.9, 0.9, 0.9, 0.9, 0.9])
+    found, model = _search(scores, k=1)
+    # 0.45 <= 0.5: rows 4 and 6, better but beyond the first three, are never looked at.
+    assert [m.row for m in found] == _truth(scores, 1, 3) == [1]
+    assert model.reranked == 3
+
+
+def test_explicit_rerank_sets_the_first_pass_and_zero_turns_both_off() -> None:
+    scores = np.array([0.9, 0.8, 0.6, 0.7, 0.1, 0.3, 0.05, 0.9, 0.9, 0.9, 0.9, 0.9])
+    # --rerank 8 re-ranks 8 (beyond the wider depth 6): one pass, row 6 is found.
+    found, model = _search(scores, rerank=8)
+    assert [m.row for m in found] == [6] and model.reranked == 8
+    # --rerank 0: the signature order.
+    found, model = _search(scores, k=3, rerank=0)
+    assert [m.row for m in found] == [0, 1, 2] and model.reranked == 0
+
+
+def test_rerank_wider_settings() -> None:
+    assert rerank_wider(_Model(10, 40, 0.7), 10) == (40, 0.7)
+    assert rerank_wider(_Model(10, 40, 0.7), 40) == (0, float("inf"))  # first pass as deep
+    assert rerank_wider(_Model(10, 40, 0.7), 0) == (0, float("inf"))  # no re-ranking
+    assert rerank_wider(object(), 10) == (0, float("inf"))  # a model without the setting
+
+
+def test_shipped_model_goes_wider() -> None:
+    from disco_cli.model import load_model
+
+    model = load_model("default")
+    assert rerank_wider(model, model.rerank_candidates) == (40, 0.7)
