@@ -647,7 +647,8 @@ class Map:
         `pose` adds the refined pose T_match<-query of each (read from the match's
         stored path); `verify` keeps only the matches whose pose is accepted (implies
         `pose`). `rerank`: how many nearest signatures to re-rank (default: the
-        model's). `exclude`: match ids (or a boolean mask over the map) to leave out;
+        model's; DiSCO goes on down to 40 where none of them matches well).
+        `exclude`: match ids (or a boolean mask over the map) to leave out;
         `max_distance` drops worse matches. `name` names the scan in errors.
         `refine_yaw`: how many best matches get the parallax-free yaw (default 1).
         """

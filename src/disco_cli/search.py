@@ -327,6 +327,16 @@ def rerank_depth(model: Any) -> int:
     return int(getattr(model, "rerank_candidates", 0) or 0)
 
 
+def _joined_rows(a: Any, b: Any) -> Any:
+    """Two `db.rows` answers (ids, paths, poses, features) as one, a's rows first."""
+    return type(a)(
+        np.concatenate([a.ids, b.ids]),
+        [*a.paths, *b.paths],
+        np.concatenate([a.poses, b.poses]),
+        np.concatenate([a.features, b.features]),
+    )
+
+
 def rerank_wider(model: Any, first: int) -> tuple[int, float]:
     """The model's second re-ranking pass after `first` candidates: (depth, distance), run
     when the best of the first pass re-ranks worse than the distance; (0, inf) for none."""
@@ -381,9 +391,10 @@ def match_queries(
             yaw = np.asarray(yaw, dtype=np.float64)
             if len(r_all) > len(r) and d_new.min() > wider_above:
                 # No candidate is a good match: re-rank the next ones too.
+                more = db.rows(ids[r_all[len(r) :]])
+                d_more, yaw_more = model.rerank(features[i], more.features)
+                stored = _joined_rows(stored, more)
                 r = r_all
-                stored = db.rows(ids[r])
-                d_more, yaw_more = model.rerank(features[i], stored.features[len(d_new) :])
                 d_new = np.concatenate([d_new, np.asarray(d_more, dtype=np.float64)])
                 yaw = np.concatenate([yaw, np.asarray(yaw_more, dtype=np.float64)])
             order = np.lexsort((r, d_new))[:k]
