@@ -251,7 +251,9 @@ def test_resume_after_kill(tmp_path: Path, sig: signal.Signals) -> None:
         scene(100 + k, n=30000).tofile(src / f"s{k}.bin")
     scans = tmp_path / "scans"
     scans.mkdir()
-    n = 400
+    # 4,000: at up to 1,000 scans/s (spectral, the scans in the page cache) the build runs
+    # for seconds, so the signal lands mid-way even when this process is slow to poll.
+    n = 4000
     for i in range(n):
         (scans / f"{i:06d}.bin").symlink_to(src / f"s{i % 4}.bin")
     out = tmp_path / "map.db"
