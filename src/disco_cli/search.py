@@ -337,6 +337,34 @@ def _joined_rows(a: Any, b: Any) -> Any:
     )
 
 
+def _reranked(
+    model: Any,
+    query_features: np.ndarray,
+    db: Any,
+    ids: np.ndarray,
+    rows: np.ndarray,
+    first: int,
+    wider_above: float,
+) -> tuple[np.ndarray, Any, np.ndarray, np.ndarray]:
+    """The model's re-ranking of `rows[:first]`, or of all `rows` when none of the first
+    re-ranks better than `wider_above`: (rows re-ranked, their stored data, distances,
+    yaw), in the order of `rows`."""
+    r = rows[:first]
+    stored = db.rows(ids[r])
+    d, yaw = (
+        np.asarray(v, dtype=np.float64) for v in model.rerank(query_features, stored.features)
+    )
+    if len(rows) > len(r) and d.min() > wider_above:
+        # No candidate is a good match: re-rank the next ones too.
+        more = db.rows(ids[rows[len(r) :]])
+        d_more, yaw_more = (
+            np.asarray(v, dtype=np.float64) for v in model.rerank(query_features, more.features)
+        )
+        r, stored = rows, _joined_rows(stored, more)
+        d, yaw = np.concatenate([d, d_more]), np.concatenate([yaw, yaw_more])
+    return r, stored, d, yaw
+
+
 def rerank_wider(model: Any, first: int) -> tuple[int, float]:
     """The model's second re-ranking pass after `first` candidates: (depth, distance), run
     when the best of the first pass re-ranks worse than the distance; (0, inf) for none."""
@@ -374,33 +402,25 @@ def match_queries(
         refine_n = check_refine_yaw(refine_yaw) if hasattr(model, "refine_yaw") else 0
     rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
     first = max(k, rerank_n) if rerank_n > 0 else k
-    wider_n, wider_above = rerank_wider(model, first if rerank_n > 0 else 0)
+    wider_n, wider_above = rerank_wider(model, first) if rerank_n > 0 else (0, float("inf"))
     rows, dists = index.search(signatures, max(first, wider_n), limit=limit, exclude=exclude)
     out: list[list[Match]] = []
     for i in range(len(rows)):
         keep = rows[i] >= 0
         r_all, d_all = rows[i][keep], dists[i][keep]
-        r, d = r_all[:first], d_all[:first]
-        if len(r) == 0:
+        if len(r_all) == 0:
             out.append([])
             continue
-        stored = db.rows(ids[r])
         if rerank_n > 0:
-            d_new, yaw = model.rerank(features[i], stored.features)
-            d_new = np.asarray(d_new, dtype=np.float64)
-            yaw = np.asarray(yaw, dtype=np.float64)
-            if len(r_all) > len(r) and d_new.min() > wider_above:
-                # No candidate is a good match: re-rank the next ones too.
-                more = db.rows(ids[r_all[len(r) :]])
-                d_more, yaw_more = model.rerank(features[i], more.features)
-                stored = _joined_rows(stored, more)
-                r = r_all
-                d_new = np.concatenate([d_new, np.asarray(d_more, dtype=np.float64)])
-                yaw = np.concatenate([yaw, np.asarray(yaw_more, dtype=np.float64)])
+            r, stored, d_new, yaw = _reranked(
+                model, features[i], db, ids, r_all, first, wider_above
+            )
             order = np.lexsort((r, d_new))[:k]
             r, d, yaw = r[order], d_new[order], yaw[order]
             sel = order
         else:
+            r, d = r_all[:first], d_all[:first]
+            stored = db.rows(ids[r])
             sel = np.arange(len(r))
             yaw = None
         if max_distance is not None:
