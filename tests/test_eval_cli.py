@@ -320,3 +320,58 @@ def report_format(name: str):
     from disco_cli.console import OutputFormat
 
     return OutputFormat(name)
+
+
+def test_rerank_wider_option_reaches_the_report(tiny_world, tmp_path):
+    db = tmp_path / "default.db"
+    result = run("build-db", tiny_world / "00", "-o", db, "--model", "default")
+    assert result.exit_code == 0, result.output
+    # None: the shipped setting; 0 turns the pass off; another depth is recorded as given.
+    cases = [(None, {"depth": 40, "above": 0.7}), ("0", None), ("15", {"depth": 15, "above": 0.7})]
+    for option, want in cases:
+        out = tmp_path / f"report-{option}"
+        extra = [] if option is None else ["--rerank-wider", option]
+        result = run("eval", tiny_world / "01", "--db", db, "--report", out, *extra)
+        assert result.exit_code == 0, result.output
+        got = json.loads((out / "metrics.json").read_text())["run"].get("rerank_wider")
+        assert got == want, option
+
+
+def test_rerank_wider_with_a_model_that_has_none(tiny_world, databases):
+    result = run("eval", tiny_world / "01", "--db", databases["spectral"], "--rerank-wider", "5")
+    assert result.exit_code == 1
+    assert "spectral has no wider re-ranking pass" in result.output
+    assert len(result.output.strip().splitlines()) == 1
+    # 0 asks for no pass, which such a model already does.
+    result = run("eval", tiny_world / "01", "--db", databases["spectral"], "--rerank-wider", "0")
+    assert result.exit_code == 0, result.output
+
+
+def test_query_of_an_unseen_place_re_ranks_wider(tiny_world, tmp_path):
+    """Query 21 lies 170 m beyond the map: none of its 10 nearest signatures re-ranks
+    within 0.7, so the search re-ranks all 21 map scans, unless --rerank-wider 0."""
+    from disco_cli.bev import polar_bev
+    from disco_cli.model import load_model
+    from disco_cli.readers import read_scan
+
+    db = tmp_path / "default.db"
+    assert run("build-db", tiny_world / "00", "-o", db, "--model", "default").exit_code == 0
+    model = load_model("default")
+    maps = sorted((tiny_world / "00" / "velodyne").glob("*.bin"))
+    query = tiny_world / "01" / "velodyne" / "000021.bin"
+
+    def embed(p: Path):
+        return model.embed(polar_bev(read_scan(p), model.bev_config)[None])
+
+    m_sig, m_feat = (np.concatenate(a) for a in zip(*[embed(p) for p in maps]))
+    q_sig, q_feat = embed(query)
+    # The truth: the rule applied by hand to the signature order and the model's distances.
+    order = np.argsort(((m_sig.astype(np.float64) - q_sig[0]) ** 2).sum(1), kind="stable")
+    dist, _ = model.rerank(q_feat[0], m_feat[order])
+    assert dist[:10].min() > 0.7, "the premise: no good match among the 10 nearest"
+    narrow, wide = order[np.argmin(dist[:10])], order[np.argmin(dist)]
+    assert narrow != wide, "the premise: a scan beyond the 10th re-ranks best"
+    for extra, want in (([], wide), (["--rerank-wider", "0"], narrow)):
+        result = run("query", query, "--db", db, "--topk", "1", "--format", "jsonl", *extra)
+        assert result.exit_code == 0, result.output
+        assert json.loads(result.output.splitlines()[0])["match"] == str(maps[want]), extra

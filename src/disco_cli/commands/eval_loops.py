@@ -26,6 +26,7 @@ from disco_cli.commands.options import (
     RadiusOpt,
     ReportOpt,
     RerankOpt,
+    RerankWiderOpt,
     ScanFormatOpt,
     TopicOpt,
     apply_rerank,
@@ -86,6 +87,7 @@ def evaluate_loops(
     ] = None,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
+    rerank_wider: RerankWiderOpt = None,
     report: ReportOpt = None,
     fmt: MetricsFormatOpt = None,
 ) -> None:
@@ -109,7 +111,7 @@ def evaluate_loops(
     if exclude_frames is None:
         t = posed_times(file_beside(sequence, times, "times.txt"), all_paths, paths)
     limit = exclusion_limits(len(paths), exclude_frames, t, seconds)
-    model = apply_rerank(load_model(model_name, device=device), rerank)
+    model = apply_rerank(load_model(model_name, device=device), rerank, rerank_wider)
     with steps("embedding", len(paths)) as step:
         ev = loop_closure(paths, T, limit, model, radius, scan_format, step)
     run = {

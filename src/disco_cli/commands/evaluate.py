@@ -30,6 +30,7 @@ from disco_cli.commands.options import (
     RefineYawOpt,
     ReportOpt,
     RerankOpt,
+    RerankWiderOpt,
     ScanFormatOpt,
     TopicOpt,
     apply_refine_yaw,
@@ -78,6 +79,7 @@ def evaluate(
     topk: Annotated[int, topk_option("Recall@1..N up to this N.", panel=PANEL_PROTOCOL)] = 25,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
+    rerank_wider: RerankWiderOpt = None,
     refine_yaw: RefineYawOpt = None,
     report: ReportOpt = None,
     fmt: MetricsFormatOpt = None,
@@ -95,7 +97,9 @@ def evaluate(
     if protocol is not None:  # the paper's sessions and thresholds, printed as its table
         if len(queries) != 1:
             raise DiscoError("--protocol takes one dataset folder")
-        model = apply_rerank(load_model(model_name or "default", device=device), rerank)
+        model = apply_rerank(
+            load_model(model_name or "default", device=device), rerank, rerank_wider
+        )
         apply_refine_yaw(model, refine_yaw)
         say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
         proto, results = run_protocol(
@@ -116,7 +120,7 @@ def evaluate(
         Map.open(db_path, model=model_name, device=device) as m,
         steps("embedding", len(paths)) as step,
     ):
-        apply_rerank(m.model, rerank)
+        apply_rerank(m.model, rerank, rerank_wider)
         apply_refine_yaw(m.model, refine_yaw)
         ev = multi_session(paths, q_poses, m.database, m.model, radius, topk, scan_format, step)
     run = {

@@ -21,6 +21,7 @@ from disco_cli.commands.options import (
     LoopFileOpt,
     OutputFormatOpt,
     RerankOpt,
+    RerankWiderOpt,
     ReuseDbOpt,
     ScanFormatOpt,
     ScanRootOpt,
@@ -31,6 +32,7 @@ from disco_cli.commands.options import (
     VerboseLoopsOpt,
     VerifyLoopsOpt,
     WorkersOpt,
+    apply_rerank,
     model_option,
     topk_option,
 )
@@ -65,6 +67,7 @@ def loops(
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
+    rerank_wider: RerankWiderOpt = None,
     side_views: SideViewsOpt = None,
 ) -> None:
     """Detect loop closures along one sequence of scans (by default each scan searches the
@@ -105,6 +108,7 @@ def loops(
         on_pose_error=lambda msg: (error(msg), pose_failures.append(msg)),
         side_views=side_views or 0.0,
     )
+    apply_rerank(detector.model, None, rerank_wider)
     columns, keys = loop_columns(with_pose, verbose)
     writer = RowWriter(columns, fmt, title=f"loops in {sequence}")
     reuse = None

@@ -145,12 +145,34 @@ RerankOpt = Annotated[
 ]
 
 
-def apply_rerank(model: Any, rerank: int | None) -> Any:
-    """Set the model's re-ranking depth when --rerank was given; returns the model."""
-    if rerank is not None:
-        from disco_cli.search import check_rerank
+RerankWiderOpt = Annotated[
+    Optional[int],
+    typer.Option(
+        "--rerank-wider",
+        min=0,
+        help="Where none of the re-ranked candidates matches well (distance above 0.7), "
+        "re-rank down to this many nearest signatures (0: never); default: the model's own "
+        "(40 for DiSCO).",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
 
+
+def apply_rerank(model: Any, rerank: int | None, wider: int | None = None) -> Any:
+    """Set the model's re-ranking depth when --rerank was given, and its wider pass when
+    --rerank-wider was; returns the model."""
+    from disco_cli.search import check_rerank
+
+    if rerank is not None:
         model.rerank_candidates = check_rerank(model, rerank)
+    if wider is not None:
+        if wider > 0 and not hasattr(model, "rerank_wider"):
+            from disco_cli.errors import DiscoError
+
+            name = getattr(model, "name", "?")
+            raise DiscoError(f"model {name} has no wider re-ranking pass; leave out --rerank-wider")
+        if hasattr(model, "rerank_wider"):
+            model.rerank_wider = int(wider)
     return model
 
 

@@ -27,6 +27,7 @@ from disco_cli.commands.options import (
     PosesFormatOpt,
     RefineYawOpt,
     RerankOpt,
+    RerankWiderOpt,
     ScanFormatOpt,
     ScanRootOpt,
     TopicOpt,
@@ -83,6 +84,7 @@ def query(
     workers: WorkersOpt = 1,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
+    rerank_wider: RerankWiderOpt = None,
     refine_yaw: RefineYawOpt = None,
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
@@ -102,7 +104,7 @@ def query(
     failed, poses_of, exclude = 0, None, None
     with Map.open(db_path, model=model, device=device, scan_root=scan_root) as m:
         m.on_missing_scan = warn
-        apply_rerank(m.model, rerank)
+        apply_rerank(m.model, rerank, rerank_wider)
         apply_refine_yaw(m.model, refine_yaw)
         if exclude_radius is not None:  # the query's own scan, and those near its pose
             opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
