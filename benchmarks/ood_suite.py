@@ -286,6 +286,17 @@ class EmbeddedWorld:
     query_features: np.ndarray
 
 
+def add_world_arguments(ap: argparse.ArgumentParser) -> None:
+    """WORLD and --tilt, for the benchmarks that read one world (`embed_world`)."""
+    ap.add_argument("world", type=Path, help="a folder of `disco simulate` with sessions 00, 01")
+    ap.add_argument(
+        "--tilt",
+        type=float,
+        default=0.0,
+        help="extra random query tilt (deg) on top of the world's own (the suite adds none)",
+    )
+
+
 def embed_world(model, folder: Path, tilt_deg: float = 0.0, threads: int = 2) -> EmbeddedWorld:
     """`folder` (from `disco simulate`) embedded as the suite queries it; `tilt_deg` adds
     a random query tilt seeded by the world's own seed (the benchmarks' --tilt)."""

@@ -20,21 +20,15 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import ood_suite as suite  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("world", type=Path, help="a folder of `disco simulate` with sessions 00, 01")
-    ap.add_argument(
-        "--tilt",
-        type=float,
-        default=0.0,
-        help="extra random query tilt (deg) on top of the world's own (the suite adds none)",
-    )
+    suite.add_world_arguments(ap)
     ap.add_argument("--top", type=int, default=3, help="how many best matches to re-order")
     args = ap.parse_args()
 
-    import ood_suite as suite
     from _common import print_header
 
     from disco_cli.database import Database, ModelInfo, ScanBatch

@@ -20,21 +20,15 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import ood_suite as suite  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("world", type=Path, help="a folder of `disco simulate` with sessions 00, 01")
-    ap.add_argument(
-        "--tilt",
-        type=float,
-        default=0.0,
-        help="extra random query tilt (deg) on top of the world's own (the suite adds none)",
-    )
+    suite.add_world_arguments(ap)
     ap.add_argument("--model", default="default")
     args = ap.parse_args()
 
-    import ood_suite as suite
     from _common import print_header
 
     from disco_cli.model import load_model
@@ -54,7 +48,7 @@ def main() -> None:
     images = {
         "re-centred G": lambda f: f[0],
         "re-centred U": lambda f: f[1],
-        "re-centred G - U": lambda f: f[0] - f[1],
+        "re-centred G - U": model.refine_image,  # what the shipped search re-centres
     }
     errors: dict[str, list[float]] = {"plain G": [], **{k: [] for k in images}}
     position_errors = []  # of G - U's winning position against the map sensor's true one

@@ -418,8 +418,8 @@ def match_queries(
             order = np.lexsort((r, d_new))[:k]
             r, d, yaw = r[order], d_new[order], yaw[order]
             sel = order
-        else:
-            r, d = r_all[:first], d_all[:first]
+        else:  # the search returned `first` rows: no wider pass without re-ranking
+            r, d = r_all, d_all
             stored = db.rows(ids[r])
             sel = np.arange(len(r))
             yaw = None

@@ -165,14 +165,13 @@ def apply_rerank(model: Any, rerank: int | None, wider: int | None = None) -> An
 
     if rerank is not None:
         model.rerank_candidates = check_rerank(model, rerank)
-    if wider is not None:
-        if wider > 0 and not hasattr(model, "rerank_wider"):
-            from disco_cli.errors import DiscoError
+    if wider is not None and hasattr(model, "rerank_wider"):
+        model.rerank_wider = int(wider)
+    elif wider:  # 0 asks for no wider pass, which a model without one already does
+        from disco_cli.errors import DiscoError
 
-            name = getattr(model, "name", "?")
-            raise DiscoError(f"model {name} has no wider re-ranking pass; leave out --rerank-wider")
-        if hasattr(model, "rerank_wider"):
-            model.rerank_wider = int(wider)
+        name = getattr(model, "name", "?")
+        raise DiscoError(f"model {name} has no wider re-ranking pass; leave out --rerank-wider")
     return model
 
 
