@@ -414,11 +414,15 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
         from disco_cli.model.yaw_refine import VERSION
 
         head["refine_version"] = VERSION
-    from disco_cli.search import rerank_depth, rerank_wider
+    from disco_cli.search import rerank_depth, rerank_wider, snap_settings
 
-    wider = rerank_wider(model, rerank_depth(model))
+    depth = rerank_depth(model)
+    wider = rerank_wider(model, depth)
     if wider[0]:  # rows from before the wider pass have no such key, and are redone
         head["rerank_wider"] = list(wider)
+    snap = snap_settings(model)
+    if depth and snap[0]:  # likewise rows from before the snap
+        head["snap"] = list(snap)
     if f.is_file():
         lines = f.read_text().splitlines()
         old = json.loads(lines[0])

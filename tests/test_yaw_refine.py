@@ -8,7 +8,7 @@ from scipy.ndimage import map_coordinates
 
 from disco_cli.bev import BEVConfig, polar_bev
 from disco_cli.model.yaw import estimate_yaw, wrap_deg
-from disco_cli.model.yaw_refine import recentre, refine_one, refine_yaw
+from disco_cli.model.yaw_refine import query_in_match_frame, recentre, refine_one, refine_yaw
 from disco_cli.readers import read_scan
 
 R, S, MAX_RANGE = 40, 120, 80.0
@@ -87,6 +87,19 @@ def test_scans_metres_apart_get_their_yaw_without_parallax(samples):
             [np.cos(a) * xy[0] + np.sin(a) * xy[1], -np.sin(a) * xy[0] + np.cos(a) * xy[1]]
         )
         assert np.hypot(*(where - truth)) <= 1.0, (xy, yaw, where, truth)
+
+
+def test_query_position_in_the_match_frame(samples):
+    """`moved` puts the query sensor at xy in the match's frame, headed yaw: that is what
+    query_in_match_frame must find, to the search's 0.5 m step."""
+    points = read_scan(samples / "00" / "velodyne" / "000010.bin")
+    cfg = BEVConfig()
+    match = polar_bev(points, cfg).sum(axis=0)
+    for xy, yaw in CASES:
+        query = polar_bev(moved(points, xy, yaw), cfg).sum(axis=0)
+        got_yaw, position = query_in_match_frame(query, match, cfg.max_range)
+        assert abs(wrap_deg(got_yaw - yaw)) <= 1.0, (xy, yaw, got_yaw)
+        assert np.hypot(*(position - np.array(xy))) <= 0.5, (xy, yaw, position)
 
 
 def test_real_scan_metres_apart_gets_its_yaw(realdata):

@@ -31,6 +31,8 @@ __all__ = [
     "check_rerank",
     "rerank_depth",
     "rerank_wider",
+    "snap_settings",
+    "snap_to_nearest",
 ]
 
 _EPS32 = float(np.finfo(np.float32).eps)
@@ -315,6 +317,20 @@ def check_refine_yaw(n: int) -> int:
     return n
 
 
+def check_snap_radius(model: Any, radius: float) -> float:
+    """`radius` (m) when the model can snap its best match to the nearest map scan, or
+    it is 0; `DiscoError` otherwise."""
+    from disco_cli.errors import DiscoError
+
+    radius = float(radius)
+    if not np.isfinite(radius) or radius < 0:
+        raise DiscoError(f"snap radius must be a distance >= 0 m, not {radius}")
+    if radius > 0 and not hasattr(model, "query_position"):
+        name = getattr(model, "name", "?")
+        raise DiscoError(f"model {name} cannot estimate the query's position; use --snap-radius 0")
+    return radius
+
+
 def refine_yaw_count(model: Any) -> int:
     """How many best matches get the model's parallax-free yaw (0: it has none)."""
     if not hasattr(model, "refine_yaw"):
@@ -374,6 +390,51 @@ def rerank_wider(model: Any, first: int) -> tuple[int, float]:
     return depth, float(model.rerank_wider_above)
 
 
+def snap_settings(model: Any) -> tuple[float, float]:
+    """(radius m, margin) of the model's snap to the nearest map scan; (0, 0) for none."""
+    radius = float(getattr(model, "snap_radius", 0.0) or 0.0)
+    if radius <= 0 or not hasattr(model, "query_position"):
+        return 0.0, 0.0
+    return radius, float(model.snap_margin)
+
+
+def snap_to_nearest(
+    model: Any,
+    query_features: np.ndarray,
+    stored: Any,
+    order: np.ndarray,
+    distances: np.ndarray,
+    radius: float,
+    margin: float,
+) -> tuple[np.ndarray, float | None]:
+    """`order` (indices into `stored` and `distances`, best first) with the map scan
+    nearest the query's position first, and the parallax-free yaw of that first one
+    when it was computed here (None otherwise).
+
+    The query's position is estimated from the best match alone (its pose on the map
+    plus `model.query_position`); the candidates that may take its place lie within
+    `radius` m of it on the map and re-rank within `margin` of its distance. Alike
+    neighbours of one street re-rank within a few hundredths of each other, so the
+    first of the order is often the scan a metre or two past the query's; the pose
+    says which is nearer. Without a pose on the best match, `order` stays."""
+    best = int(order[0])
+    pose = np.asarray(stored.poses, dtype=np.float64)
+    if not np.isfinite(pose[best, [0, 1, 3]]).all():
+        return order, None
+    yaw, t = model.query_position(query_features, stored.features[best])
+    c, s = np.cos(pose[best, 3]), np.sin(pose[best, 3])
+    estimate = pose[best, :2] + np.array([c * t[0] - s * t[1], s * t[0] + c * t[1]])
+    xy = pose[order, :2]
+    with np.errstate(invalid="ignore"):  # NaN poses compare False: never candidates
+        near = np.hypot(*(xy - pose[best, :2]).T) <= radius
+    alike = distances[order] <= distances[best] + margin
+    cands = order[near & alike]  # holds best itself
+    nearest = int(cands[np.argmin(np.hypot(*(pose[cands, :2] - estimate).T))])
+    if nearest == best:
+        return order, yaw
+    return np.r_[nearest, order[order != nearest]], None
+
+
 def match_queries(
     index: SignatureIndex,
     ids: np.ndarray,
@@ -393,9 +454,12 @@ def match_queries(
     features of the top rows only. `db` is a `Database` (anything with `rows(ids)`).
     `rerank` overrides the model's re-ranking depth; where the best of those re-ranks
     worse than the model's `rerank_wider_above`, the candidates down to its
-    `rerank_wider` are re-ranked too (`rerank_wider`). The yaw of the best `refine_yaw`
-    matches (default: the model's `refine_yaw_top`, else `REFINE_YAW`) is re-estimated
-    without parallax when the model can (its `refine_yaw` hook)."""
+    `rerank_wider` are re-ranked too (`rerank_wider`). Where the map has poses, the
+    re-ranked best is then snapped to the map scan nearest the query (`snap_to_nearest`,
+    with the model's `snap_radius` and `snap_margin`; 0: never). The yaw of
+    the best `refine_yaw` matches (default: the model's `refine_yaw_top`, else
+    `REFINE_YAW`) is re-estimated without parallax when the model can (its `refine_yaw`
+    hook)."""
     if refine_yaw is None:
         refine_n = refine_yaw_count(model)
     else:
@@ -403,6 +467,7 @@ def match_queries(
     rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
     first = max(k, rerank_n) if rerank_n > 0 else k
     wider_n, wider_above = rerank_wider(model, first) if rerank_n > 0 else (0, float("inf"))
+    snap_r, snap_margin = snap_settings(model) if rerank_n > 0 else (0.0, 0.0)
     rows, dists = index.search(signatures, max(first, wider_n), limit=limit, exclude=exclude)
     out: list[list[Match]] = []
     for i in range(len(rows)):
@@ -411,11 +476,17 @@ def match_queries(
         if len(r_all) == 0:
             out.append([])
             continue
+        first_yaw = None
         if rerank_n > 0:
             r, stored, d_new, yaw = _reranked(
                 model, features[i], db, ids, r_all, first, wider_above
             )
-            order = np.lexsort((r, d_new))[:k]
+            order = np.lexsort((r, d_new))
+            if snap_r > 0:
+                order, first_yaw = snap_to_nearest(
+                    model, features[i], stored, order, d_new, snap_r, snap_margin
+                )
+            order = order[:k]
             r, d, yaw = r[order], d_new[order], yaw[order]
             sel = order
         else:  # the search returned `first` rows: no wider pass without re-ranking
@@ -431,8 +502,11 @@ def match_queries(
         if len(r) and yaw is None:
             yaw = np.asarray(model.yaw(features[i], stored.features[sel]), dtype=np.float64)
         if len(r) and refine_n > 0:
-            n = min(refine_n, len(r))
-            yaw[:n] = model.refine_yaw(features[i], stored.features[sel[:n]])
+            todo = np.arange(min(refine_n, len(r)))
+            if first_yaw is not None and sel[0] == order[0]:  # the snap refined it
+                yaw[0], todo = first_yaw, todo[1:]
+            if len(todo):
+                yaw[todo] = model.refine_yaw(features[i], stored.features[sel[todo]])
         out.append(
             [
                 Match(

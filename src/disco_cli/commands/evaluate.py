@@ -32,9 +32,11 @@ from disco_cli.commands.options import (
     RerankOpt,
     RerankWiderOpt,
     ScanFormatOpt,
+    SnapRadiusOpt,
     TopicOpt,
     apply_refine_yaw,
     apply_rerank,
+    apply_snap,
     db_option,
     model_option,
     opt,
@@ -81,6 +83,7 @@ def evaluate(
     rerank: RerankOpt = None,
     rerank_wider: RerankWiderOpt = None,
     refine_yaw: RefineYawOpt = None,
+    snap_radius: SnapRadiusOpt = None,
     report: ReportOpt = None,
     fmt: MetricsFormatOpt = None,
 ) -> None:
@@ -101,6 +104,7 @@ def evaluate(
             load_model(model_name or "default", device=device), rerank, rerank_wider
         )
         apply_refine_yaw(model, refine_yaw)
+        apply_snap(model, snap_radius)
         say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
         proto, results = run_protocol(
             protocol, queries[0], model, warn=warn, progress=say, oxford_scale=oxford_scale
@@ -122,6 +126,7 @@ def evaluate(
     ):
         apply_rerank(m.model, rerank, rerank_wider)
         apply_refine_yaw(m.model, refine_yaw)
+        apply_snap(m.model, snap_radius)
         ev = multi_session(paths, q_poses, m.database, m.model, radius, topk, scan_format, step)
     run = {
         "protocol": "multi-session",

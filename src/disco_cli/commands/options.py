@@ -175,6 +175,29 @@ def apply_rerank(model: Any, rerank: int | None, wider: int | None = None) -> An
     return model
 
 
+SnapRadiusOpt = Annotated[
+    Optional[float],
+    typer.Option(
+        "--snap-radius",
+        min=0.0,
+        metavar="M",
+        help="Where the map has poses, make the best match the map scan nearest the "
+        "query's position estimated from it, among those within M m of it that re-rank "
+        "about as well (0: the best re-ranked); default: the model's own (5 for DiSCO).",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
+
+
+def apply_snap(model: Any, radius: float | None) -> Any:
+    """Set the model's snap radius when --snap-radius was given; returns the model."""
+    if radius is not None:
+        from disco_cli.search import check_snap_radius
+
+        model.snap_radius = check_snap_radius(model, radius)
+    return model
+
+
 RefineYawOpt = Annotated[
     Optional[int],
     typer.Option(

@@ -30,11 +30,13 @@ from disco_cli.commands.options import (
     RerankWiderOpt,
     ScanFormatOpt,
     ScanRootOpt,
+    SnapRadiusOpt,
     TopicOpt,
     VerifyMatchesOpt,
     WorkersOpt,
     apply_refine_yaw,
     apply_rerank,
+    apply_snap,
     db_option,
     model_option,
     opt,
@@ -86,6 +88,7 @@ def query(
     rerank: RerankOpt = None,
     rerank_wider: RerankWiderOpt = None,
     refine_yaw: RefineYawOpt = None,
+    snap_radius: SnapRadiusOpt = None,
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.console import RowWriter
@@ -106,6 +109,7 @@ def query(
         m.on_missing_scan = warn
         apply_rerank(m.model, rerank, rerank_wider)
         apply_refine_yaw(m.model, refine_yaw)
+        apply_snap(m.model, snap_radius)
         if exclude_radius is not None:  # the query's own scan, and those near its pose
             opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
             poses_of = QueryPoses(query_poses, opts, known, warn=error)

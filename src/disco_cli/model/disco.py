@@ -14,7 +14,7 @@ from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet import DiscoNet
 from disco_cli.model.verify import aligned_correlation
 from disco_cli.model.yaw import estimate_yaw
-from disco_cli.model.yaw_refine import refine_yaw
+from disco_cli.model.yaw_refine import query_in_match_frame, refine_yaw
 
 # Scans per forward pass at inference: large enough to amortize, small enough for memory.
 _BATCH = 64
@@ -25,6 +25,13 @@ RERANK_CANDIDATES = 10
 # Chosen on the selection worlds 5001-5008 (docs/model.md, "Re-ranking wider when unsure").
 RERANK_WIDER = 40
 RERANK_WIDER_ABOVE = 0.7
+# The best match is then snapped to the map scan nearest the query's position estimated
+# from it (search.snap_to_nearest): among the candidates within SNAP_RADIUS m of it on
+# the map that re-rank within SNAP_MARGIN of its distance. 5 m is as far as the position
+# estimate reaches. Checked on the selection worlds 5001-5008 (docs/model.md, "Snapping
+# to the nearest map scan").
+SNAP_RADIUS = 5.0
+SNAP_MARGIN = 0.1
 
 
 def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
@@ -84,6 +91,8 @@ class DiscoModel:
         self.rerank_candidates = RERANK_CANDIDATES
         self.rerank_wider = RERANK_WIDER
         self.rerank_wider_above = RERANK_WIDER_ABOVE
+        self.snap_radius = SNAP_RADIUS
+        self.snap_margin = SNAP_MARGIN
         # The name is left out: the same weights loaded as `default` or by path are one model.
         config = {k: v for k, v in self.config_dict().items() if k != "model"}
         self.fingerprint = weights_hash(self.net.state_dict(), config)
@@ -147,6 +156,17 @@ class DiscoModel:
         resample better than the learned G (mean error 0.11 against 0.22 degrees on the
         terrace hard set, docs/model.md), so that image is re-centred when there is one."""
         return refine_yaw(
+            self.refine_image(query_features),
+            self.refine_image(match_features),
+            self.bev_config.max_range,
+        )
+
+    def query_position(
+        self, query_features: np.ndarray, match_features: np.ndarray
+    ) -> tuple[float, np.ndarray]:
+        """(yaw_deg, position [2] of the query sensor in the match's frame, m) of one
+        match, parallax-free (`refine_yaw`'s yaw for that match)."""
+        return query_in_match_frame(
             self.refine_image(query_features),
             self.refine_image(match_features),
             self.bev_config.max_range,
