@@ -234,3 +234,30 @@ def test_snap_radius_reaches_the_report_and_is_checked(offset_world, tmp_path) -
     assert result.exit_code == 1
     assert "spectral cannot estimate the query's position" in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_map_query_snap_radius(offset_world) -> None:
+    """The Python API's `snap_radius` does what `--snap-radius` does: by default each
+    query's first match is the map scan nearest it; 0 gives the CLI's --snap-radius 0
+    order; a negative radius is one clear error."""
+    from test_eval_cli import run
+
+    from disco_cli.map import Map
+    from disco_cli.readers import read_scan
+
+    root, db, map_xy, query_xy = offset_world
+    scans = sorted((root / "01" / "velodyne").glob("*.bin"))
+    result = run(
+        "query", root / "01", "--db", db, "--topk", "1", "--format", "jsonl", "--snap-radius", "0"
+    )
+    assert result.exit_code == 0, result.output
+    cli_off = [int(Path(json.loads(ln)["match"]).stem) for ln in result.stdout.splitlines()]
+    with Map.open(db) as m:
+        for scan, q, off in zip(scans, query_xy, cli_off):
+            points = read_scan(scan)
+            (first,) = m.query(points, topk=1)
+            assert int(Path(first.name).stem) == int(np.argmin(np.hypot(*(map_xy - q).T)))
+            (first,) = m.query(points, topk=1, snap_radius=0)
+            assert int(Path(first.name).stem) == off
+        with pytest.raises(DiscoError, match="snap radius"):
+            m.query(read_scan(scans[0]), snap_radius=-1)

@@ -611,6 +611,7 @@ class Map:
         exclude: Any,
         max_distance: float | None,
         refine_yaw: int | None = None,
+        snap_radius: float | None = None,
     ) -> list:
         from disco_cli.search import match_queries
 
@@ -627,6 +628,7 @@ class Map:
             max_distance=max_distance,
             rerank=rerank,
             refine_yaw=refine_yaw,
+            snap_radius=snap_radius,
         )[0]
 
     def query(
@@ -641,6 +643,7 @@ class Map:
         max_distance: float | None = None,
         name: str = "points",
         refine_yaw: int | None = None,
+        snap_radius: float | None = None,
     ) -> list[Match]:
         """The `topk` best matches of one scan (an N x 3 or N x 4 array), best first.
 
@@ -651,13 +654,18 @@ class Map:
         `exclude`: match ids (or a boolean mask over the map) to leave out;
         `max_distance` drops worse matches. `name` names the scan in errors.
         `refine_yaw`: how many best matches get the parallax-free yaw (default 1).
+        `snap_radius`: where the map has poses, the first match is the one nearest the
+        query's estimated position among those within this many metres of the best
+        (default: the model's, 5 m for DiSCO; 0: the best re-ranked).
         """
         from disco_cli.pipeline import array_points, embed_one
 
         self._check_open()
         pts = array_points(points, name)
         sig, feat = embed_one(pts, self._model, name)
-        found = self._search(sig, feat, topk, rerank, exclude, max_distance, refine_yaw)
+        found = self._search(
+            sig, feat, topk, rerank, exclude, max_distance, refine_yaw, snap_radius
+        )
         if not (pose or verify):
             return [as_match(m) for m in found]
         return refine_matches(found, pts, self._points.get, verify=verify)
@@ -679,6 +687,7 @@ class Map:
         workers: int = 1,
         scan_format: str | None = None,
         refine_yaw: int | None = None,
+        snap_radius: float | None = None,
     ) -> Iterator[QueryResult]:
         """Query scan files, streamed: reading and voxelizing run ahead on `workers`
         threads, and each result is yielded as soon as it is ready, in input order.
@@ -705,6 +714,7 @@ class Map:
                             ex,
                             max_distance,
                             refine_yaw,
+                            snap_radius,
                         )
                     except DiscoError as exc:
                         yield QueryResult(item.index, item.path, [], exc)

@@ -448,6 +448,7 @@ def match_queries(
     max_distance: float | None = None,
     rerank: int | None = None,
     refine_yaw: int | None = None,
+    snap_radius: float | None = None,
 ) -> list[list[Match]]:
     """Top-k matches of each query with their yaw: signature search, then the model's
     `rerank` hook when it asks for one (DiSCO, Scan Context), then yaw from the stored
@@ -456,7 +457,7 @@ def match_queries(
     worse than the model's `rerank_wider_above`, the candidates down to its
     `rerank_wider` are re-ranked too (`rerank_wider`). Where the map has poses, the
     re-ranked best is then snapped to the map scan nearest the query (`snap_to_nearest`,
-    with the model's `snap_radius` and `snap_margin`; 0: never). The yaw of
+    within `snap_radius` m, default the model's `snap_radius`; 0: never). The yaw of
     the best `refine_yaw` matches (default: the model's `refine_yaw_top`, else
     `REFINE_YAW`) is re-estimated without parallax when the model can (its `refine_yaw`
     hook)."""
@@ -467,7 +468,12 @@ def match_queries(
     rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
     first = max(k, rerank_n) if rerank_n > 0 else k
     wider_n, wider_above = rerank_wider(model, first) if rerank_n > 0 else (0, float("inf"))
-    snap_r, snap_margin = snap_settings(model) if rerank_n > 0 else (0.0, 0.0)
+    snap_r, snap_margin = snap_settings(model)
+    if snap_radius is not None:
+        snap_r = check_snap_radius(model, snap_radius)
+        snap_margin = float(getattr(model, "snap_margin", 0.0))
+    if rerank_n == 0:  # the signature order has no re-ranked candidates to snap among
+        snap_r = 0.0
     rows, dists = index.search(signatures, max(first, wider_n), limit=limit, exclude=exclude)
     out: list[list[Match]] = []
     for i in range(len(rows)):
