@@ -11,7 +11,9 @@ Frames and units, for `Match` here and `Loop` in `loop_detector.py`:
 - `roll_deg`, `pitch_deg`, `yaw_deg` with a pose: T's rotation R = Rz(yaw) Ry(pitch)
   Rx(roll) (intrinsic z-y'-x'', the usual vehicle convention), pitch in [-90, 90].
 - `distance`: 1 - the aligned correlation of the feature images after re-ranking, or
-  the signature distance for models that do not re-rank; smaller is closer.
+  the signature distance for models that do not re-rank; smaller is closer. The first
+  match may re-rank a little worse than the second where it lies nearer the query
+  (`search.snap_to_nearest`).
 """
 
 from __future__ import annotations
