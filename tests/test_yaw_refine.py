@@ -89,10 +89,9 @@ def test_scans_metres_apart_get_their_yaw_without_parallax(samples):
         assert np.hypot(*(where - truth)) <= 1.0, (xy, yaw, where, truth)
 
 
-def test_query_position_in_the_match_frame(samples):
+def check_query_positions(points: np.ndarray) -> None:
     """`moved` puts the query sensor at xy in the match's frame, headed yaw: that is what
     query_in_match_frame must find, to the search's 0.5 m step."""
-    points = read_scan(samples / "00" / "velodyne" / "000010.bin")
     cfg = BEVConfig()
     match = polar_bev(points, cfg).sum(axis=0)
     for xy, yaw in CASES:
@@ -100,6 +99,14 @@ def test_query_position_in_the_match_frame(samples):
         got_yaw, position = query_in_match_frame(query, match, cfg.max_range)
         assert abs(wrap_deg(got_yaw - yaw)) <= 1.0, (xy, yaw, got_yaw)
         assert np.hypot(*(position - np.array(xy))) <= 0.5, (xy, yaw, position)
+
+
+def test_query_position_in_the_match_frame(samples):
+    check_query_positions(read_scan(samples / "00" / "velodyne" / "000010.bin"))
+
+
+def test_query_position_on_a_real_scan(realdata):
+    check_query_positions(read_scan(sorted((realdata / "kitti00").rglob("*.bin"))[0]))
 
 
 def test_real_scan_metres_apart_gets_its_yaw(realdata):
