@@ -2,11 +2,14 @@
 tilted or shifted in z: how model selection and the tilt measurement of docs/model.md ran.
 
     .venv/bin/python benchmarks/ood_eval.py WORLD... --models default ft.pt [--tilt 3] [--z 0.5]
+        [--rerank-wider 0] [--snap-radius 0]
 
 `NAME+svM` is NAME with a map of side views M m to each side (as in ood_suite.py).
 
 Each WORLD holds sessions 00 (the map) and 01 (the queries); a match is true within 5 m.
-Prints one line per model: Recall@1 / Recall@5 / mean yaw error (deg) per world.
+Prints one line per model: Recall@1 / Recall@5 / mean yaw error (deg) and the misses of
+Recall@1 per world. `--rerank-wider 0 --snap-radius 0` gives the network's search as it
+was before those two steps.
 """
 
 from __future__ import annotations
@@ -44,6 +47,10 @@ def main() -> int:
     ap.add_argument("--z", type=float, default=0.0, help="queries shifted by this (m)")
     ap.add_argument("--seed", type=int, default=1, help="seed of the tilts")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--rerank-wider", type=int, help="the network's wider pass depth (0: none; as the CLI)"
+    )
+    ap.add_argument("--snap-radius", type=float, help="the network's snap radius (0: none)")
     args = ap.parse_args()
 
     import torch
@@ -54,14 +61,24 @@ def main() -> int:
     for name in args.models:
         base, side_views = S.split_side_views(name)
         model = load_model(base)
+        if args.rerank_wider is not None and hasattr(model, "rerank_wider"):
+            model.rerank_wider = args.rerank_wider
+        if args.snap_radius is not None and hasattr(model, "snap_radius"):
+            model.snap_radius = args.snap_radius
         cells = []
         for w in args.worlds:
             mp, mpose = S.load_session(w / "00")
             qp, qpose = S.load_session(w / "01")
             tf = _Lift(args.z) if args.z else None
             q = S.Queries(qp, qpose, args.tilt, seed=args.seed, transform=tf)
-            s = S.summarize(S.evaluate(model, mp, mpose, q, args.threads, side_views))
-            cells.append(f"{w.name} {s['r1']:.3f} / {s['r5']:.3f} / {s['yaw_mean']:.2f}")
+            rows = S.evaluate(model, mp, mpose, q, args.threads, side_views)
+            s = S.summarize(rows)
+            has = [r for r in rows if r["has"]]
+            miss = sum(not r["r1"] for r in has)
+            cells.append(
+                f"{w.name} {s['r1']:.3f} / {s['r5']:.3f} / {s['yaw_mean']:.2f} "
+                f"({miss} of {len(has)} missed)"
+            )
         print(S.model_key(name), " | ".join(cells), flush=True)
     return 0
 
