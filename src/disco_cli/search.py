@@ -31,6 +31,7 @@ __all__ = [
     "check_rerank",
     "rerank_depth",
     "rerank_wider",
+    "check_snap_radius",
     "snap_settings",
     "snap_to_nearest",
 ]
