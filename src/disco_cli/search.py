@@ -325,7 +325,7 @@ def check_snap_radius(model: Any, radius: float) -> float:
 
     radius = float(radius)
     if not np.isfinite(radius) or radius < 0:
-        raise DiscoError(f"snap radius must be a distance >= 0 m, not {radius}")
+        raise DiscoError(f"snap radius must be a finite distance >= 0 m, not {radius}")
     if radius > 0 and not hasattr(model, "query_position"):
         name = getattr(model, "name", "?")
         raise DiscoError(f"model {name} cannot estimate the query's position; use --snap-radius 0")
