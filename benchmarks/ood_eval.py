@@ -4,7 +4,8 @@ tilted or shifted in z: how model selection and the tilt measurement of docs/mod
     .venv/bin/python benchmarks/ood_eval.py WORLD... --models default ft.pt [--tilt 3] [--z 0.5]
         [--rerank-wider 0] [--snap-radius 0]
 
-`NAME+svM` is NAME with a map of side views M m to each side (as in ood_suite.py).
+`NAME+svM` is NAME with a map of side views M m to each side, `spectral+snap` the floor
+searched with the network's snap to the nearest map scan (as in ood_suite.py).
 
 Each WORLD holds sessions 00 (the map) and 01 (the queries); a match is true within 5 m.
 Prints one line per model: Recall@1 / Recall@5 / mean yaw error (deg) and the misses of
@@ -55,12 +56,10 @@ def main() -> int:
 
     import torch
 
-    from disco_cli.model import load_model
-
     torch.set_num_threads(args.threads)
     for name in args.models:
-        base, side_views = S.split_side_views(name)
-        model = load_model(base)
+        side_views = S.split_side_views(name)[1]
+        model = S.load_suite_model(name)
         if args.rerank_wider is not None and hasattr(model, "rerank_wider"):
             model.rerank_wider = args.rerank_wider
         if args.snap_radius is not None and hasattr(model, "snap_radius"):

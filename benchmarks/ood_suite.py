@@ -388,6 +388,61 @@ def evaluate(
     return rows
 
 
+class SnappedFloor:
+    """A model that does not re-rank (`spectral`), searched as the network is searched
+    since the snap to the nearest map scan: its 10 nearest signatures, in signature
+    order (their `distance` is the signature distance, so nothing is re-ordered), then
+    the snap within 5 m with no margin (the margin is in the network's units). The
+    suite's `spectral+snap`: what the snap alone gives the training-free floor."""
+
+    def __init__(self, base, radius: float = 5.0, candidates: int = 10):
+        self.base = base
+        self.name = f"{base.name}+snap"
+        self.fingerprint = f"{base.fingerprint}+snap"
+        self.bev_config = base.bev_config
+        self.rerank_candidates = candidates
+        self.snap_radius, self.snap_margin = radius, float("inf")
+
+    def config_dict(self) -> dict:
+        return {**self.base.config_dict(), "model": self.name}
+
+    def embed(self, bevs: np.ndarray):
+        return self.base.embed(bevs)
+
+    def yaw(self, query_features, match_features):
+        return self.base.yaw(query_features, match_features)
+
+    def refine_yaw(self, query_features, match_features):
+        return self.base.refine_yaw(query_features, match_features)
+
+    def rerank(self, query_features, candidate_features):
+        from disco_cli.model.signature import signatures
+
+        q = signatures(query_features, self.base.crop).astype(np.float64)
+        c = signatures(candidate_features, self.base.crop).astype(np.float64)
+        return np.linalg.norm(c - q, axis=1), self.yaw(query_features, candidate_features)
+
+    def query_position(self, query_features, match_features):
+        from disco_cli.model.yaw_refine import query_in_match_frame
+
+        return query_in_match_frame(query_features, match_features, self.bev_config.max_range)
+
+
+def load_suite_model(name: str):
+    """The model behind a suite name: a model name or checkpoint, `+snap` for a floor
+    searched with the snap (`SnappedFloor`); side views (`+svM`) are the map's business."""
+    from disco_cli.model import load_model
+
+    base, side_views = split_side_views(name)
+    if base.endswith("+snap"):
+        if side_views:
+            # Its "re-ranking" is the scan's own signature distance, which would undo
+            # what the side views found.
+            raise SystemExit(f"{name}: a floor with the snap takes no side views")
+        return SnappedFloor(load_model(base[: -len("+snap")]))
+    return load_model(base)
+
+
 def model_key(name: str) -> str:
     base, sv = split_side_views(name)
     key = Path(base).stem if base.endswith(".pt") else base
@@ -598,7 +653,13 @@ def target_lines(worlds, rows, real_rows, models, dm="default", sm="spectral") -
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="a few minutes: one style, 32 beams")
-    ap.add_argument("--models", nargs="+", default=None, help="names or checkpoint paths")
+    ap.add_argument(
+        "--models",
+        nargs="+",
+        default=None,
+        help="names or checkpoint paths; NAME+svM: a map with side views M m to each side; "
+        "spectral+snap: the floor searched with the network's snap to the nearest map scan",
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "ood")
     ap.add_argument("--realdata", type=Path, default=ROOT.parent / "shared" / "realdata")
     ap.add_argument("--disco", default=str(ROOT / ".venv" / "bin" / "disco"))
@@ -620,13 +681,11 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from disco_cli.model import load_model
-
     torch.set_num_threads(args.threads)
     models = args.models or DEFAULT_MODELS
     loaded, side = {}, {}
     for name in models:
-        loaded[model_key(name)] = load_model(split_side_views(name)[0])
+        loaded[model_key(name)] = load_suite_model(name)
         side[model_key(name)] = split_side_views(name)[1]
     keys = list(loaded)
     caps = simulator_options(args.disco)
