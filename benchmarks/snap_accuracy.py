@@ -100,6 +100,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=S.ROOT / "out" / "ood")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--list", action="store_true", help="each query the snap finds or loses")
+    ap.add_argument("--radius", type=float, help="snap radius (m); default the model's")
+    ap.add_argument("--margin", type=float, help="snap margin; default the model's")
     args = ap.parse_args()
 
     import torch
@@ -114,6 +116,10 @@ def main() -> int:
     model = load_model(args.model)
     if not getattr(model, "snap_radius", 0):
         raise SystemExit(f"model {model.name} does not snap")
+    if args.radius is not None:
+        model.snap_radius = args.radius
+    if args.margin is not None:
+        model.snap_margin = args.margin
     print_header("snap_accuracy")
     total: dict[str, list] = {}
     for w in worlds:
@@ -126,7 +132,8 @@ def main() -> int:
     n = len(total["hit0"])
     moved = int(np.sum(total["moved"]))
     print(
-        f"{args.model}, {len(worlds)} worlds, {n} queries with a true match within 5 m:\n"
+        f"{args.model} (snap within {model.snap_radius:g} m, margin {model.snap_margin:g}), "
+        f"{len(worlds)} worlds, {n} queries with a true match within 5 m:\n"
         f"  position estimated from a true best match ({len(err)}): error median {p50:.2f} m, "
         f"p90 {p90:.2f}, p99 {p99:.2f}, max {err.max():.2f}\n"
         f"  the snap moved the best match for {moved} ({100 * moved / n:.0f} %), by a median "
