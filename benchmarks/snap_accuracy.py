@@ -8,7 +8,7 @@ does, once without the snap and once with it. Printed, over the queries whose be
 before the snap lies within 5 m (a true match):
 
 - the error of the query's position estimated from that best match
-  (`model.query_position` plus the match's pose): median, 90th and 99th percentile, max;
+  (`search.query_on_map`, what the snap uses): median, 90th and 99th percentile, max;
 - how often the snap moves the best match, and how far (median, on the map);
 - Recall@1 (a match within 5 m) without and with the snap; with --list, each query it
   finds or loses: how far the best match lay, and where the true one was.
@@ -47,7 +47,7 @@ class _MapRows:
 
 def measure(model, world: S.EmbeddedWorld, name: str) -> dict[str, list]:
     from disco_cli.poses import xy_yaw
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.search import SignatureIndex, match_queries, query_on_map
 
     mx, my, myaw = xy_yaw(world.map_poses)
     qx, qy, _ = xy_yaw(world.queries.poses)
@@ -86,9 +86,7 @@ def measure(model, world: S.EmbeddedWorld, name: str) -> dict[str, list]:
         if a != b:
             out["move_m"].append(math.hypot(mx[a] - mx[b], my[a] - my[b]))
         if d[b] <= RADIUS:
-            _, t = model.query_position(qf[i], world.map_features[b])
-            c, s = math.cos(myaw[b]), math.sin(myaw[b])
-            ex, ey = mx[b] + c * t[0] - s * t[1], my[b] + s * t[0] + c * t[1]
+            _, (ex, ey) = query_on_map(model, qf[i], world.map_features[b], pose4[b])
             out["err"].append(math.hypot(ex - qx[i], ey - qy[i]))
     return out
 

@@ -399,6 +399,18 @@ def snap_settings(model: Any) -> tuple[float, float]:
     return radius, float(model.snap_margin)
 
 
+def query_on_map(
+    model: Any, query_features: np.ndarray, match_features: np.ndarray, pose: np.ndarray
+) -> tuple[float, np.ndarray]:
+    """(parallax-free yaw to the match, x, y [2] of the query sensor on the map), from one
+    match whose `pose` is its x, y, z, yaw (rad) on the map (`model.query_position`)."""
+    yaw, t = model.query_position(query_features, match_features)
+    c, s = np.cos(pose[3]), np.sin(pose[3])
+    return yaw, np.asarray(pose[:2], np.float64) + np.array(
+        [c * t[0] - s * t[1], s * t[0] + c * t[1]]
+    )
+
+
 def snap_to_nearest(
     model: Any,
     query_features: np.ndarray,
@@ -422,9 +434,7 @@ def snap_to_nearest(
     pose = np.asarray(stored.poses, dtype=np.float64)
     if not np.isfinite(pose[best, [0, 1, 3]]).all():
         return order, None
-    yaw, t = model.query_position(query_features, stored.features[best])
-    c, s = np.cos(pose[best, 3]), np.sin(pose[best, 3])
-    estimate = pose[best, :2] + np.array([c * t[0] - s * t[1], s * t[0] + c * t[1]])
+    yaw, estimate = query_on_map(model, query_features, stored.features[best], pose[best])
     xy = pose[order, :2]
     with np.errstate(invalid="ignore"):  # NaN poses compare False: never candidates
         near = np.hypot(*(xy - pose[best, :2]).T) <= radius
