@@ -3,22 +3,13 @@ re-ranks the next ones down to the model's `rerank_wider` (search.match_queries)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 
+from disco_cli.database import MatchRows
 from disco_cli.search import SignatureIndex, match_queries, rerank_wider
 
 N = 12
-
-
-@dataclass
-class _Rows:
-    ids: np.ndarray
-    paths: list[str]
-    poses: np.ndarray
-    features: np.ndarray
 
 
 class _Db:
@@ -28,10 +19,10 @@ class _Db:
         self.scores = np.asarray(scores, np.float64)
         self.fetched: list[int] = []
 
-    def rows(self, ids: np.ndarray) -> _Rows:
+    def rows(self, ids: np.ndarray) -> MatchRows:
         ids = np.asarray(ids)
         self.fetched = [int(i) for i in ids]
-        return _Rows(ids, [f"scan{i}" for i in ids], np.zeros((len(ids), 4)), self.scores[ids])
+        return MatchRows(ids, [f"scan{i}" for i in ids], np.zeros((len(ids), 4)), self.scores[ids])
 
 
 class _Model:

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from disco_cli.database import MatchRows
 from disco_cli.errors import DiscoError
 from disco_cli.search import (
     SignatureIndex,
@@ -20,14 +20,6 @@ from disco_cli.search import (
     snap_settings,
     snap_to_nearest,
 )
-
-
-@dataclass
-class _Rows:
-    ids: np.ndarray
-    paths: list[str]
-    poses: np.ndarray
-    features: np.ndarray
 
 
 class _Model:
@@ -59,10 +51,12 @@ class _Model:
         return np.full(len(match_features), -1.0)
 
 
-def _stored(poses, scores) -> _Rows:
+def _stored(poses, scores) -> MatchRows:
     n = len(poses)
     feats = np.c_[np.asarray(scores, np.float64), np.arange(n)]
-    return _Rows(np.arange(n), [f"s{i}" for i in range(n)], np.asarray(poses, np.float64), feats)
+    return MatchRows(
+        np.arange(n), [f"s{i}" for i in range(n)], np.asarray(poses, np.float64), feats
+    )
 
 
 def test_the_candidate_nearest_the_estimate_goes_first() -> None:
@@ -112,7 +106,7 @@ class _Db:
     def rows(self, ids):
         ids = np.asarray(ids)
         s = self.stored
-        return _Rows(ids, [s.paths[i] for i in ids], s.poses[ids], s.features[ids])
+        return MatchRows(ids, [s.paths[i] for i in ids], s.poses[ids], s.features[ids])
 
 
 def _match(model, db, k=2, refine_yaw=1):
