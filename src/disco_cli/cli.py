@@ -23,6 +23,7 @@ from disco_cli.commands import (
     info,
     loops,
     query,
+    serve,
     simulate,
     train,
 )
@@ -44,6 +45,7 @@ app.command("build-db", rich_help_panel="Map")(build_db.build_db)
 app.command("info", rich_help_panel="Map")(info.info)
 app.command("query", rich_help_panel="Localize")(query.query)
 app.command("loops", rich_help_panel="Localize")(loops.loops)
+app.command("serve", rich_help_panel="Localize")(serve.serve)
 app.command("eval", rich_help_panel="Evaluate")(evaluate.evaluate)
 app.command("eval-loops", rich_help_panel="Evaluate")(eval_loops.evaluate_loops)
 app.command("bev", rich_help_panel="Inspect")(bev.bev)

@@ -1,0 +1,129 @@
+"""`disco serve`: the latency of one request, against the same query in the server's own
+process (the floor) and a fresh `disco query` process per scan (what a script that
+shells out pays without a server).
+
+    .venv/bin/python benchmarks/bench_serve.py [--map-scans 300] [--queries 60]
+
+A map of 30k-point synthetic scans is built first (`disco build-db`); then a server is
+started on a Unix socket and asked about `--queries` scans, one request at a time over
+one connection, by file path and with the points inline. Printed: the median and 90th
+percentile of each, and the ratio to the in-process query measured in this run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import median_of_ms, print_header, synthetic_scan
+
+
+def percentile_ms(seconds: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(seconds) * 1000.0, q))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--map-scans", type=int, default=300)
+    ap.add_argument("--queries", type=int, default=60)
+    ap.add_argument("--fresh", type=int, default=5, help="fresh `disco query` processes")
+    args = ap.parse_args()
+    print_header("bench_serve")
+
+    from disco_cli.client import Client
+    from disco_cli.map import Map
+
+    exe = Path(sys.executable).parent / "disco"
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        scans = tmp / "scans"
+        scans.mkdir()
+        for i in range(args.map_scans):
+            synthetic_scan(i).tofile(scans / f"{i:06d}.bin")
+        queries = []
+        for i in range(args.queries):  # map scans turned and moved a little
+            pts = synthetic_scan(i * 3 % args.map_scans).copy()
+            a = np.radians(17.0 * i)
+            c, s = np.cos(a), np.sin(a)
+            pts[:, :2] = pts[:, :2] @ np.array([[c, -s], [s, c]], np.float32).T + 0.3
+            path = tmp / f"q{i:04d}.bin"
+            pts.tofile(path)
+            queries.append(str(path))
+        db = tmp / "map.db"
+        subprocess.run(
+            [str(exe), "build-db", str(scans), "-o", str(db)], check=True, stderr=subprocess.DEVNULL
+        )
+
+        # The floor: the same queries in this process, map and model already loaded.
+        with Map.open(db) as m:
+            list(m.query_files(queries[:3], topk=10))  # warm-up
+            floor = []
+            for q in queries:
+                t = time.perf_counter()
+                list(m.query_files([q], topk=10))
+                floor.append(time.perf_counter() - t)
+
+        sock = tmp / "disco.sock"
+        proc = subprocess.Popen(
+            [str(exe), "serve", "--db", str(db), "--socket", str(sock)], stderr=subprocess.PIPE
+        )
+        try:
+            t0 = time.perf_counter()
+            while not sock.exists():
+                if proc.poll() is not None:
+                    raise SystemExit(f"server failed: {proc.stderr.read().decode()}")
+                time.sleep(0.02)
+            ready = time.perf_counter() - t0
+            from disco_cli.readers import read_scan
+
+            inline_pts = [read_scan(q) for q in queries]
+            with Client(sock) as c:
+                for q in queries[:3]:
+                    c.query(q)
+                by_path, inline = [], []
+                for q, pts in zip(queries, inline_pts):
+                    t = time.perf_counter()
+                    c.query(q)
+                    by_path.append(time.perf_counter() - t)
+                    t = time.perf_counter()
+                    c.query(pts)
+                    inline.append(time.perf_counter() - t)
+        finally:
+            proc.terminate()
+            proc.wait(timeout=30)
+
+        fresh = []
+        for q in queries[: args.fresh]:
+            t = time.perf_counter()
+            subprocess.run(
+                [str(exe), "query", q, "--db", str(db)],
+                check=True,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            fresh.append(time.perf_counter() - t)
+
+    base = median_of_ms(floor)
+    print(
+        f"map {args.map_scans} scans, {args.queries} queries of 30k points; "
+        f"server ready in {ready:.2f} s"
+    )
+    print("| request | median ms | p90 ms | x in-process |")
+    print("| --- | ---: | ---: | ---: |")
+    for label, times in (
+        ("in-process Map.query_files (floor)", floor),
+        ("disco serve, scan path", by_path),
+        ("disco serve, points inline", inline),
+        ("fresh `disco query` process", fresh),
+    ):
+        med = median_of_ms(times)
+        print(f"| {label} | {med:.2f} | {percentile_ms(times, 90):.2f} | {med / base:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
