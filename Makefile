@@ -38,7 +38,7 @@ demo: install
 	$(DISCO) info $(OUT)/map.db
 	$(DISCO) query $(SAMPLES)/01/velodyne/000005.bin $(SAMPLES)/01/velodyne/000018.bin \
 	  --db $(OUT)/map.db --topk 3 --pose
-	$(DISCO) loops $(SAMPLES)/00 --model $(MODEL) --exclude-frames 5 --threshold 0.55 \
+	$(DISCO) loops $(SAMPLES)/00 --model $(MODEL) --exclude-frames 5 --max-distance 0.55 \
 	  --verify -o $(OUT)/loops.g2o
 	$(DISCO) bev $(SAMPLES)/00/velodyne/000000.bin -o $(OUT)/bev.png
 	@echo "demo outputs in $(OUT)/"

@@ -121,7 +121,7 @@ def test_refined_pose_recovers_a_known_transform(maps: tuple[Path, Path], tmp_pa
 
 
 def test_loop_detector_streams_the_loops_of_disco_loops(samples: Path, seq_paths) -> None:
-    args = ["--exclude-frames", "5", "--threshold", "0.5", "--verify", "--format", "jsonl"]
+    args = ["--exclude-frames", "5", "--max-distance", "0.5", "--verify", "--format", "jsonl"]
     code, out, err = run("loops", samples / "00", *args)
     assert code == 0, err
     want = jsonl(out)

@@ -682,7 +682,7 @@ def test_pose_stamped_topic_and_eval(data: Path, bin_db: Path) -> None:
     assert code == 0, err
     queries = [SAMPLES / "01" / "velodyne" / f"{i:06d}.bin" for i in QUERY_FRAMES]
     code, out_bin, err = run(
-        "eval", *queries, "--db", bin_db, "--query-poses", data / "query_poses.txt",
+        "eval", *queries, "--db", bin_db, "--poses", data / "query_poses.txt",
         "--format", "jsonl",
     )  # fmt: skip
     assert code == 0, err

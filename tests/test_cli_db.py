@@ -369,7 +369,7 @@ def test_exclude_radius_drops_nearby_map_scans(map_db: Path, queries: Path, tmp_
         "10",
         "--exclude-radius",
         "15",
-        "--query-poses",
+        "--poses",
         str(poses),
         "--format",
         "jsonl",
@@ -379,10 +379,15 @@ def test_exclude_radius_drops_nearby_map_scans(map_db: Path, queries: Path, tmp_
     xy = np.stack([10.0 * np.arange(N_SCENES), 2.0 * np.arange(N_SCENES)], 1)
     keep = {i + 1 for i in range(N_SCENES) if np.hypot(*(xy[i] - [30.0, 6.0])) > 15.0}
     assert got == keep and 4 not in got
+    # --query-poses, the old name of --poses in query and eval, still works.
+    args = ["query", str(queries / "q3.bin"), "--db", str(map_db), "--exclude-radius", "15"]
+    code, out, err = run(*args, "--query-poses", str(poses), "--format", "jsonl")
+    assert code == 0 and {r["match_id"] for r in jsonl(out)} == keep
+    assert "--query-poses is now --poses" in err
     code, _, err = run(
         "query", str(queries / "q3.bin"), "--db", str(map_db), "--exclude-radius", "15"
     )
-    assert code != 0 and "--query-poses" in err
+    assert code != 0 and "--poses" in err
 
 
 def test_tsv_has_a_header_and_the_same_columns(map_db: Path, queries: Path) -> None:
@@ -602,10 +607,15 @@ def test_loops_finds_the_revisit(tmp_path: Path) -> None:
     assert last["distance"] < min(others)
     cut = (last["distance"] + min(others)) / 2
     args = ["loops", str(seq), "--model", "spectral", "--exclude-seconds", "0.25"]
-    args += ["--threshold", str(cut), "--format", "jsonl"]
+    args += ["--max-distance", str(cut), "--format", "jsonl"]
     code, out, _ = run(*args)
     rows = jsonl(out)
     assert [(r["query_index"], r["match_index"]) for r in rows] == [(6, 1)]
+    # The old name of the cut still works, with one warning line naming the new one.
+    code, out_old, err_old = run(*["--threshold" if a == "--max-distance" else a for a in args])
+    assert code == 0 and jsonl(out_old) == rows
+    said = [line for line in err_old.splitlines() if "--threshold" in line]
+    assert said == ["warning: --threshold is now --max-distance; the old name will go"]
     # The same answer from a database of the sequence.
     db = tmp_path / "loop.db"
     assert run("build-db", str(seq), "-o", str(db), "--model", "spectral")[0] == 0
@@ -702,7 +712,7 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
         "spectral",
         "--exclude-frames",
         "5",
-        "--threshold",
+        "--max-distance",
         "0.5",
         "--verify",
         "--format",
@@ -828,7 +838,7 @@ def test_loops_go_on_past_a_pair_without_pose(
     out_file = tmp_path / "loops.g2o"
     code, out, err = run(
         "loops", str(samples / "00"), "--model", "spectral", "--exclude-frames", "5",
-        "--threshold", "0.5", "--verify", "--format", "jsonl", "-o", str(out_file),
+        "--max-distance", "0.5", "--verify", "--format", "jsonl", "-o", str(out_file),
     )  # fmt: skip
     assert code == 1
     assert "no relative pose" in err and "the scan is empty" in err

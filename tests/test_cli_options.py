@@ -147,3 +147,144 @@ def test_gt_loops_calib_file_and_none(tmp_path) -> None:
     assert res.exit_code == 1 and "no.txt" in res.stderr
     res = CliRunner().invoke(app, ["gt-loops", str(seq), "--no-calib"])
     assert res.exit_code == 2
+
+
+# -- one vocabulary: the same idea under one name, with one type and range ---------------
+
+# Names that must never both be offered: the same idea spelled twice. Each pair is
+# (the name kept, the name that must not come back as a visible option).
+SYNONYMS = [
+    ("--max-distance", "--threshold"),  # the distance cut of query and loops
+    ("--poses", "--query-poses"),  # the poses of the scans given on the command line
+    pytest.param(
+        "--threads",
+        "--workers",  # how many threads a command computes with
+        marks=pytest.mark.xfail(
+            strict=True, reason="--workers becomes --threads on the field-cli branch (issue 26)"
+        ),
+    ),
+]
+
+
+def _visible() -> list[tuple[str, object]]:
+    return [(name, p) for name, p in _options() if not p.hidden]
+
+
+def _shape(param: object) -> tuple:
+    """What a user sees of an option apart from its help: type, range, metavar, flagness."""
+    p = param
+    return (
+        p.type_descriptor.annotation if not p.is_flag else bool,  # type: ignore[attr-defined]
+        p.min,  # type: ignore[attr-defined]
+        p.max,  # type: ignore[attr-defined]
+        p.metavar,  # type: ignore[attr-defined]
+        p.is_flag,  # type: ignore[attr-defined]
+        p.multiple,  # type: ignore[attr-defined]
+    )
+
+
+def _plain_type(annotation: object) -> object:
+    """Optional[X] and X are the same option type (one has no default)."""
+    from typing import Union, get_args, get_origin
+
+    if get_origin(annotation) in (Union, __import__("types").UnionType):
+        args = [a for a in get_args(annotation) if a is not type(None)]
+        if len(args) == 1:
+            return args[0]
+    return annotation
+
+
+def test_one_name_has_one_type_range_and_metavar_everywhere() -> None:
+    shapes: dict[str, dict[tuple, list[str]]] = defaultdict(lambda: defaultdict(list))
+    for name, p in _visible():
+        long = next(o for o in p.opts if o.startswith("--"))
+        shape = _shape(p)
+        shapes[long][(_plain_type(shape[0]), *shape[1:])].append(name)
+    bad = {long: dict(seen) for long, seen in shapes.items() if len(seen) > 1}
+    assert not bad, f"options whose type, range or metavar differ between commands: {bad}"
+
+
+@pytest.mark.parametrize(("kept", "gone"), SYNONYMS)
+def test_one_idea_is_never_offered_under_two_names(kept: str, gone: str) -> None:
+    offering = sorted({name for name, p in _visible() if gone in p.opts + p.secondary_opts})
+    assert not offering, f"{gone} is offered by {offering}; the vocabulary's name is {kept}"
+
+
+def test_boolean_options_are_flags() -> None:
+    for name, p in _options():
+        if _plain_type(p.type_descriptor.annotation) is bool:
+            assert p.is_flag, f"{name}: {p.opts} takes a value instead of being a flag"
+
+
+def _help(command: str, columns: int = 80) -> str:
+    res = CliRunner().invoke(app, [command, "--help"], env={"COLUMNS": str(columns)})
+    assert res.exit_code == 0, res.output
+    return res.stdout
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        "simulate",
+        "gt-loops",
+        "build-db",
+        "info",
+        "query",
+        "loops",
+        "eval",
+        "eval-loops",
+        "bev",
+        "train",
+    ],
+)
+def test_help_at_80_columns_shows_every_option_whole_and_flags_as_flags(command: str) -> None:
+    import re
+
+    text = _help(command)
+    assert max(len(line) for line in text.splitlines()) <= 80
+    cmd = typer.main.get_command(app).commands[command]  # type: ignore[attr-defined]
+    for p in cmd.params:
+        if p.param_type_name != "option" or p.hidden:
+            continue
+        for o in p.opts + p.secondary_opts:
+            assert re.search(rf"(?<![\w-]){re.escape(o)}(?![\w-])", text), (
+                f"{command} --help at 80 columns does not show {o} whole"
+            )
+    # A flag takes no value, and its help must not say it does.
+    assert "<bool>" not in text and "BOOLEAN" not in text, f"{command}: a flag shown with a value"
+
+
+# -- usage errors: one line that names the option and where the help is ------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (
+            ["query", "scan.bin", "--topk", "0"],
+            "disco query: --topk: 0 is not in the range 1<=x<=10000 (see disco query --help)",
+        ),
+        (
+            ["loops", "seq", "--max-distance", "-1"],
+            "disco loops: --max-distance: -1 is not in the range x>=0.0 (see disco loops --help)",
+        ),
+        (
+            ["build-db", "seq", "--scan-format", "las"],
+            "disco build-db: --scan-format: 'las' is not one of 'kitti', 'nclt', 'oxford', "
+            "'npy', 'pcd', 'ply' (see disco build-db --help)",
+        ),
+        (["query"], "disco query: missing argument SCANS (see disco query --help)"),
+        (["bev", "scan.bin"], "disco bev: missing option --output (see disco bev --help)"),
+        (
+            ["info", "map.db", "--chek"],
+            "disco info: no such option --chek (did you mean --check or --help?) "
+            "(see disco info --help)",
+        ),
+        (["train", "-o"], "disco train: option '-o' requires an argument (see disco train --help)"),
+    ],
+)
+def test_a_usage_error_is_one_line_naming_the_option(args: list[str], line: str) -> None:
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2
+    assert res.stderr.splitlines() == [f"error: {line}"]
+    assert res.stdout == ""

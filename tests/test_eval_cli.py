@@ -223,7 +223,7 @@ def test_eval_without_query_poses_is_one_clear_line(tiny_world, databases, tmp_p
 def test_eval_pose_count_mismatch(tiny_world, databases, tmp_path):
     bad = tmp_path / "poses.txt"
     bad.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
-    result = run("eval", tiny_world / "01", "--db", databases["spectral"], "--query-poses", bad)
+    result = run("eval", tiny_world / "01", "--db", databases["spectral"], "--poses", bad)
     assert result.exit_code == 1
     assert "1 poses for 24" in result.output
 

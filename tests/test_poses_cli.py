@@ -91,14 +91,14 @@ def test_eval_on_a_partial_sequence_and_self_match_excluded(kitti_seq, tmp_path)
     code, out = run("eval-loops", root, "--model", "spectral", "--exclude-frames", "2",
                     "--format", "jsonl")  # fmt: skip
     assert code == 0, out
-    # query --exclude-radius with explicit --query-poses: the scan's own entry (and its
+    # query --exclude-radius with explicit --poses: the scan's own entry (and its
     # neighbours within 1 m) are gone; without the option it is the top match.
     scan = root / "velodyne" / "000005.bin"
     code, out = run("query", scan, "--db", db, "--format", "jsonl", "--topk", "6")
     assert json.loads(out.splitlines()[0])["match"] == str(scan)
     code, out = run(
         "query", scan, "--db", db, "--format", "jsonl", "--topk", "6",
-        "--exclude-radius", "1", "--query-poses", root / "poses.txt",
+        "--exclude-radius", "1", "--poses", root / "poses.txt",
     )  # fmt: skip
     assert code == 0, out
     matches = [json.loads(line)["match"] for line in out.splitlines()]

@@ -27,9 +27,11 @@ from disco_cli.commands import (
     simulate,
     train,
 )
+from disco_cli.commands.usage import DiscoGroup
 
 app = typer.Typer(
     name="disco",
+    cls=DiscoGroup,  # one-line usage errors, old option names, flags shown as flags
     help="LiDAR loop closure: which place in my map is this scan, and how am I turned?",
     no_args_is_help=True,
     add_completion=False,

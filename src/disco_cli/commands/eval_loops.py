@@ -33,6 +33,7 @@ from disco_cli.commands.options import (
     model_option,
     opt,
     pose_options,
+    poses_option,
 )
 from disco_cli.console import handle_errors
 
@@ -47,8 +48,7 @@ def evaluate_loops(
         ),
     ],
     poses: Annotated[
-        Optional[Path],
-        opt("--poses", help="Poses; default: the pose file in the folder.", panel=PANEL_IN),
+        Optional[Path], poses_option(PANEL_IN, help="Poses; default: the pose file in the folder.")
     ] = None,
     poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,

@@ -39,8 +39,8 @@ from disco_cli.commands.options import (
     apply_snap,
     db_option,
     model_option,
-    opt,
     pose_options,
+    poses_option,
     topk_option,
 )
 from disco_cli.console import handle_errors
@@ -63,10 +63,10 @@ def evaluate(
     oxford_scale: OxfordScaleOpt = None,
     query_poses: Annotated[
         Optional[Path],
-        opt(
-            "--query-poses",
-            panel=PANEL_IN,
-            help="Poses of the queries; default: the pose file in a single query folder.",
+        poses_option(
+            PANEL_IN,
+            help="Poses of the query scans; default: the pose file in a single query folder "
+            "(the map's are in the map).",
         ),
     ] = None,
     poses_format: PosesFormatOpt = None,
@@ -117,7 +117,7 @@ def evaluate(
     paths = scan_paths(queries, scan_format, topic)
     poses_file = file_beside(queries, query_poses)
     if poses_file is None and pose_topic is None:
-        raise PoseFileError("no query poses: give --query-poses FILE (or a folder with poses.txt)")
+        raise PoseFileError("no query poses: give --poses FILE (or a folder with poses.txt)")
     opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
     paths, q_poses = posed_scans(paths, poses_file, opts, warn, pose_topic)
     with (

@@ -19,6 +19,7 @@ from disco_cli.commands.options import (
     ExcludeFramesOpt,
     ExcludeSecondsOpt,
     LoopFileOpt,
+    MaxDistanceOpt,
     OutputFormatOpt,
     RerankOpt,
     RerankWiderOpt,
@@ -26,7 +27,6 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     ScanRootOpt,
     SideViewsOpt,
-    ThresholdOpt,
     TimesOpt,
     TopicOpt,
     VerboseLoopsOpt,
@@ -51,8 +51,8 @@ def loops(
     ],
     exclude_frames: ExcludeFramesOpt = None,  # default 50
     exclude_seconds: ExcludeSecondsOpt = None,
-    threshold: ThresholdOpt = None,
-    topk: Annotated[int, topk_option("Candidates per query scan.", max=1000)] = 1,
+    max_distance: MaxDistanceOpt = None,
+    topk: Annotated[int, topk_option("Candidates per query scan.")] = 1,
     model: Annotated[str, model_option(MODEL_NAMES, panel=None)] = "default",
     fmt: OutputFormatOpt = None,
     verify: VerifyLoopsOpt = False,
@@ -70,8 +70,7 @@ def loops(
     rerank_wider: RerankWiderOpt = None,
     side_views: SideViewsOpt = None,
 ) -> None:
-    """Detect loop closures along one sequence of scans (by default each scan searches the
-    scans at least 50 frames before it)."""
+    """Detect loop closures along one sequence of scans (by default each scan searches the scans at least 50 frames before it)."""  # noqa: E501
     import numpy as np
 
     from disco_cli.console import RowWriter, in_blocks, steps
@@ -99,7 +98,7 @@ def loops(
         model,
         exclude_frames=None if exclude_seconds is not None else (exclude_frames or 50),
         exclude_seconds=exclude_seconds,
-        threshold=threshold,
+        threshold=max_distance,
         verify=verify,
         pose=with_pose,
         topk=topk,

@@ -57,9 +57,9 @@ def db_option(help: str, panel: str | None = None) -> Any:
     return typer.Option("--db", "-d", help=help, rich_help_panel=panel)
 
 
-def topk_option(help: str, max: int = 10000, panel: str | None = None) -> Any:
-    """`--topk/-k N`."""
-    return typer.Option("--topk", "-k", min=1, max=max, help=help, rich_help_panel=panel)
+def topk_option(help: str, panel: str | None = None) -> Any:
+    """`--topk/-k N`: one range in every command."""
+    return typer.Option("--topk", "-k", min=1, max=10000, help=help, rich_help_panel=panel)
 
 
 def output_option(help: str, panel: str | None = None) -> Any:
@@ -254,14 +254,16 @@ def times_option(panel: str | None = PANEL_RUN) -> Any:
     )
 
 
-def poses_option(panel: str | None = None) -> Any:
-    """`--poses FILE`: the poses of every scan given (ground truth, or the map's)."""
-    return opt(
-        "--poses",
-        panel=panel,
-        help="Poses of all scans (KITTI by frame, or by time: --poses-format); default: the "
-        "pose file beside the scans.",
-    )
+POSES_HELP = (
+    "Poses of the scans given (KITTI by frame, or by time: --poses-format); default: the "
+    "pose file beside the scans."
+)
+
+
+def poses_option(panel: str | None = None, help: str = POSES_HELP) -> Any:
+    """`--poses FILE`: the poses of the scans given on the command line, in every command
+    (a map's own poses are in the map)."""
+    return opt("--poses", panel=panel, help=help)
 
 
 BatchOpt = Annotated[int, batch_option()]
@@ -394,16 +396,18 @@ ExcludeRadiusOpt = Annotated[
         min=0.0,
         panel=PANEL_FILTER,
         help="Drop matches whose stored "
-        "pose is within this many metres (x, y) of the query's pose (needs --query-poses).",
+        "pose is within this many metres (x, y) of the query's pose (needs --poses).",
     ),
 ]
+# The distance cut of `query` and `loops` (`loops --threshold` before; usage.DEPRECATED).
 MaxDistanceOpt = Annotated[
     Optional[float],
     opt(
         "--max-distance",
         min=0.0,
         panel=PANEL_FILTER,
-        help="Drop matches with a distance above this (the `distance` column).",
+        help="Keep only matches with a distance at most this (the `distance` column); "
+        "default: all.",
     ),
 ]
 PoseOpt = Annotated[
@@ -427,15 +431,6 @@ VerifyMatchesOpt = Annotated[
 ]
 
 # `disco loops`: which pairs are loops, and their relative pose.
-ThresholdOpt = Annotated[
-    Optional[float],
-    opt(
-        "--threshold",
-        "-t",
-        min=0.0,
-        help="Report pairs with a distance at most this (the `distance` column); default: all.",
-    ),
-]
 VerifyLoopsOpt = Annotated[
     bool,
     opt(

@@ -39,8 +39,8 @@ from disco_cli.commands.options import (
     apply_snap,
     db_option,
     model_option,
-    opt,
     pose_options,
+    poses_option,
     topk_option,
 )
 from disco_cli.console import error, fail, handle_errors, warn
@@ -65,11 +65,10 @@ def query(
     exclude_radius: ExcludeRadiusOpt = None,
     query_poses: Annotated[
         Optional[Path],
-        opt(
-            "--query-poses",
-            panel=PANEL_FILTER,
-            help="Poses of the query scans (KITTI: row i for the i-th scan, or by frame number "
-            "in the file name; other formats by time).",
+        poses_option(
+            PANEL_FILTER,
+            help="Poses of the query scans, for --exclude-radius (KITTI: row i for the i-th "
+            "scan, or by frame number in the file name; other formats by time).",
         ),
     ] = None,
     poses_format: PosesFormatOpt = None,
@@ -96,7 +95,7 @@ def query(
     from disco_cli.pipeline import QueryPoses, query_paths
 
     if exclude_radius is not None and query_poses is None:
-        raise fail("--exclude-radius needs --query-poses")
+        raise fail("--exclude-radius needs --poses")
     with_pose = pose or verify
     # A table is titled by its query, so its rows need not repeat the path.
     columns = COLUMNS + (POSE_COLUMNS if with_pose else [])

@@ -56,63 +56,117 @@ def train(
     steps: Annotated[
         int, typer.Option(min=0, help="Steps per epoch (0: one pass over the queries).")
     ] = 0,
-    batch: Annotated[int, typer.Option(min=1, help="Quadruplets per step.")] = 8,
-    negatives: Annotated[int, typer.Option(min=1, help="Negatives per quadruplet.")] = 4,
+    batch: Annotated[int, typer.Option(min=1, max=4096, help="Quadruplets per step.")] = 8,
+    negatives: Annotated[
+        int, typer.Option(min=1, rich_help_panel="Samples", help="Negatives per quadruplet.")
+    ] = 4,
     width: Annotated[
-        int, typer.Option(min=2, help="Channels of the U-Net's first block (paper: 64).")
+        int,
+        typer.Option(
+            min=2,
+            rich_help_panel="Network",
+            help="Channels of the U-Net's first block (paper: 64).",
+        ),
     ] = 8,
     residual: Annotated[
-        bool, typer.Option(help="Add the U-Net to the BEV's height sum (start from `spectral`).")
+        bool,
+        typer.Option(
+            rich_help_panel="Network",
+            help="Add the U-Net to the BEV's height sum (start from `spectral`).",
+        ),
     ] = True,
     bev_dropout: Annotated[
-        float, typer.Option(help="Share of BEV cells dropped per sample (augmentation).")
+        float,
+        typer.Option(
+            rich_help_panel="Samples", help="Share of BEV cells dropped per sample (augmentation)."
+        ),
     ] = 0.1,
     variants: Annotated[
         int,
         typer.Option(
             min=0,
+            rich_help_panel="Samples",
             help="Augmented copies per scan made at load time: fewer beams, fewer points, "
             "a wedge occluded, tilted, shifted in z (needs poses).",
         ),
     ] = 0,
     augment_p: Annotated[
         float,
-        typer.Option(min=0.0, max=1.0, help="Share of sampled scans shown as one of their copies."),
+        typer.Option(
+            min=0.0,
+            max=1.0,
+            rich_help_panel="Samples",
+            help="Share of sampled scans shown as one of their copies.",
+        ),
     ] = 0.5,
     occlude_p: Annotated[
         float,
-        typer.Option(min=0.0, max=1.0, help="Share of BEVs that lose a 30-90 degree wedge."),
+        typer.Option(
+            min=0.0,
+            max=1.0,
+            rich_help_panel="Samples",
+            help="Share of BEVs that lose a 30-90 degree wedge.",
+        ),
     ] = 0.0,
-    lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
-    lambda_yaw: Annotated[float, typer.Option(help="Weight of the yaw KL loss.")] = 0.1,
+    lr: Annotated[float, typer.Option(rich_help_panel="Loss", help="Adam learning rate.")] = 1e-3,
+    lambda_yaw: Annotated[
+        float, typer.Option(rich_help_panel="Loss", help="Weight of the yaw KL loss.")
+    ] = 0.1,
     lambda_verify: Annotated[
         float,
         typer.Option(
-            help="Weight of the re-ranking loss (0: the paper's loss only; docs/training.md)."
+            rich_help_panel="Loss",
+            help="Weight of the re-ranking loss (0: the paper's loss only; docs/training.md).",
         ),
     ] = 0.0,
     verify_candidates: Annotated[
-        int, typer.Option(min=2, help="Re-ranking loss: scans of another pass per query.")
+        int,
+        typer.Option(
+            min=2, rich_help_panel="Loss", help="Re-ranking loss: scans of another pass per query."
+        ),
     ] = 6,
     verify_radius: Annotated[
-        float, typer.Option(help="Re-ranking loss: those scans lie within this distance (m).")
+        float,
+        typer.Option(
+            rich_help_panel="Loss",
+            help="Re-ranking loss: those scans lie within this distance (m).",
+        ),
     ] = 10.0,
-    d_pos: Annotated[float, typer.Option(help="Positives lie within this distance (m).")] = 3.0,
-    d_neg: Annotated[float, typer.Option(help="Negatives lie beyond this distance (m).")] = 10.0,
+    d_pos: Annotated[
+        float,
+        typer.Option(rich_help_panel="Samples", help="Positives lie within this distance (m)."),
+    ] = 3.0,
+    d_neg: Annotated[
+        float,
+        typer.Option(rich_help_panel="Samples", help="Negatives lie beyond this distance (m)."),
+    ] = 10.0,
     spacing: Annotated[
-        float, typer.Option(help="Keep one scan per this much travel (m); 0: all.")
+        float,
+        typer.Option(
+            rich_help_panel="Samples", help="Keep one scan per this much travel (m); 0: all."
+        ),
     ] = 1.0,
     hard_after: Annotated[
-        int, typer.Option(help="Epochs of random negatives before hard-negative mining.")
+        int,
+        typer.Option(
+            rich_help_panel="Samples",
+            help="Epochs of random negatives before hard-negative mining.",
+        ),
     ] = 2,
     self_supervised: Annotated[
         bool,
         typer.Option(
-            "--self-supervised", help="No poses: positives are augmented copies of a scan."
+            "--self-supervised",
+            rich_help_panel="Samples",
+            help="No poses: positives are augmented copies of a scan.",
         ),
     ] = False,
     time_gap: Annotated[
-        int, typer.Option(help="Self-supervised: negatives are at least this many frames apart.")
+        int,
+        typer.Option(
+            rich_help_panel="Samples",
+            help="Self-supervised: negatives are at least this many frames apart.",
+        ),
     ] = 50,
     val: Annotated[
         list[Path] | None,
@@ -127,7 +181,7 @@ def train(
     ] = False,
     device: Annotated[str, typer.Option(help="Torch device: cpu or cuda.")] = "cpu",
     seed: Annotated[
-        int, typer.Option(help="Random seed (sampling, augmentation, initialization).")
+        int, typer.Option(min=0, help="Random seed (sampling, augmentation, initialization).")
     ] = 0,
     threads: Annotated[int, typer.Option(min=0, help="Voxelizer threads (0: all cores).")] = 0,
     protocol: ProtocolOpt = None,
