@@ -35,6 +35,8 @@ from rich.table import Table
 from disco_cli.errors import DiscoError
 
 stderr = Console(stderr=True, highlight=False)
+# In a pipe or a log file, a message is one line however long: rich would wrap it at 80.
+stderr.soft_wrap = not stderr.is_terminal
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -102,9 +104,96 @@ def handle_errors(func: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+# -- progress: a bar on a terminal, a line every few seconds elsewhere, nothing with -q --
+
+_quiet = False
+# Seconds between two progress lines where stderr is not a terminal (a log, CI, nohup).
+PROGRESS_SECONDS_ENV = "DISCO_PROGRESS_SECONDS"
+
+
+def set_quiet(value: bool) -> bool:
+    """`-q/--quiet`: no progress bar, no progress line (a callback of the option)."""
+    global _quiet
+    _quiet = bool(value)
+    return value
+
+
+def _progress_seconds() -> float:
+    try:
+        return max(float(os.environ.get(PROGRESS_SECONDS_ENV, "5")), 0.0)
+    except ValueError:
+        return 5.0
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def progress_line(
+    description: str, done: float, total: float | None, seconds: float, since: float, unit: str
+) -> str:
+    """`build-db: 120/1000 (12%), 35.2 scans/s, 25 s left`: `done` of `total` after
+    `seconds`, the rate of the `done - since` made in them."""
+    rate = (done - since) / seconds if seconds > 0 else 0.0
+    counts = f"{done:.0f}"
+    if total:
+        counts += f"/{total:.0f} ({100 * done / total:.0f}%)"
+    line = f"{description}: {counts}, {rate:.1f} {unit}/s".replace(" /s", "/s")
+    if total and rate > 0 and done < total:
+        line += f", {_duration((total - done) / rate)} left"
+    return line
+
+
+class _Progress(Progress):
+    """rich's Progress; where stderr is not a terminal (no bar), it prints one line per
+    task every few seconds instead: what is done, the rate, the time left. A task's
+    `note` field (training's losses) ends its line."""
+
+    def __init__(self, *columns: Any, lines: bool, **kwargs: Any) -> None:
+        super().__init__(*columns, **kwargs)
+        self._lines = lines
+        self._every = _progress_seconds()
+        self._shown: dict[Any, float] = {}  # task -> when its last line was printed
+        self._origin: dict[Any, tuple[float, float]] = {}  # task -> (time, done) the rate is from
+
+    def add_task(self, *args: Any, **kwargs: Any) -> Any:
+        task_id = super().add_task(*args, **kwargs)
+        self._origin[task_id] = (time.monotonic(), 0.0)
+        return task_id
+
+    def update(self, task_id: Any, **kwargs: Any) -> None:  # type: ignore[override]
+        super().update(task_id, **kwargs)
+        self._line(task_id)
+
+    def advance(self, task_id: Any, advance: float = 1) -> None:
+        super().advance(task_id, advance)
+        self._line(task_id)
+
+    def _line(self, task_id: Any) -> None:
+        if not self._lines:
+            return
+        now = time.monotonic()
+        task = self._tasks[task_id]
+        start, since = self._origin.setdefault(task_id, (now, 0.0))
+        if task.completed < since:  # counting again (a new epoch): so does the rate
+            start, since = self._origin[task_id] = (now, task.completed)
+        if now - self._shown.get(task_id, start) < self._every:
+            return
+        self._shown[task_id] = now
+        unit = str(task.fields.get("unit", ""))
+        line = progress_line(task.description, task.completed, task.total, now - start, since, unit)
+        note = task.fields.get("note")
+        stderr.print(f"{line}; {note}" if note else line, soft_wrap=True, markup=False)
+
+
 def progress(transient: bool = False) -> Progress:
-    """A progress bar on stderr; hidden when stderr is not a terminal."""
-    return Progress(
+    """A progress bar on stderr where it is a terminal, else a line every few seconds
+    ($DISCO_PROGRESS_SECONDS, 5); neither with -q."""
+    return _Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
@@ -113,15 +202,16 @@ def progress(transient: bool = False) -> Progress:
         TimeRemainingColumn(),
         console=stderr,
         transient=transient,
-        disable=not stderr.is_terminal,
+        disable=_quiet or not stderr.is_terminal,
+        lines=not _quiet and not stderr.is_terminal,
     )
 
 
 @contextmanager
-def steps(description: str, total: int) -> Iterator[Callable[[int], None]]:
+def steps(description: str, total: int, unit: str = "scans") -> Iterator[Callable[[int], None]]:
     """A transient progress bar of `total` steps (`progress`); yields `advance(k)`."""
     with progress(transient=True) as bar:
-        task = bar.add_task(description, total=total, rate="")
+        task = bar.add_task(description, total=total, rate="", unit=unit)
         yield lambda k: bar.advance(task, k)
 
 
@@ -131,7 +221,7 @@ def rate_bar(description: str, total: int) -> Iterator[Callable[[int, int], None
     began; yields `update(done, counted)`, the rate being of the `counted` scans."""
     start = time.perf_counter()
     with progress() as bar:
-        task = bar.add_task(description, total=total, rate="")
+        task = bar.add_task(description, total=total, rate="", unit="scans")
 
         def update(done: int, counted: int) -> None:
             rate = counted / max(time.perf_counter() - start, 1e-9)

@@ -48,8 +48,10 @@ def model_for_database(db: Database, model: Any = None, device: str = "cpu") -> 
     else:
         source = str(model or db.meta.get("model_source") or db.model.name)
         if model is None and source not in MODELS and not Path(source).is_file():
+            # Name the file the map remembers: the user may know where it went.
+            was = db.meta.get("model_source") or f"model '{db.model.name}'"
             raise DatabaseError(
-                db.path, f"built with the checkpoint model '{db.model.name}'; pass --model PATH"
+                db.path, f"built with checkpoint {was}, which is gone; pass --model PATH"
             )
         net = load_model(source, device=device)
     db.check_model(ModelInfo.of(net))

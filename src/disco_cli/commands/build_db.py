@@ -24,6 +24,7 @@ from disco_cli.commands.options import (
     MaxTimeGapOpt,
     PosesFormatOpt,
     PoseTopicOpt,
+    QuietOpt,
     ScanFormatOpt,
     SideViewsOpt,
     TopicOpt,
@@ -82,6 +83,7 @@ def build_db(
             help="Warn about unreadable scans and go on, instead of stopping at the first.",
         ),
     ] = False,
+    quiet: QuietOpt = False,
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
     from disco_cli.map import Interrupted, open_for_adding

@@ -23,6 +23,7 @@ from disco_cli.commands.options import (
     MetricsFormatOpt,
     PosesFormatOpt,
     PoseTopicOpt,
+    QuietOpt,
     RadiusOpt,
     ReportOpt,
     RerankOpt,
@@ -90,6 +91,7 @@ def evaluate_loops(
     rerank_wider: RerankWiderOpt = None,
     report: ReportOpt = None,
     fmt: MetricsFormatOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """Loop closure along one sequence: precision-recall, F1max, recall at 100% precision."""
     from disco_cli.console import steps, warn

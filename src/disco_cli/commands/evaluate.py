@@ -26,6 +26,7 @@ from disco_cli.commands.options import (
     PosesFormatOpt,
     PoseTopicOpt,
     ProtocolOpt,
+    QuietOpt,
     RadiusOpt,
     RefineYawOpt,
     ReportOpt,
@@ -86,6 +87,7 @@ def evaluate(
     snap_radius: SnapRadiusOpt = None,
     report: ReportOpt = None,
     fmt: MetricsFormatOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """Multi-session evaluation: Recall@N, Recall@1%, PR AUC, F1max, yaw error vs a database."""
     from disco_cli.console import RowWriter, stderr, steps, warn

@@ -21,6 +21,7 @@ from disco_cli.commands.options import (
     LoopFileOpt,
     MaxDistanceOpt,
     OutputFormatOpt,
+    QuietOpt,
     RerankOpt,
     RerankWiderOpt,
     ReuseDbOpt,
@@ -69,6 +70,7 @@ def loops(
     rerank: RerankOpt = None,
     rerank_wider: RerankWiderOpt = None,
     side_views: SideViewsOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """Detect loop closures along one sequence of scans (by default each scan searches the scans at least 50 frames before it)."""  # noqa: E501
     import numpy as np

@@ -22,7 +22,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from disco_cli.console import OutputFormat
+from disco_cli.console import OutputFormat, set_quiet
 from disco_cli.readers import FormatName
 
 PANEL_RUN = "Running"
@@ -127,6 +127,17 @@ WorkersOpt = Annotated[
         max=64,
         help="Threads reading and voxelizing scans.",
         rich_help_panel=PANEL_RUN,
+    ),
+]
+# Long commands: a progress bar on a terminal, a line every few seconds in a log.
+QuietOpt = Annotated[
+    bool,
+    typer.Option(
+        "--quiet",
+        "-q",
+        callback=set_quiet,
+        help="No progress bar or progress lines (warnings and results still print).",
+        rich_help_panel=PANEL_OUT,
     ),
 ]
 DeviceOpt = Annotated[

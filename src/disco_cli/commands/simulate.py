@@ -13,6 +13,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from disco_cli.commands.options import QuietOpt
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
@@ -173,6 +174,7 @@ def simulate(
     force: Annotated[
         bool, typer.Option("--force", help="Write into a folder that has sessions.")
     ] = False,
+    quiet: QuietOpt = False,
 ) -> None:
     """Simulate a LiDAR driving through a procedural town, in several sessions."""
     from dataclasses import replace
@@ -204,7 +206,7 @@ def simulate(
         )
     total = sessions * (frames if frames is not None else int((length_m or 400.0) / step_m))
     with progress() as bar:
-        task = bar.add_task("simulating", total=total, rate="")
+        task = bar.add_task("simulating", total=total, rate="", unit="scans")
 
         def report(done: int, _total: int) -> None:
             bar.update(task, completed=done)

@@ -12,6 +12,7 @@ from disco_cli.commands.options import (
     OxfordScaleOpt,
     PoseTopicOpt,
     ProtocolOpt,
+    QuietOpt,
     TopicOpt,
     output_option,
 )
@@ -27,8 +28,8 @@ def _command_line(ctx: typer.Context, data: list[Path], output: Path) -> str:
             continue
         if name == "self_supervised":
             words += [flag] if value else []
-        elif name == "resume":
-            continue  # resuming is recorded by chaining the commands
+        elif name in ("resume", "quiet"):
+            continue  # resuming is recorded by chaining the commands; quiet changes nothing
         elif isinstance(value, bool):
             words.append(flag if value else f"--no-{name.replace('_', '-')}")
         elif isinstance(value, (list, tuple)):
@@ -188,6 +189,7 @@ def train(
     oxford_scale: OxfordScaleOpt = None,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
     from disco_cli.bev import BEVConfig
@@ -261,7 +263,7 @@ def train(
 
     def load(paths: list[Path], what: str, ss: bool, copies: int = 0):
         with progress(transient=True) as bar:
-            task = bar.add_task(f"voxelizing {what}", total=None, rate="")
+            task = bar.add_task(f"voxelizing {what}", total=None, rate="", unit="sequences")
             result = load_training_data(
                 paths,
                 bev_config,
@@ -282,7 +284,7 @@ def train(
         val_set = load(val, "validation data", False) if val else None
 
     with progress() as bar:
-        task = bar.add_task("training", total=None, rate="")
+        task = bar.add_task("training", total=None, rate="", unit="steps")
 
         def on_step(epoch: int, step: int, total: int, losses: dict[str, float]) -> None:
             text = " ".join(f"{k} {v:.3f}" for k, v in losses.items())
@@ -292,11 +294,8 @@ def train(
                 total=total,
                 description=f"epoch {epoch + 1}/{epochs}",
                 rate=text,
+                note=text,
             )
-            if not stderr.is_terminal and (step % 25 == 0 or step == total):
-                # No bar in a log file: a line now and then shows that training moves.
-                line = f"epoch {epoch + 1}/{epochs} step {step}/{total} {text}"
-                stderr.print(line, soft_wrap=True)
 
         run_training(
             data_set,

@@ -67,7 +67,7 @@ def load_checkpoint_model(path: str | Path, device: str = "cpu", name: str | Non
     if is_authors_checkpoint(ckpt):
         return model_from_authors(ckpt, path, device=device, name=name)
     keys = ", ".join(sorted(map(str, ckpt))[:5])
-    raise ModelError(f"{path}: unknown checkpoint layout (top-level keys: {keys})")
+    raise ModelError(f"{path}: not a disco checkpoint (unknown layout; top-level keys: {keys})")
 
 
 def model_from_checkpoint(

@@ -14,6 +14,7 @@ cannot run code.
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -39,13 +40,26 @@ def read_checkpoint(path: str | Path, device: str = "cpu") -> dict[str, Any]:
     if not path.is_file():
         raise ModelError(f"{path}: no such model file (names: default, spectral, scancontext)")
     try:
-        ckpt = torch.load(path, map_location=device, weights_only=True)
+        with warnings.catch_warnings():  # torch warns about pickle protocols it meets
+            warnings.simplefilter("ignore")
+            ckpt = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # torch raises many kinds for a corrupt or foreign file
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ModelError(f"{path}: not a readable model checkpoint ({reason[:200]})") from None
+        raise ModelError(f"{path}: not a disco checkpoint ({_why_unreadable(exc)})") from None
     if not isinstance(ckpt, dict):
-        raise ModelError(f"{path}: not a model checkpoint (holds a {type(ckpt).__name__})")
+        raise ModelError(f"{path}: not a disco checkpoint (holds a {type(ckpt).__name__})")
     return ckpt
+
+
+def _why_unreadable(exc: Exception) -> str:
+    """Why torch could not load a file, in a few words. Torch's own message would
+    advise weights_only=False, which runs whatever code the file holds: not for a
+    file that is not a disco checkpoint."""
+    text = str(exc)
+    if "weights only" in text.lower() or "weights_only" in text:
+        return "it holds Python objects, not only tensors, numbers and strings"
+    if isinstance(exc, EOFError) or not text.strip():
+        return "empty or cut short"
+    return "not a PyTorch file"
 
 
 def export_checkpoint(

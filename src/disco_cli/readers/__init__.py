@@ -161,7 +161,7 @@ def guess_format(path: str | Path) -> str:
     raise ScanReadError(
         path,
         f"cannot tell the scan format from {ext or 'no extension'!r} "
-        f"(known: {known}); pass the format explicitly",
+        f"(known: {known}); pass --scan-format (format= in Python)",
     )
 
 
