@@ -222,21 +222,7 @@ def _help(command: str, columns: int = 80) -> str:
     return res.stdout
 
 
-@pytest.mark.parametrize(
-    "command",
-    [
-        "simulate",
-        "gt-loops",
-        "build-db",
-        "info",
-        "query",
-        "loops",
-        "eval",
-        "eval-loops",
-        "bev",
-        "train",
-    ],
-)
+@pytest.mark.parametrize("command", sorted(typer.main.get_command(app).commands))  # type: ignore[attr-defined]
 def test_help_at_80_columns_shows_every_option_whole_and_flags_as_flags(command: str) -> None:
     import re
 
