@@ -71,7 +71,8 @@ def test_closed_stdout_is_a_normal_end(
 
 
 def test_loops_says_so_when_it_finds_no_loop(samples: Path) -> None:
-    args = ["loops", str(samples / "00"), "-m", "spectral", "--max-distance", "0", "--format", "tsv"]
+    args = ["loops", str(samples / "00"), "-m", "spectral", "--max-distance", "0"]
+    args += ["--format", "tsv"]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     # A distance of 0 is never reached between two different scans: no row, but the header.
