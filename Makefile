@@ -11,7 +11,7 @@ SAMPLES := data/samples
 OUT := out/demo
 MODEL ?= default
 
-.PHONY: demo test install install-test dev bench clean check-aarch64
+.PHONY: demo test install install-test dev bench clean check-aarch64 docs-check docs-update
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +45,15 @@ demo: install
 
 test: install-test
 	$(PY) -m pytest -q
+
+# Every command block of README.md and docs/ run as written, outputs compared with the
+# pages (tests/docs_check.py; the test suite runs the same). docs-update rewrites the
+# outputs shown in the pages from what the commands print now: review the diff.
+docs-check: install-test
+	$(PY) tests/docs_check.py
+
+docs-update: install-test
+	$(PY) tests/docs_check.py --update
 
 bench: install
 	$(PY) benchmarks/bench_voxelizer.py
