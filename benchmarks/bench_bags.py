@@ -16,7 +16,6 @@ Needs the rosbags package (`pip install 'disco-cli[ros]'`).
 from __future__ import annotations
 
 import argparse
-import platform
 import shutil
 import subprocess
 import sys
@@ -25,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import print_header
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "data" / "samples" / "00" / "velodyne"
@@ -79,16 +79,6 @@ def write_bags(root: Path, scans: list[np.ndarray], n: int) -> dict[str, Path]:
     return out
 
 
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--messages", type=int, default=400)
@@ -97,7 +87,7 @@ def main() -> None:
 
     from disco_cli.readers import bags, list_scans, read_scan
 
-    print(f"CPU: {cpu_name()}, Python {platform.python_version()}")
+    print_header("bench_bags")
     scans = [np.fromfile(p, "<f4").reshape(-1, 4) for p in sorted(SAMPLE.glob("*.bin"))]
     n = args.messages
     with tempfile.TemporaryDirectory() as tmp:

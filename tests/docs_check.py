@@ -49,6 +49,7 @@ import shlex
 import subprocess
 import sys
 import tempfile
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,7 +66,7 @@ def pages() -> list[Path]:
 
 # ---------------------------------------------------------------------------- parsing
 
-_FENCE = re.compile(r"^```(\S*)\s*$")
+_FENCE = re.compile(r"^\s*```(\S*)\s*$")  # fences in list items are indented
 _MARK = re.compile(r"<!--\s*docs-check:(.*?)-->")
 _NOT_RUN = re.compile(r"^[*_]*Not run in CI:\s*(.+)")
 
@@ -81,6 +82,7 @@ class Block:
     not_run_line: str | None = None  # the reader's "Not run in CI: ..." line
     output: Block | None = None  # a python block's expected-output text block
     is_output: bool = False
+    indent: str = ""  # a fence inside a list item is indented
 
     @property
     def where(self) -> str:
@@ -112,7 +114,7 @@ def parse_page(path: Path) -> list[Block]:
             i += 1
             continue
         j = i + 1
-        while j < len(lines) and not lines[j].startswith("```"):
+        while j < len(lines) and not lines[j].lstrip().startswith("```"):
             j += 1
         prose_text = "\n".join(prose)
         block = Block(
@@ -120,8 +122,9 @@ def parse_page(path: Path) -> list[Block]:
             line=i + 1,
             end=j + 1,
             lang=m.group(1),
-            text="\n".join(lines[i + 1 : j]) + ("\n" if j > i + 1 else ""),
+            text=textwrap.dedent("\n".join(lines[i + 1 : j])) + ("\n" if j > i + 1 else ""),
             marks=parse_marks(prose_text),
+            indent=lines[i][: len(lines[i]) - len(lines[i].lstrip())],
         )
         for p in prose:
             n = _NOT_RUN.match(p.strip())
@@ -373,7 +376,7 @@ def anchors(path: Path) -> set[str]:
     counts: dict[str, int] = {}
     in_block = False
     for line in path.read_text().splitlines():
-        if line.startswith("```"):
+        if line.lstrip().startswith("```"):
             in_block = not in_block
         if in_block:
             continue
@@ -391,7 +394,7 @@ def check_links(path: Path) -> list[str]:
     problems = []
     in_block = False
     for number, line in enumerate(path.read_text().splitlines(), 1):
-        if line.startswith("```"):
+        if line.lstrip().startswith("```"):
             in_block = not in_block
         if in_block:
             continue
@@ -603,7 +606,7 @@ def rewrite(path: Path, replacements: list[tuple[Block, str]]) -> bool:
     changed = False
     for block, text in sorted(replacements, key=lambda r: -r[0].line):
         if text != block.text:
-            lines[block.line : block.end - 1] = [text]
+            lines[block.line : block.end - 1] = [textwrap.indent(text, block.indent)]
             changed = True
     if changed:
         path.write_text("".join(lines))
