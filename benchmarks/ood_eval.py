@@ -1,5 +1,6 @@
 """Any two-session worlds with the out-of-distribution suite's protocol, queries optionally
-tilted or shifted in z: how model selection and the tilt measurement of docs/model.md ran.
+tilted or shifted in z: how model selection and the tilt measurement of
+docs/research/model-history.md ran.
 
     .venv/bin/python benchmarks/ood_eval.py WORLD... --models default ft.pt [--tilt 3] [--z 0.5]
         [--rerank-wider 0] [--snap-radius 0]

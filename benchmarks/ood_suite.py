@@ -21,9 +21,9 @@ Protocol: map = session 00, queries = session 01 (part of 00's route in reverse,
 another lane); a match is true within `--radius` (5 m, the protocol of issue 12); Recall@N
 over the queries that have a true match; yaw error over the correct top-1 matches.
 
-Seeds (docs/model.md#seeds): the suite's worlds use seeds 7101-7299 and no other script
-or training run may use them. Everything is cached under --out; a rerun evaluates only
-what is missing (a checkpoint that changed is evaluated again).
+Seeds (docs/research/model-history.md#seeds): the suite's worlds use seeds 7101-7299 and
+no other script or training run may use them. Everything is cached under --out; a rerun
+evaluates only what is missing (a checkpoint that changed is evaluated again).
 """
 
 from __future__ import annotations
@@ -51,7 +51,8 @@ SENSORS = {16: "vlp16", 32: "hdl32", 64: "hdl64"}
 # (`disco build-db --side-views 2.5`).
 DEFAULT_MODELS = ["default", "spectral", "scancontext", "default+sv2.5", "spectral+sv2.5"]
 
-# The suite's seeds, fixed before any training on changed worlds (docs/model.md#seeds).
+# The suite's seeds, fixed before any training on changed worlds
+# (docs/research/model-history.md#seeds).
 # One town per style for the beams x change grid; other towns for the hard set.
 STYLE_SEEDS = {"suburban": 7101, "industrial": 7102, "park": 7103, "parking": 7104, "grid": 7105}
 HARD_SEEDS = {"suburban": 7201, "industrial": 7202, "park": 7203, "parking": 7204, "grid": 7205}

@@ -9,7 +9,7 @@ prints the mean, median and largest error of the refined `yaw_deg` (the yaw of
 T_match<-query) and how many are off by more than 5 and 90 degrees: over all of them,
 and over those whose pose was accepted (what `--verify` keeps). The out-of-distribution
 suite scores the phase-correlation yaw that `disco eval` reports; this is what a user who
-asks for `--pose` gets on the same worlds (docs/model.md).
+asks for `--pose` gets on the same worlds (docs/research/model-history.md).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@
 #   benchmarks/run_ood.sh --quick --models default spectral run/candidate.pt
 #   benchmarks/run_ood.sh --update-docs                 # tables into docs/results.md
 #
-# Its seeds (7101-7301) are used by nothing else (docs/model.md#seeds). Runs at low priority
+# Its seeds (7101-7301) are used by nothing else (docs/research/model-history.md#seeds). Runs at low priority
 # on 2 threads; worlds and per-query rows are cached under $OUT (default out/ood).
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -13,7 +13,7 @@ before the snap lies within 5 m (a true match):
 - Recall@1 (a match within 5 m) without and with the snap; with --list, each query it
   finds or loses: how far the best match lay, and where the true one was.
 
-docs/model.md, "Snapping to the nearest map scan", quotes these figures.
+docs/research/model-history.md, "Snapping to the nearest map scan", quotes these figures.
 """
 
 from __future__ import annotations

@@ -22,14 +22,15 @@ _BATCH = 64
 RERANK_CANDIDATES = 10
 # Where even the best of those re-ranks worse than RERANK_WIDER_ABOVE, the place may have
 # changed more than the signature tolerates: the search re-ranks down to RERANK_WIDER.
-# Chosen on the selection worlds 5001-5008 (docs/model.md, "Re-ranking wider when unsure").
+# Chosen on the selection worlds 5001-5008 (docs/research/model-history.md, "Re-ranking
+# wider when unsure").
 RERANK_WIDER = 40
 RERANK_WIDER_ABOVE = 0.7
 # The best match is then snapped to the map scan nearest the query's position estimated
 # from it (search.snap_to_nearest): among the candidates within SNAP_RADIUS m of it on
 # the map that re-rank within SNAP_MARGIN of its distance. 5 m is as far as the position
-# estimate reaches. Checked on the selection worlds 5001-5008 (docs/model.md, "Snapping
-# to the nearest map scan").
+# estimate reaches. Checked on the selection worlds 5001-5008
+# (docs/research/model-history.md, "Snapping to the nearest map scan").
 SNAP_RADIUS = 5.0
 SNAP_MARGIN = 0.1
 
@@ -154,7 +155,8 @@ class DiscoModel:
 
         A residual network's G - U is the BEV summed over heights: its sharp edges
         resample better than the learned G (mean error 0.11 against 0.22 degrees on the
-        terrace hard set, docs/model.md), so that image is re-centred when there is one."""
+        terrace hard set, docs/research/model-history.md), so that image is re-centred when
+        there is one."""
         return refine_yaw(
             self.refine_image(query_features),
             self.refine_image(match_features),

@@ -11,7 +11,7 @@ query sensor (bilinear in ring and sector, in the query's own frame, so the unkn
 stays a circular shift), each resampled image is phase-correlated with the match's, and
 the position whose correlation peaks highest wins: a 3 x 3 grid 3 m apart, then two
 rounds of its 8 neighbours at 1.5 m and 0.5 m. Its peak is the yaw. 25 resamplings of a
-40 x 120 image cost about 1.5 ms; docs/model.md has the figures.
+40 x 120 image cost about 1.5 ms; docs/research/model-history.md has the figures.
 """
 
 from __future__ import annotations
@@ -157,7 +157,7 @@ def query_in_match_frame(
 ) -> tuple[float, np.ndarray]:
     """(yaw_deg, position [2] of the query sensor in the match's frame (m)): where the
     query was taken, seen from the match, to the accuracy of the search (median 0.26 m
-    on the suite's hits, docs/model.md); reaches 5 m (3 + 1.5 + 0.5) at most."""
+    on the suite's hits, docs/research/model-history.md); reaches 5 m (3 + 1.5 + 0.5) at most."""
     yaw, match_in_query, _ = refine_one(query, match, max_range)
     c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
     # The match sensor sits at p in the query frame, so the query sits at -R p in the
