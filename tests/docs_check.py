@@ -4,8 +4,10 @@ Blocks, by the language after the fence:
 - ```console: `$ ` lines are commands (a trailing `\\` continues one); the lines after a
   command are its output (stdout and stderr together), compared with what it prints.
   An output line `...` stands for any number of lines; a line ending in ` ...` for any
-  line that starts with what precedes it. A table drawn with box characters is
-  compared with what the command prints on a terminal.
+  line that starts with what precedes it (word by word). A table drawn with box
+  characters is compared with what the command prints on a terminal. A command must
+  exit with status 0, unless its output shows an error (a line starting `error:` or
+  `Usage:`): then it must fail.
 - ```sh: runs as one bash script (errexit, pipefail); its output is not compared.
 - ```python: runs with the interpreter that runs this check; a ```text block right after
   it is its expected stdout.
@@ -541,7 +543,9 @@ def run_block(block: Block, scratch: Scratch, result: Result) -> None:
             table = any(c in "".join(want) for c in "┏┃│")
             runner = scratch.terminal if table else scratch.shell
             code, out = runner(command, timeout)
-            if code != 0:
+            # an output that shows an error documents a failing command
+            fails = any(line.startswith(("error:", "Usage:")) for line in want)
+            if (code != 0) != fails:
                 result.problems.append(f"{where}: `{command}` exit status {code}:\n{out[-3000:]}")
             problems = compare(out, want, rtol, atol)
             result.problems += [f"{where}: `{command}`:\n  {p}" for p in problems]

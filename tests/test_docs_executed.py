@@ -124,3 +124,16 @@ def test_numbers_with_exponents() -> None:
     )
     assert docs_check.compare('{"a": 5.199203934214157e-05, "b": 0.4334, "id": 5}', want)
     assert docs_check.compare('{"a": 7.2e-03, "b": 0.3673160672187805, "id": 5}', want)
+
+
+def test_a_documented_error_must_fail(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    page = tmp_path / "p.md"
+    page.write_text(
+        "```console\n$ ls no-such-file-here\nerror: x\n$ echo fine\nfine\n"
+        "$ true\nerror: documented, but nothing fails\n```\n"
+    )
+    monkeypatch.setattr(docs_check, "REPO", tmp_path)
+    monkeypatch.setattr(docs_check, "SAMPLES", tmp_path)
+    result = docs_check.check_page(page)
+    exits = [p for p in result.problems if "exit status" in p]
+    assert len(exits) == 1 and "`true`" in exits[0]
