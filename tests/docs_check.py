@@ -15,10 +15,11 @@ Blocks, by the language after the fence:
 A block without a language is an error: say what it is.
 
 Each page runs in order in a scratch folder of its own holding data/samples (a link),
-with `disco` and `python` on PATH for this interpreter. Numbers in output are compared
-within a tolerance: at least 1.5 units of the last digit the page prints (4 decimals at
-most) or 1e-3 of the value; angles (-180..180) compare around the circle. Timings
-(`0.2 s`, `130.9 scans/s`, `3 ms`) are masked on both sides.
+with `disco` and `python` on PATH for this interpreter, and no progress lines (they
+depend on the machine's speed: `DISCO_PROGRESS_SECONDS` is set to a day). Numbers in
+output are compared within a tolerance: at least 1.5 units of the last digit the page
+prints (4 decimals at most) or 1e-3 of the value; angles (-180..180) compare around
+the circle. Timings (`0.2 s`, `130.9 scans/s`, `3 ms`) are masked on both sides.
 
 Marks, as an HTML comment in the prose right above a block:
 - `<!-- docs-check: skip -->`: not run; the prose above must then say so to a reader
@@ -436,6 +437,9 @@ class Scratch:
             COLUMNS="120",
             TERM="dumb",
             NO_COLOR="1",
+            # progress lines come every few seconds where stderr is a pipe: how many
+            # depends on the machine, so the pages show none
+            DISCO_PROGRESS_SECONDS="86400",
         )
         src = str(REPO / "src")
         if (REPO / "src" / "disco_cli").is_dir() and src not in self.env.get("PYTHONPATH", ""):
