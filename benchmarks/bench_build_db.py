@@ -8,7 +8,7 @@ architecture with untrained weights (the same compute). Scans are written to a t
 folder first (30k points each: boxes and poles around the sensor). Measured:
 
 1. `disco build-db` as a user runs it (fresh process; the rate it prints covers
-   reading, voxelizing, the network and writing, overlapped), for --workers 1 and 2;
+   reading, voxelizing, the network and writing, overlapped), for --threads 1 and 2;
 2. the baseline in this process: the same stages one after the other, no overlap;
 3. with --side-views M: `disco build-db --side-views M` against the same command
    without, in rate and file size.
@@ -42,7 +42,7 @@ def run_cli(
             str(out),
             "--model",
             model,
-            "--workers",
+            "--threads",
             str(workers),
             "--batch",
             str(batch),
@@ -131,7 +131,7 @@ def main() -> None:
         for workers in (1, 2):
             rate, wall = run_cli(scans, tmp / f"cli{workers}.db", model, workers, args.batch)
             print(
-                f"disco build-db --workers {workers} --batch {args.batch}: {rate:.1f} scans/s "
+                f"disco build-db --threads {workers} --batch {args.batch}: {rate:.1f} scans/s "
                 f"(as printed; {args.scans / wall:.1f} scans/s including process start, "
                 f"{wall:.1f} s wall); {rate / base['rate']:.2f}x the serial baseline"
             )
@@ -141,7 +141,7 @@ def main() -> None:
             rate, _ = run_cli(scans, tmp / "sv.db", model, 1, args.batch, sv)
             size = (tmp / "sv.db").stat().st_size / (tmp / "plain.db").stat().st_size
             print(
-                f"disco build-db --workers 1 --side-views {args.side_views:g}: {rate:.1f} "
+                f"disco build-db --threads 1 --side-views {args.side_views:g}: {rate:.1f} "
                 f"scans/s against {plain_rate:.1f} without ({rate / plain_rate:.2f}x, run "
                 f"just before); file {size:.2f}x the size"
             )

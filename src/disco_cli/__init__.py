@@ -2,7 +2,8 @@
 
 The library API (docs/python.md): `Map` (a map database: add scans, localize scans
 against it as `Match`es), `LoopDetector` (online loop closure, returning `Loop`s),
-`load_model`, `read_scan`, the voxelizer, and the `DiscoError` kinds it raises. It is
+`load_model`, `read_scan`, the voxelizer, `set_threads` (the CPU threads it
+computes on), and the `DiscoError` kinds it raises. It is
 imported lazily so that `import disco_cli` (and `disco --help`) stays fast: torch and
 the compiled core load only when first used.
 """
@@ -30,6 +31,8 @@ _LAZY = {
     "Match": "disco_cli.localize",
     "LoopDetector": "disco_cli.loop_detector",
     "Loop": "disco_cli.loop_detector",
+    "set_threads": "disco_cli.threads",
+    "get_threads": "disco_cli.threads",
     "DiscoError": "disco_cli.errors",
     "ScanReadError": "disco_cli.errors",
     "DatabaseError": "disco_cli.errors",

@@ -281,12 +281,13 @@ class LoopDetector:
         times: np.ndarray | None = None,
         stored: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
         batch: int = 32,
-        workers: int = 1,
+        threads: int | None = None,
         scan_format: str | None = None,
         on_progress: Callable[[int], None] | None = None,
     ) -> Iterator[list[Loop]]:
         """Feed scan files in order, yielding each one's loops as soon as it is
-        embedded (in batches of `batch`, read and voxelized on `workers` threads).
+        embedded (in batches of `batch`, read and voxelized on `threads` threads; None:
+        `disco_cli.get_threads()`).
         `times`: seconds per scan. `stored`: `Map.stored(paths)` of a map built from
         these files with the same model, whose signatures are used for the scans it
         holds. Points for poses are read back from the files when needed."""
@@ -298,7 +299,7 @@ class LoopDetector:
         else:
             known, sigs, feats = np.zeros(n, bool), None, None
         fresh = self._embed_files(
-            [paths[i] for i in range(n) if not known[i]], batch, workers, scan_format
+            [paths[i] for i in range(n) if not known[i]], batch, threads, scan_format
         )
         for i, path in enumerate(paths):
             sides = None
@@ -322,14 +323,14 @@ class LoopDetector:
             )
 
     def _embed_files(
-        self, paths: list[str], batch: int, workers: int, scan_format: str | None
+        self, paths: list[str], batch: int, threads: int | None, scan_format: str | None
     ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
         from disco_cli.pipeline import embedded
 
         if not paths:
             return
         with embedded(
-            iter(paths), self._model, batch, workers, scan_format, side_offsets=self.side_offsets
+            iter(paths), self._model, batch, threads, scan_format, side_offsets=self.side_offsets
         ) as chunks:
             for chunk in chunks:
                 for item in chunk.errors:

@@ -63,9 +63,13 @@ def _fmt(v: float) -> str:
 
 
 def check_loop_file(path: str | Path) -> None:
-    """`DiscoError` unless `path` names a loop file type (checked before the work)."""
+    """`DiscoError` unless `path` names a loop file type and can be written (checked
+    before the work)."""
+    from disco_cli.output_paths import check_output_file
+
     if Path(path).suffix.lower() not in FORMATS:
         raise DiscoError(f"{path}: unknown loop file type; use {', '.join(FORMATS)}")
+    check_output_file(path, what="the loops")
 
 
 def write_loops(path: str | Path, loops: Sequence[Loop]) -> int:
@@ -112,55 +116,63 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> int:
                     ]
                 )
             )
+    from disco_cli.output_paths import atomic_path
+
     try:
-        if ext == ".csv":
-            with open(path, "w", newline="") as fh:
-                w = csv.writer(fh)
-                w.writerow(
-                    [
-                        "query_index",
-                        "match_index",
-                        "query",
-                        "match",
-                        "distance",
-                        "yaw_deg",
-                        "roll_deg",
-                        "pitch_deg",
-                        "x",
-                        "y",
-                        "z",
-                        "qx",
-                        "qy",
-                        "qz",
-                        "qw",
-                        "fitness",
-                        "rmse",
-                        "accepted",
-                        "reason",
-                    ]
-                )
-                for lp in loops:
-                    T = np.asarray(lp.T)
-                    w.writerow(
-                        [
-                            lp.query_index,
-                            lp.match_index,
-                            lp.query,
-                            lp.match,
-                            _fmt(lp.distance),
-                            _fmt(lp.yaw_deg),
-                            _fmt(lp.roll_deg),
-                            _fmt(lp.pitch_deg),
-                            *map(_fmt, T[:3, 3]),
-                            *map(_fmt, quaternion(T[:3, :3])),
-                            _fmt(lp.fitness),
-                            _fmt(lp.rmse),
-                            str(bool(lp.accepted)).lower(),
-                            lp.reason,
-                        ]
-                    )
-        else:
-            path.write_text("".join(line + "\n" for line in lines))
+        with atomic_path(path) as tmp:
+            _write_lines(tmp, ext, lines, loops)
     except OSError as exc:
         raise DiscoError(f"{path}: cannot write ({exc.strerror or exc})") from None
     return len(loops)
+
+
+def _write_lines(path: Path, ext: str, lines: list[str], loops: Sequence[Loop]) -> None:
+    """The file itself: CSV rows of every loop, else the lines made above."""
+    if ext == ".csv":
+        with open(path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(
+                [
+                    "query_index",
+                    "match_index",
+                    "query",
+                    "match",
+                    "distance",
+                    "yaw_deg",
+                    "roll_deg",
+                    "pitch_deg",
+                    "x",
+                    "y",
+                    "z",
+                    "qx",
+                    "qy",
+                    "qz",
+                    "qw",
+                    "fitness",
+                    "rmse",
+                    "accepted",
+                    "reason",
+                ]
+            )
+            for lp in loops:
+                T = np.asarray(lp.T)
+                w.writerow(
+                    [
+                        lp.query_index,
+                        lp.match_index,
+                        lp.query,
+                        lp.match,
+                        _fmt(lp.distance),
+                        _fmt(lp.yaw_deg),
+                        _fmt(lp.roll_deg),
+                        _fmt(lp.pitch_deg),
+                        *map(_fmt, T[:3, 3]),
+                        *map(_fmt, quaternion(T[:3, :3])),
+                        _fmt(lp.fitness),
+                        _fmt(lp.rmse),
+                        str(bool(lp.accepted)).lower(),
+                        lp.reason,
+                    ]
+                )
+    else:
+        path.write_text("".join(line + "\n" for line in lines))

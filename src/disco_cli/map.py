@@ -410,14 +410,15 @@ class Map:
         poses: np.ndarray | None = None,
         times: np.ndarray | None = None,
         batch: int = 32,
-        workers: int = 1,
+        threads: int | None = None,
         scan_format: str | None = None,
         skip_bad: bool = False,
         on_progress: Callable[[int, int], None] | None = None,
         on_skip: Callable[[DiscoError], None] | None = None,
     ) -> AddResult:
         """Embed scan files and add them, one transaction per batch, reading and
-        voxelizing on `workers` threads while the network runs. Scans are stored by
+        voxelizing on `threads` threads (None: `disco_cli.get_threads()`) while the
+        network runs. Scans are stored by
         absolute path; those the map holds already are skipped, so running it again
         resumes. `poses`: `[N, 4]`
         x, y, z, yaw (rad) rows, NaN where unknown. The first unreadable scan raises
@@ -444,7 +445,7 @@ class Map:
         def embed_and_write() -> None:  # reads and writes add_files' own state
             todo_paths = (paths[i] for i in todo)
             with embedded(
-                todo_paths, self._model, batch, workers, scan_format, side_offsets=self.side_offsets
+                todo_paths, self._model, batch, threads, scan_format, side_offsets=self.side_offsets
             ) as chunks:
                 for chunk in chunks:
                     for item in chunk.errors:
@@ -686,21 +687,24 @@ class Map:
         rerank: int | None = None,
         exclude: Callable[[int, str], Any] | None = None,
         max_distance: float | None = None,
-        workers: int = 1,
+        threads: int | None = None,
         scan_format: str | None = None,
         refine_yaw: int | None = None,
         snap_radius: float | None = None,
     ) -> Iterator[QueryResult]:
-        """Query scan files, streamed: reading and voxelizing run ahead on `workers`
-        threads, and each result is yielded as soon as it is ready, in input order.
+        """Query scan files, streamed: reading and voxelizing run ahead on `threads`
+        threads (None: `disco_cli.get_threads()`), and each result is yielded as soon as
+        it is ready, in input order.
         A scan that fails yields its error and the others go on. `exclude(index, path)`
         gives the match ids to leave out for each query. With `pose`, rows whose pose
         could not be estimated have `T` None and the reason in `reason`."""
         from disco_cli.pipeline import embedded
+        from disco_cli.threads import get_threads
 
         self._check_open()
+        threads = get_threads() if threads is None else threads
         with embedded(
-            paths, self._model, 1, workers, scan_format, prefetch=2 * workers, keep_points=pose
+            paths, self._model, 1, threads, scan_format, prefetch=2 * threads, keep_points=pose
         ) as chunks:
             for chunk in chunks:
                 for item in chunk.errors:

@@ -128,7 +128,7 @@ def embed_paths(
     model: Any,
     scan_format: str | None = None,
     batch: int = 32,
-    workers: int = 2,
+    workers: int | None = None,
     on_progress: Any = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """`(signatures [N, D], features [N, ...])` of scan files, in order; the first
@@ -168,7 +168,7 @@ def _load_one(
 def load_stream(
     paths: Iterable[str],
     bev_config: Any,
-    workers: int = 2,
+    workers: int | None = None,
     prefetch: int = 8,
     scan_format: str | None = None,
     keep_points: bool = False,
@@ -178,9 +178,12 @@ def load_stream(
     With `side_offsets`, each also carries the BEVs of its side views.
 
     `paths` is consumed on a feeder thread, so a slow producer (stdin) never holds back
-    results that are ready already. At most `prefetch` scans are in flight.
+    results that are ready already. At most `prefetch` scans are in flight. `workers`
+    threads read them (None: `disco_cli.get_threads()`).
     """
-    workers = max(1, int(workers))
+    from disco_cli.threads import get_threads
+
+    workers = max(1, int(get_threads() if workers is None else workers))
     pending: queue.Queue = queue.Queue(maxsize=max(1, prefetch))
     stop = threading.Event()
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="disco-load")
@@ -231,7 +234,7 @@ def embedded(
     paths: Iterable[str],
     model: Any,
     batch: int,
-    workers: int = 1,
+    workers: int | None = None,
     scan_format: str | None = None,
     *,
     prefetch: int | None = None,
@@ -240,7 +243,11 @@ def embedded(
 ) -> Iterator[Iterator[Embedded]]:
     """`load_stream` then `embed_stream` over scan files, as one stream of batches; the
     readers stop when the block ends. By default `2 * batch` scans (at least 4 per
-    worker) are read ahead, so the next batch is ready when the network is."""
+    worker) are read ahead, so the next batch is ready when the network is. `workers`:
+    the threads that read and voxelize, one scan each (None: `disco_cli.get_threads()`)."""
+    from disco_cli.threads import get_threads
+
+    workers = get_threads() if workers is None else workers
     loaded = load_stream(
         paths,
         model.bev_config,

@@ -16,12 +16,13 @@ those are re-measured directly in float64:
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from disco_cli.threads import get_threads
 
 __all__ = [
     "SignatureIndex",
@@ -58,7 +59,9 @@ class SignatureIndex:
     the matrix it holds one float32 norm per row.
     """
 
-    def __init__(self, signatures: np.ndarray, int8_min_rows: int = 4096, threads: int = 0):
+    def __init__(
+        self, signatures: np.ndarray, int8_min_rows: int = 4096, threads: int | None = None
+    ):
         sig = np.asarray(signatures)
         if sig.ndim != 2:
             raise ValueError(f"signatures must be [N, D], got {sig.shape}")
@@ -70,7 +73,8 @@ class SignatureIndex:
             raise ValueError("signatures must be finite")
         self.sq_norms = sq64.astype(np.float32)
         self._max_norm = float(np.sqrt(self.sq_norms.max())) if len(self.matrix) else 0.0
-        self.threads = threads if threads > 0 else min(4, os.cpu_count() or 1)
+        # None (or 0): disco's thread setting (disco_cli/threads.py), read once.
+        self.threads = threads if threads else get_threads()
         self._codes: _Int8Codes | None = None
         self._spare: tuple[np.ndarray, np.ndarray] | None = None  # growth room (append)
         if len(self.matrix) >= max(int8_min_rows, 1) and _Int8Codes.available():
@@ -244,7 +248,7 @@ class _Int8Codes:
         # One pass in the compiled core (double precision), rounded up: the error bound
         # must never be below the true error.
         self.codes, self.code_sq, self.code_norm, err = _core.int8_encode(
-            matrix, self.mean, self.scale, min(4, os.cpu_count() or 1)
+            matrix, self.mean, self.scale, get_threads()
         )
         self.err = err * (1 + 1e-9) + 1e-12 * (np.sqrt(sq_norms) + 1.0)
         self.g_max = int(_core.int8_query_limit(d))

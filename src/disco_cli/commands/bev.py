@@ -24,12 +24,10 @@ class BEVMode(str, Enum):
 
 
 def _write(output: Path, save: Any) -> None:
-    """Run `save()` after making the output's folder; one error line if that fails."""
-    try:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        save()
-    except OSError as exc:
-        raise fail(f"{output}: cannot write ({exc.strerror or exc})") from None
+    """`save(tmp)`, renamed onto `output`; one error line if that fails."""
+    from disco_cli.output_paths import write_atomic
+
+    write_atomic(output, save)
 
 
 @handle_errors
@@ -79,6 +77,9 @@ def bev(
         raise fail(f"{output}: the output must end in .png or .npy")
     if polar and suffix != ".png":
         raise fail("--polar draws a picture: give an output ending in .png")
+    from disco_cli.output_paths import check_output_file
+
+    check_output_file(output, what="the BEV")
 
     import dataclasses
 
@@ -116,13 +117,13 @@ def bev(
     cell_mode = str(getattr(config.mode, "value", config.mode))
     shape = "[" + ", ".join(str(n) for n in grid.shape) + "]"
     if suffix == ".npy":
-        _write(output, lambda: np.save(output, grid))
+        _write(output, lambda tmp: np.save(tmp, grid))
         what = f"BEV {shape} float32 ({cell_mode})"
     else:
         from disco_cli.png import write_png
 
         image, top = picture(grid, cell_mode, config, polar, scale)
-        _write(output, lambda: write_png(output, image))
+        _write(output, lambda tmp: write_png(tmp, image))
         what = (
             f"BEV {shape} ({cell_mode}) as a {image.shape[1]} x {image.shape[0]} "
             f"{'top-down' if polar else 'sectors x rings'} picture (yellow: {top})"

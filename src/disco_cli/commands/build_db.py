@@ -27,8 +27,8 @@ from disco_cli.commands.options import (
     QuietOpt,
     ScanFormatOpt,
     SideViewsOpt,
+    ThreadsOpt,
     TopicOpt,
-    WorkersOpt,
     batch_option,
     model_option,
     opt,
@@ -73,7 +73,7 @@ def build_db(
     ] = False,
     side_views: SideViewsOpt = None,
     batch: Annotated[int, batch_option("Scans per network batch and per transaction.")] = 32,
-    workers: WorkersOpt = 1,
+    threads: ThreadsOpt = None,
     device: DeviceOpt = "cpu",
     skip_bad: Annotated[
         bool,
@@ -87,9 +87,13 @@ def build_db(
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
     from disco_cli.map import Interrupted, open_for_adding
+    from disco_cli.output_paths import check_output_file
     from disco_cli.pipeline import check_device, collect_scans
+    from disco_cli.threads import set_threads
 
+    set_threads(threads)  # before the first torch op
     check_device(device)
+    check_output_file(output, what="the database")  # before any scan is embedded
     fmt = scan_format.value if scan_format is not None else None
     if pose_topic is not None and poses is not None:
         raise fail("give --poses or --pose-topic, not both")
@@ -113,7 +117,7 @@ def build_db(
                 poses=scans.poses,
                 times=scans.times,
                 batch=batch,
-                workers=workers,
+                threads=threads,
                 scan_format=fmt,
                 skip_bad=skip_bad,
                 on_progress=advance,

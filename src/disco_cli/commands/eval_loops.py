@@ -29,6 +29,7 @@ from disco_cli.commands.options import (
     RerankOpt,
     RerankWiderOpt,
     ScanFormatOpt,
+    ThreadsOpt,
     TopicOpt,
     apply_rerank,
     model_option,
@@ -87,6 +88,7 @@ def evaluate_loops(
         ),
     ] = None,
     device: DeviceOpt = "cpu",
+    threads: ThreadsOpt = None,
     rerank: RerankOpt = None,
     rerank_wider: RerankWiderOpt = None,
     report: ReportOpt = None,
@@ -99,8 +101,13 @@ def evaluate_loops(
     from disco_cli.evaluation.report import model_run, report_and_print
     from disco_cli.evaluation.runs import exclusion_limits, loop_closure, posed_scans, posed_times
     from disco_cli.model import load_model
+    from disco_cli.output_paths import check_output_folder
     from disco_cli.pipeline import file_beside, scan_paths
+    from disco_cli.threads import set_threads
 
+    set_threads(threads)  # before the first torch op
+    if report is not None:  # before the work, which the report would otherwise lose
+        check_output_folder(report, what="the report")
     if exclude_seconds is not None and exclude_frames is not None:
         raise DiscoError("give --exclude-seconds or --exclude-frames, not both")
     all_paths = scan_paths(sequence, scan_format, topic)

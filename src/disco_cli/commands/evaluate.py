@@ -34,6 +34,7 @@ from disco_cli.commands.options import (
     RerankWiderOpt,
     ScanFormatOpt,
     SnapRadiusOpt,
+    ThreadsOpt,
     TopicOpt,
     apply_refine_yaw,
     apply_rerank,
@@ -81,6 +82,7 @@ def evaluate(
     radius: RadiusOpt = 3.0,
     topk: Annotated[int, topk_option("Recall@1..N up to this N.", panel=PANEL_PROTOCOL)] = 25,
     device: DeviceOpt = "cpu",
+    threads: ThreadsOpt = None,
     rerank: RerankOpt = None,
     rerank_wider: RerankWiderOpt = None,
     refine_yaw: RefineYawOpt = None,
@@ -96,9 +98,14 @@ def evaluate(
     from disco_cli.evaluation.runs import multi_session, posed_scans
     from disco_cli.map import Map
     from disco_cli.model import load_model
+    from disco_cli.output_paths import check_output_folder
     from disco_cli.pipeline import file_beside, scan_paths
     from disco_cli.protocols import TABLE_COLUMNS, run_protocol, table_rows
+    from disco_cli.threads import set_threads
 
+    set_threads(threads)  # before the first torch op
+    if report is not None:  # before the work, which the report would otherwise lose
+        check_output_folder(report, what="the report")
     if protocol is not None:  # the paper's sessions and thresholds, printed as its table
         if len(queries) != 1:
             raise DiscoError("--protocol takes one dataset folder")

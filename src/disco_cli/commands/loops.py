@@ -28,11 +28,11 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     ScanRootOpt,
     SideViewsOpt,
+    ThreadsOpt,
     TimesOpt,
     TopicOpt,
     VerboseLoopsOpt,
     VerifyLoopsOpt,
-    WorkersOpt,
     apply_rerank,
     model_option,
     topk_option,
@@ -65,7 +65,7 @@ def loops(
     topic: TopicOpt = None,
     scan_root: ScanRootOpt = None,
     batch: BatchOpt = 32,
-    workers: WorkersOpt = 1,
+    threads: ThreadsOpt = None,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
     rerank_wider: RerankWiderOpt = None,
@@ -81,7 +81,9 @@ def loops(
     from disco_cli.map import stored_embeddings
     from disco_cli.pipeline import sequence_times
     from disco_cli.readers import list_scans
+    from disco_cli.threads import set_threads
 
+    set_threads(threads)  # before the first torch op
     if exclude_frames is not None and exclude_seconds is not None:
         raise fail("give --exclude-frames or --exclude-seconds, not both")
     if output is not None:
@@ -123,7 +125,7 @@ def loops(
             times=stamps,
             stored=reuse,
             batch=batch,
-            workers=workers,
+            threads=threads,
             scan_format=scan_format,
             on_progress=advance,
         )

@@ -119,13 +119,17 @@ PoseTopicOpt = Annotated[
         rich_help_panel="Poses",
     ),
 ]
-WorkersOpt = Annotated[
-    int,
+# `--threads N` on every command that computes (disco_cli/threads.py applies it).
+ThreadsOpt = Annotated[
+    Optional[int],
     typer.Option(
-        "--workers",
+        "--threads",
         min=1,
-        max=64,
-        help="Threads reading and voxelizing scans.",
+        max=256,
+        show_default=False,
+        help="CPU threads: scans read and voxelized in parallel, and torch, search and "
+        "voxelizer threads; default: $DISCO_THREADS, else 1 (holds its speed beside "
+        "other busy processes).",
         rich_help_panel=PANEL_RUN,
     ),
 ]

@@ -31,9 +31,9 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     ScanRootOpt,
     SnapRadiusOpt,
+    ThreadsOpt,
     TopicOpt,
     VerifyMatchesOpt,
-    WorkersOpt,
     apply_refine_yaw,
     apply_rerank,
     apply_snap,
@@ -82,7 +82,7 @@ def query(
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     scan_root: ScanRootOpt = None,
-    workers: WorkersOpt = 1,
+    threads: ThreadsOpt = None,
     device: DeviceOpt = "cpu",
     rerank: RerankOpt = None,
     rerank_wider: RerankWiderOpt = None,
@@ -93,7 +93,9 @@ def query(
     from disco_cli.console import RowWriter
     from disco_cli.map import Map
     from disco_cli.pipeline import QueryPoses, query_paths
+    from disco_cli.threads import set_threads
 
+    set_threads(threads)  # before the first torch op
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --poses")
     with_pose = pose or verify
@@ -119,7 +121,7 @@ def query(
             pose=with_pose,
             exclude=exclude,
             max_distance=max_distance,
-            workers=workers,
+            threads=threads,
             scan_format=fmt_name,
         )
         for res in results:

@@ -13,7 +13,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from disco_cli.commands.options import QuietOpt
+from disco_cli.commands.options import QuietOpt, ThreadsOpt
 from disco_cli.console import fail, handle_errors, progress, stderr
 
 
@@ -168,9 +168,7 @@ def simulate(
             rich_help_panel="Later sessions' robots",
         ),
     ] = None,
-    threads: Annotated[
-        int, typer.Option("--threads", min=0, help="Ray-casting threads (0: all cores).")
-    ] = 0,
+    threads: ThreadsOpt = None,
     force: Annotated[
         bool, typer.Option("--force", help="Write into a folder that has sessions.")
     ] = False,
@@ -181,7 +179,9 @@ def simulate(
 
     from disco_cli.simulator import ChangeParams, RobotParams, TownParams
     from disco_cli.simulator import simulate as run
+    from disco_cli.threads import set_threads
 
+    threads = set_threads(threads)  # the ray-casting threads
     if frames is not None and length_m is not None:
         raise fail("give --frames or --length-m, not both")
     if out.exists() and (out / "world.json").exists() and not force:

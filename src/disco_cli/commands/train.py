@@ -13,6 +13,7 @@ from disco_cli.commands.options import (
     PoseTopicOpt,
     ProtocolOpt,
     QuietOpt,
+    ThreadsOpt,
     TopicOpt,
     output_option,
 )
@@ -184,7 +185,7 @@ def train(
     seed: Annotated[
         int, typer.Option(min=0, help="Random seed (sampling, augmentation, initialization).")
     ] = 0,
-    threads: Annotated[int, typer.Option(min=0, help="Voxelizer threads (0: all cores).")] = 0,
+    threads: ThreadsOpt = None,
     protocol: ProtocolOpt = None,
     oxford_scale: OxfordScaleOpt = None,
     topic: TopicOpt = None,
@@ -193,19 +194,27 @@ def train(
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
     from disco_cli.bev import BEVConfig
+    from disco_cli.output_paths import check_output_file
     from disco_cli.pipeline import check_device
     from disco_cli.readers import oxford
+    from disco_cli.threads import set_threads
     from disco_cli.training.data import load_training_data
     from disco_cli.training.loop import TrainOptions
     from disco_cli.training.loop import train as run_training
 
+    threads = set_threads(threads)  # before the first torch op
     check_device(device)
     if self_supervised and lambda_verify > 0:
         raise fail("--lambda-verify needs poses (other passes of a place); not --self-supervised")
     if self_supervised and variants > 0:
         raise fail("--variants needs poses; --self-supervised makes its own augmented copies")
-    if output.exists() and not resume:
-        raise fail(f"{output}: exists; pass --resume to continue it or choose another --output")
+    # Before any work: a checkpoint that cannot be written would lose every epoch.
+    check_output_file(
+        output,
+        exists_ok=resume,
+        what="the checkpoint",
+        hint="pass --resume to continue it or choose another --output",
+    )
     if protocol is not None:
         # The paper's training sessions and distances (disco_cli.protocols) replace
         # DATA, --d-pos, --d-neg and --spacing (Oxford: --lambda-yaw too).

@@ -40,10 +40,14 @@ def write_plots(directory: Path, ev: Evaluation, title: str = "") -> list[Path]:
     suffix = f" ({title})" if title else ""
 
     def save(fig: Any, name: str) -> None:
+        from disco_cli.output_paths import write_atomic
+
         path = directory / name
         fig.tight_layout()
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
+        try:
+            write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=100))
+        finally:
+            plt.close(fig)
         written.append(path)
 
     if ev.recall_curve.size:

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.errors import DiscoError
 from disco_cli.evaluation.metrics import Evaluation
 
 # The figures shown on the terminal and in the summary, in this order, with their labels.
@@ -90,19 +91,24 @@ def markdown_summary(metrics: dict[str, Any], run: dict[str, Any], plots: list[s
 
 
 def write_report(directory: Path, ev: Evaluation, run: dict[str, Any]) -> list[Path]:
-    """Write metrics.json, curves.json, summary.md and the plots into `directory`."""
+    """Write metrics.json, curves.json, summary.md and the plots into `directory` (made
+    if it is missing; its parent must exist), each file atomically."""
     from disco_cli.evaluation import plots
+    from disco_cli.output_paths import check_output_folder, write_text_atomic
 
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
+    directory = check_output_folder(directory, what="the report")
+    try:
+        directory.mkdir(exist_ok=True)
+    except OSError as exc:
+        raise DiscoError(f"{directory}: cannot make the folder ({exc.strerror or exc})") from None
     metrics = dict(ev.metrics)
     metrics["run"] = run
     written = [directory / "metrics.json", directory / "curves.json"]
-    written[0].write_text(json.dumps(metrics, indent=2) + "\n")
-    written[1].write_text(json.dumps(curves_dict(ev)) + "\n")
+    write_text_atomic(written[0], json.dumps(metrics, indent=2) + "\n")
+    write_text_atomic(written[1], json.dumps(curves_dict(ev)) + "\n")
     pngs = plots.write_plots(directory, ev, title=str(run.get("model", "")))
     summary = directory / "summary.md"
-    summary.write_text(markdown_summary(ev.metrics, run, [str(p) for p in pngs]))
+    write_text_atomic(summary, markdown_summary(ev.metrics, run, [str(p) for p in pngs]))
     return written + [summary] + pngs
 
 

@@ -49,6 +49,9 @@ MODELS: dict[str, Callable[[str], Any]] = {
 
 def load_model(name_or_path: str | Path = "default", device: str = "cpu") -> Any:
     """A model by registry name or checkpoint path; ModelError naming the file on failure."""
+    from disco_cli.threads import ensure_threads
+
+    ensure_threads()  # before the model's first torch op
     key = str(name_or_path)
     if key in MODELS:
         return MODELS[key](device)

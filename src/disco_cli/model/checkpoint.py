@@ -13,7 +13,6 @@ cannot run code.
 
 from __future__ import annotations
 
-import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -26,12 +25,12 @@ FORMAT = "disco-cli/1"
 
 
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
-    """Write a checkpoint atomically (a crash mid-write leaves the old file intact)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save({"format": FORMAT, **payload}, tmp)
-    os.replace(tmp, path)
+    """Write a checkpoint atomically (a crash mid-write leaves the old file intact, and
+    no temporary file); its folder must exist."""
+    from disco_cli.output_paths import atomic_path
+
+    with atomic_path(path) as tmp:
+        torch.save({"format": FORMAT, **payload}, tmp)
 
 
 def read_checkpoint(path: str | Path, device: str = "cpu") -> dict[str, Any]:

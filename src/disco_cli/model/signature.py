@@ -32,9 +32,10 @@ def _window(n: int, c: int) -> slice:
 
 
 def signatures(
-    features: np.ndarray, crop: tuple[int, int] = DEFAULT_CROP, workers: int = -1
+    features: np.ndarray, crop: tuple[int, int] = DEFAULT_CROP, workers: int | None = None
 ) -> np.ndarray:
-    """Signatures [B, cr * cs] float32 of feature images [B, R, S] (or one [R, S])."""
+    """Signatures [B, cr * cs] float32 of feature images [B, R, S] (or one [R, S]);
+    the FFTs on `workers` threads (None: `disco_cli.get_threads()`)."""
     g = np.asarray(features, dtype=np.float32)
     if g.ndim == 2:
         g = g[None]
@@ -44,6 +45,10 @@ def signatures(
     cr, cs = crop_size(r, s, crop)
     if b == 0:
         return np.zeros((0, cr * cs), np.float32)
+    if workers is None:
+        from disco_cli.threads import get_threads
+
+        workers = get_threads()
     spec = scipy.fft.fft2(g, axes=(1, 2), workers=workers)
     spec = scipy.fft.fftshift(spec, axes=(1, 2))[:, _window(r, cr), _window(s, cs)]
     sig = np.abs(spec).reshape(b, -1).astype(np.float32)
