@@ -747,3 +747,29 @@ def test_a_bad_message_is_named_and_skippable(tmp_path: Path) -> None:
     assert code == 0, err
     err = " ".join(err.split())  # rich wraps long lines
     assert "wrote 2 scans" in err and "1 unreadable scans skipped" in err
+
+
+@pytest.mark.parametrize(
+    ("name", "topic", "kind"),
+    [("map.bag", "/odom", "nav_msgs/Odometry"), ("map_db3", "/pose", "geometry_msgs/PoseStamped")],
+)
+def test_a_pose_topic_left_unused_is_said_in_one_line(
+    data: Path, name: str, topic: str, kind: str
+) -> None:
+    """The bag could have posed its scans: build-db says how many went without, and how."""
+    db = data / f"unposed-{name}.db"
+    args = ["--topic", "/points"] if name == "map.bag" else []
+    code, _, err = run("build-db", data / name, *args, "-o", db, *MODEL)
+    assert code == 0, err
+    lines = [" ".join(ln.split()) for ln in err.split("warning:")[1:]]
+    assert len(lines) == 1, err
+    n = len(MAP_FRAMES)
+    assert f"{n} of {n} scans have no pose" in lines[0]
+    assert f"the bag has {topic} ({kind}): pass --pose-topic {topic}" in lines[0]
+
+
+def test_eval_of_a_bag_without_poses_names_its_pose_topic(data: Path, bin_db: Path) -> None:
+    code, _, err = run("eval", data / "query_db3", "--db", bin_db)
+    err = " ".join(err.split())
+    assert code == 1 and "Traceback" not in err
+    assert "no query poses" in err and "pass --pose-topic /pose" in err

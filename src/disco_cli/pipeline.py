@@ -519,9 +519,11 @@ def collect_scans(
     times: list[np.ndarray] = []
     seen: set[str] = set()
     no_pose = 0
+    used: list[Path] = []  # the pose and times files read
 
     def lidar_rows(group: list[str], pose_file: Path) -> np.ndarray:
         nonlocal no_pose
+        used.append(Path(pose_file))
         T, report = ScanPoser(pose_file, **opts).poses(group)
         if report.warning():
             (warn or warnings.warn)(report.warning())
@@ -543,6 +545,7 @@ def collect_scans(
             if beside is not None:
                 p_rows = lidar_rows(group, beside)
             if times_file is None and (folder / "times.txt").is_file():
+                used.append(folder / "times.txt")
                 t = read_times(folder / "times.txt")
                 t_rows = t[frame_rows(group, len(t), str(folder / "times.txt"))]
         paths += group
@@ -566,4 +569,16 @@ def collect_scans(
             )
         no_pose += len(missing)
         all_poses = pose_rows(T)
+    from disco_cli.missed_poses import missed_hint
+
+    # Poses or times left unused (a folder's poses.txt beside scans given one by one, a
+    # bag's odometry topic): one line that says how to supply them.
+    hint = missed_hint(
+        paths,
+        all_poses if poses_file is None and pose_topic is None else None,
+        all_times if times_file is None else None,
+        used=used,
+    )
+    if hint:
+        (warn or warnings.warn)(hint)
     return ScanList(paths, all_poses, all_times, no_pose)

@@ -99,7 +99,14 @@ def evaluate_loops(
     from disco_cli.console import steps, warn
     from disco_cli.errors import DiscoError, PoseFileError
     from disco_cli.evaluation.report import model_run, report_and_print
-    from disco_cli.evaluation.runs import exclusion_limits, loop_closure, posed_scans, posed_times
+    from disco_cli.evaluation.runs import (
+        check_loop_queries,
+        exclusion_limits,
+        loop_closure,
+        posed_scans,
+        posed_times,
+    )
+    from disco_cli.missed_poses import bag_hint
     from disco_cli.model import load_model
     from disco_cli.output_paths import check_output_folder
     from disco_cli.pipeline import file_beside, scan_paths
@@ -113,13 +120,24 @@ def evaluate_loops(
     all_paths = scan_paths(sequence, scan_format, topic)
     poses_file = file_beside(sequence, poses)
     if poses_file is None and pose_topic is None:
-        raise PoseFileError("no poses: give --poses FILE (or a folder with poses.txt)")
+        raise PoseFileError(
+            "no poses: give --poses FILE (or a folder with poses.txt)" + bag_hint(all_paths)
+        )
     opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
     paths, T = posed_scans(all_paths, poses_file, opts, warn, pose_topic)
     t, seconds = None, 30.0 if exclude_seconds is None else exclude_seconds
     if exclude_frames is None:
         t = posed_times(file_beside(sequence, times, "times.txt"), all_paths, paths)
     limit = exclusion_limits(len(paths), exclude_frames, t, seconds)
+    if exclude_frames is not None:
+        advice = f"lower --exclude-frames (now {exclude_frames}; {len(paths)} scans)"
+    else:
+        span = float(t[-1] - t[0]) if t is not None and len(t) else 0.0
+        advice = (
+            f"lower --exclude-seconds (now {seconds:g} s; the sequence spans {span:.1f} s) "
+            "or give --exclude-frames N"
+        )
+    check_loop_queries(T, limit, radius, advice)  # before the work: blank figures otherwise
     model = apply_rerank(load_model(model_name, device=device), rerank, rerank_wider)
     with steps("embedding", len(paths)) as step:
         ev = loop_closure(paths, T, limit, model, radius, scan_format, step)

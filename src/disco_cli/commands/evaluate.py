@@ -126,7 +126,11 @@ def evaluate(
     paths = scan_paths(queries, scan_format, topic)
     poses_file = file_beside(queries, query_poses)
     if poses_file is None and pose_topic is None:
-        raise PoseFileError("no query poses: give --poses FILE (or a folder with poses.txt)")
+        from disco_cli.missed_poses import bag_hint
+
+        raise PoseFileError(
+            "no query poses: give --poses FILE (or a folder with poses.txt)" + bag_hint(paths)
+        )
     opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
     paths, q_poses = posed_scans(paths, poses_file, opts, warn, pose_topic)
     with (

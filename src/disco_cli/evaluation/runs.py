@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.errors import DatabaseError, PoseFileError
+from disco_cli.errors import DatabaseError, DiscoError, PoseFileError
 
 __all__ = [
     "multi_session",
@@ -108,11 +108,49 @@ def multi_session(
     db_poses, _ = db.poses()
     if not np.isfinite(db_poses[:, :2]).all():
         raise DatabaseError(db.path, "some scans have no pose; build it with --poses")
+    check_retrieval_queries(query_poses, db_poses, radius)  # before the work
     ids, index = index_for(db)
     sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
     depth = max(topk, one_percent_n(len(ids)))
     matches = match_queries(index, ids, db, model, sigs, feats, depth)
     return score_retrieval(matches, depth, topk, query_poses, db_poses, radius)
+
+
+def check_retrieval_queries(query_poses: np.ndarray, map_rows: np.ndarray, radius: float) -> None:
+    """`DiscoError` when no query has a map scan within `radius` m: every figure would be
+    blank (recall of nothing), so the evaluation is refused before it runs."""
+    from disco_cli.evaluation.metrics import within_radius
+
+    q = np.asarray(query_poses)[:, :2, 3]
+    if len(q) and within_radius(q, map_rows[:, :2], radius).any():
+        return
+    raise DiscoError(
+        f"0 of {len(q)} queries can be scored: none has a map scan within {radius:g} m; "
+        "check that the queries and the map share one pose frame, or raise --radius"
+    )
+
+
+def check_loop_queries(poses: np.ndarray, limit: np.ndarray, radius: float, advice: str) -> None:
+    """`DiscoError` (with `advice`: which option to change) when no scan of the sequence
+    can be scored: none has an earlier scan to search (`limit`), or none of those that
+    do has a true revisit within `radius` m. Checked before the work."""
+    from disco_cli.evaluation.metrics import within_radius
+
+    n = len(limit)
+    queries = np.flatnonzero(np.asarray(limit) > 0)
+    if len(queries) == 0:
+        raise DiscoError(
+            f"0 of {n} scans can be scored: none has a scan far enough before it to search "
+            f"({advice})"
+        )
+    xy = np.asarray(poses)[:, :2, 3]
+    near = within_radius(xy[queries], xy, radius)
+    near &= np.arange(n)[None, :] < limit[queries][:, None]
+    if not near.any():
+        raise DiscoError(
+            f"0 of {len(queries)} queries can be scored: none returns within {radius:g} m "
+            f"of a scan it may search; raise --radius, or {advice}"
+        )
 
 
 def score_retrieval(
@@ -183,6 +221,7 @@ def loop_closure(
     n = len(paths)
     if len(poses) != n:
         raise PoseFileError(f"{source}: {len(poses)} poses for {n} scans")
+    check_loop_queries(poses, limit, radius, "shorten the exclusion window")  # before the work
     sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
 
     class _Memory:

@@ -288,6 +288,13 @@ def topics_of_type(path: str | Path, kinds: tuple[str, ...] = (POINTCLOUD2,)) ->
     return sorted(t for t, k in bag.types.items() if k in kinds)
 
 
+def pose_topics(path: str | Path) -> dict[str, str]:
+    """{topic: type} of a bag's pose topics (nav_msgs/Odometry, geometry_msgs/PoseStamped,
+    ...), for the hint when a bag's scans are read without --pose-topic."""
+    bag = _open(path)
+    return {t: k for t, k in bag.types.items() if k in POSE_TYPES}
+
+
 def _choose_topic(path: str | Path, topic: str | None, kinds: tuple[str, ...], flag: str) -> str:
     """`topic` when given (checked), else the bag's only topic of that type."""
     bag = _open(path)
