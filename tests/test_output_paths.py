@@ -148,11 +148,16 @@ def test_train_onto_an_existing_checkpoint_without_resume_advises_resume(
 def test_train_resume_accepts_what_the_advice_names(
     samples: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """With --resume the existing checkpoint passes the check and training is reached."""
+    """With --resume a checkpoint of the same network passes the check and training is
+    reached."""
     import disco_cli.training.data as data
+    from disco_cli.bev import BEVConfig
+    from disco_cli.model.checkpoint import save_checkpoint
+    from disco_cli.model.disco import default_model_config
 
     out = tmp_path / "m.pt"
-    out.write_bytes(b"x")
+    config = {**default_model_config(BEVConfig().heights, 8), "residual": True}
+    save_checkpoint(out, {"model_config": config, "state_dict": {}})
     reached = []
 
     def load_training_data(*args, **kwargs):
@@ -163,6 +168,25 @@ def test_train_resume_accepts_what_the_advice_names(
     res = runner.invoke(app, ["train", str(samples / "00"), "-o", str(out), "--resume"])
     _one_line_error(res, "stop: the check passed")
     assert reached == [True]
+
+
+def test_train_resume_of_a_file_that_cannot_be_resumed_fails_before_training(
+    samples: Path, tmp_path: Path, no_training: Never
+) -> None:
+    from disco_cli.bev import BEVConfig
+    from disco_cli.model.checkpoint import save_checkpoint
+    from disco_cli.model.disco import default_model_config
+
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    res = runner.invoke(app, ["train", str(samples / "00"), "-o", str(junk), "--resume"])
+    _one_line_error(res, str(junk), "not a readable model checkpoint")
+    other = tmp_path / "w16.pt"  # a width-16 network, resumed as the default width 8
+    config = default_model_config(BEVConfig().heights, 16)
+    save_checkpoint(other, {"model_config": {**config, "residual": True}, "state_dict": {}})
+    res = runner.invoke(app, ["train", str(samples / "00"), "-o", str(other), "--resume"])
+    _one_line_error(res, str(other), "another model configuration")
+    assert no_training.calls == 0
 
 
 # -- loops -o, bev -o, build-db -o ---------------------------------------------------------

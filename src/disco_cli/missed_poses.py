@@ -65,6 +65,15 @@ def bag_hint(paths: Sequence[object]) -> str:
     return f"; the bag has {', '.join(topics)}: pass --pose-topic {topics[0].split(' ')[0]}"
 
 
+def no_poses_error(paths: Sequence[object], what: str, flag: str) -> Exception:
+    """The error of an evaluation given no poses: which option, or which bag topic."""
+    from disco_cli.errors import PoseFileError
+
+    return PoseFileError(
+        f"no {what}: give {flag} FILE (or a folder with poses.txt){bag_hint(paths)}"
+    )
+
+
 def _bag_of(scan: str) -> str | None:
     from disco_cli.readers.bags import split_name
 

@@ -97,7 +97,7 @@ def evaluate_loops(
 ) -> None:
     """Loop closure along one sequence: precision-recall, F1max, recall at 100% precision."""
     from disco_cli.console import steps, warn
-    from disco_cli.errors import DiscoError, PoseFileError
+    from disco_cli.errors import DiscoError
     from disco_cli.evaluation.report import model_run, report_and_print
     from disco_cli.evaluation.runs import (
         check_loop_queries,
@@ -106,7 +106,7 @@ def evaluate_loops(
         posed_scans,
         posed_times,
     )
-    from disco_cli.missed_poses import bag_hint
+    from disco_cli.missed_poses import no_poses_error
     from disco_cli.model import load_model
     from disco_cli.output_paths import check_output_folder
     from disco_cli.pipeline import file_beside, scan_paths
@@ -120,9 +120,7 @@ def evaluate_loops(
     all_paths = scan_paths(sequence, scan_format, topic)
     poses_file = file_beside(sequence, poses)
     if poses_file is None and pose_topic is None:
-        raise PoseFileError(
-            "no poses: give --poses FILE (or a folder with poses.txt)" + bag_hint(all_paths)
-        )
+        raise no_poses_error(all_paths, "poses", "--poses")
     opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
     paths, T = posed_scans(all_paths, poses_file, opts, warn, pose_topic)
     t, seconds = None, 30.0 if exclude_seconds is None else exclude_seconds
@@ -137,7 +135,7 @@ def evaluate_loops(
             f"lower --exclude-seconds (now {seconds:g} s; the sequence spans {span:.1f} s) "
             "or give --exclude-frames N"
         )
-    check_loop_queries(T, limit, radius, advice)  # before the work: blank figures otherwise
+    check_loop_queries(T, limit, radius, advice, warn)  # before the work: blank figures otherwise
     model = apply_rerank(load_model(model_name, device=device), rerank, rerank_wider)
     with steps("embedding", len(paths)) as step:
         ev = loop_closure(paths, T, limit, model, radius, scan_format, step)

@@ -97,6 +97,7 @@ def evaluate(
     from disco_cli.evaluation.report import model_run, report_and_print
     from disco_cli.evaluation.runs import multi_session, posed_scans
     from disco_cli.map import Map
+    from disco_cli.missed_poses import no_poses_error
     from disco_cli.model import load_model
     from disco_cli.output_paths import check_output_folder
     from disco_cli.pipeline import file_beside, scan_paths
@@ -126,11 +127,7 @@ def evaluate(
     paths = scan_paths(queries, scan_format, topic)
     poses_file = file_beside(queries, query_poses)
     if poses_file is None and pose_topic is None:
-        from disco_cli.missed_poses import bag_hint
-
-        raise PoseFileError(
-            "no query poses: give --poses FILE (or a folder with poses.txt)" + bag_hint(paths)
-        )
+        raise no_poses_error(paths, "query poses", "--poses")
     opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
     paths, q_poses = posed_scans(paths, poses_file, opts, warn, pose_topic)
     with (

@@ -199,7 +199,7 @@ def train(
     from disco_cli.readers import oxford
     from disco_cli.threads import set_threads
     from disco_cli.training.data import load_training_data
-    from disco_cli.training.loop import TrainOptions
+    from disco_cli.training.loop import TrainOptions, resumable_checkpoint
     from disco_cli.training.loop import train as run_training
 
     threads = set_threads(threads)  # before the first torch op
@@ -269,6 +269,8 @@ def train(
         seed=seed,
         device=device,
     )
+    if resume:  # a checkpoint that cannot be resumed is said before any data is loaded
+        resumable_checkpoint(output, bev_config.heights, opts)
 
     def load(paths: list[Path], what: str, ss: bool, copies: int = 0):
         with progress(transient=True) as bar:

@@ -130,10 +130,18 @@ def check_retrieval_queries(query_poses: np.ndarray, map_rows: np.ndarray, radiu
     )
 
 
-def check_loop_queries(poses: np.ndarray, limit: np.ndarray, radius: float, advice: str) -> None:
+def check_loop_queries(
+    poses: np.ndarray,
+    limit: np.ndarray,
+    radius: float,
+    advice: str,
+    warn: Callable[[str], None] | None = None,
+) -> None:
     """`DiscoError` (with `advice`: which option to change) when no scan of the sequence
-    can be scored: none has an earlier scan to search (`limit`), or none of those that
-    do has a true revisit within `radius` m. Checked before the work."""
+    can be scored, none having an earlier scan to search (`limit`). When queries there
+    are but none has a true revisit within `radius` m (a drive that never returns),
+    they still score precision (every detection is false), so `warn` says that
+    recall, AUC and F1 stay blank. Checked before the work."""
     from disco_cli.evaluation.metrics import within_radius
 
     n = len(limit)
@@ -146,10 +154,10 @@ def check_loop_queries(poses: np.ndarray, limit: np.ndarray, radius: float, advi
     xy = np.asarray(poses)[:, :2, 3]
     near = within_radius(xy[queries], xy, radius)
     near &= np.arange(n)[None, :] < limit[queries][:, None]
-    if not near.any():
-        raise DiscoError(
-            f"0 of {len(queries)} queries can be scored: none returns within {radius:g} m "
-            f"of a scan it may search; raise --radius, or {advice}"
+    if not near.any() and warn is not None:
+        warn(
+            f"none of the {len(queries)} queries returns within {radius:g} m of a scan it "
+            "may search: recall, AUC and F1 stay blank (raise --radius if it does return)"
         )
 
 

@@ -193,7 +193,7 @@ def load_training_data(
     copies: int = 2,
     max_shift: float = 2.0,
     seed: int = 0,
-    threads: int = 0,
+    threads: int | None = None,
     on_progress: Callable[[int, int], None] | None = None,
     topic: str | None = None,
     pose_topic: str | None = None,
@@ -207,6 +207,9 @@ def load_training_data(
     from disco_cli.bev import polar_bev_batch
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import is_bag, list_scans, read_scan
+    from disco_cli.threads import get_threads
+
+    threads = get_threads() if threads is None else threads  # the voxelizer's threads
 
     seqs = expand_sequences(paths)
     rng = np.random.default_rng(seed)

@@ -105,6 +105,27 @@ def _pool_signatures(
     return np.concatenate(out)
 
 
+def _model_config(heights: int, opts: TrainOptions) -> dict[str, Any]:
+    model_config = default_model_config(heights, opts.width)
+    model_config["residual"] = bool(opts.residual)
+    return model_config
+
+
+def resumable_checkpoint(
+    out_path: str | Path, heights: int, opts: TrainOptions
+) -> dict[str, Any] | None:
+    """The checkpoint at `out_path` that `--resume` continues (None: there is none yet,
+    training starts); `ModelError` when it is unreadable or of another model
+    configuration. `disco train` calls it before loading any data."""
+    out_path = Path(out_path)
+    if not out_path.is_file():
+        return None
+    ckpt = read_checkpoint(out_path)
+    if dict(ckpt.get("model_config", {})) != _model_config(heights, opts):
+        raise ModelError(f"{out_path}: was trained with another model configuration; cannot resume")
+    return ckpt
+
+
 def train(
     data: TrainData,
     bev_config: Any,
@@ -119,19 +140,14 @@ def train(
     """Train and write checkpoints to out_path; the per-epoch history is returned."""
     out_path = Path(out_path)
     device = opts.device
-    model_config = default_model_config(data.bevs.shape[1], opts.width)
-    model_config["residual"] = bool(opts.residual)
+    model_config = _model_config(data.bevs.shape[1], opts)
     crop = tuple(model_config["crop"])
     torch.manual_seed(opts.seed)
     net = build_net(model_config).to(device)
     optim = torch.optim.Adam(net.parameters(), lr=opts.lr)
     start_epoch, history = 0, []
-    if resume and out_path.is_file():
-        ckpt = read_checkpoint(out_path)
-        if dict(ckpt.get("model_config", {})) != model_config:
-            raise ModelError(
-                f"{out_path}: was trained with another model configuration; cannot resume"
-            )
+    ckpt = resumable_checkpoint(out_path, data.bevs.shape[1], opts) if resume else None
+    if ckpt is not None:
         net.load_state_dict(ckpt["state_dict"])
         state = ckpt.get("train_state", {})
         if "optimizer" in state:
