@@ -20,7 +20,7 @@ from disco_cli.cli import app
 from disco_cli.errors import DiscoError
 
 runner = CliRunner()
-COMPUTING = ["build-db", "query", "loops", "eval", "eval-loops", "train", "simulate"]
+COMPUTING = ["build-db", "query", "loops", "eval", "eval-loops", "train", "simulate", "serve"]
 
 
 @pytest.fixture(autouse=True)

@@ -10,7 +10,13 @@ from typing import Annotated, Optional
 
 import typer
 
-from disco_cli.commands.options import MODEL_OF_MAP, db_option, model_option, topk_option
+from disco_cli.commands.options import (
+    MODEL_OF_MAP,
+    ThreadsOpt,
+    db_option,
+    model_option,
+    topk_option,
+)
 from disco_cli.console import handle_errors, stderr, warn
 
 
@@ -59,10 +65,14 @@ def serve(
         ),
     ] = 64.0,
     model: Annotated[Optional[str], model_option(MODEL_OF_MAP)] = None,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Answer queries against one map over a local socket, loading it and the model once."""
     from disco_cli.map import Map
     from disco_cli.serve import QueryService, ServeOptions, make_server, serve_forever
+    from disco_cli.threads import set_threads
+
+    set_threads(threads)  # before the first torch op
 
     if port is None and socket_path is None:
         socket_path = Path("disco.sock")
