@@ -213,3 +213,48 @@ def test_bad_disco_threads_is_one_line(value: str, tmp_path: Path) -> None:
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and "DISCO_THREADS" in lines[0], res.output
     assert "Traceback" not in res.output
+
+
+CHECK_ORDER = """
+import sys
+from typer.testing import CliRunner
+import disco_cli.threads as t
+from disco_cli.cli import app
+from disco_cli.errors import DiscoError
+
+def first(n=None):
+    loaded = sorted(m for m in ("numpy", "torch", "scipy") if m in sys.modules)
+    print("loaded before set_threads:", ",".join(loaded) or "-", file=sys.__stdout__)
+    raise DiscoError("stop")
+
+t.set_threads = first
+for args in sys.argv[1:]:
+    CliRunner().invoke(app, args.split())
+"""
+
+
+def test_commands_apply_the_setting_before_numpy_or_torch_load(tmp_path: Path) -> None:
+    """OpenBLAS and torch read their thread variables once, as they load: every command
+    sets them first. A fresh interpreter shows what had loaded when it did."""
+    import subprocess
+    import sys
+
+    src = Path(__file__).resolve().parent.parent / "src"
+    runs = [
+        "build-db x.bin",
+        "query x.bin",
+        "loops x",
+        "eval x",
+        "eval-loops x",
+        f"train {tmp_path} -o {tmp_path / 'm.pt'}",
+        f"simulate {tmp_path / 'w'}",
+        "serve",
+    ]
+    assert {r.split()[0] for r in runs} == set(COMPUTING)
+    env = {"PYTHONPATH": str(src), "PATH": "/usr/bin:/bin"}
+    res = subprocess.run(
+        [sys.executable, "-c", CHECK_ORDER, *runs], capture_output=True, text=True, env=env
+    )
+    assert res.returncode == 0, res.stderr
+    lines = [ln for ln in res.stdout.splitlines() if ln.startswith("loaded before")]
+    assert lines == ["loaded before set_threads: -"] * len(runs), res.stdout

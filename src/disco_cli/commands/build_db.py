@@ -86,12 +86,14 @@ def build_db(
     quiet: QuietOpt = False,
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
+    from disco_cli.threads import set_threads
+
+    set_threads(threads)  # first: torch and BLAS read it as they load
+
     from disco_cli.map import Interrupted, open_for_adding
     from disco_cli.output_paths import check_output_file
     from disco_cli.pipeline import check_device, collect_scans
-    from disco_cli.threads import set_threads
 
-    set_threads(threads)  # before the first torch op
     check_device(device)
     check_output_file(output, what="the database")  # before any scan is embedded
     fmt = scan_format.value if scan_format is not None else None

@@ -96,11 +96,16 @@ def evaluate_loops(
     quiet: QuietOpt = False,
 ) -> None:
     """Loop closure along one sequence: precision-recall, F1max, recall at 100% precision."""
+    from disco_cli.threads import set_threads
+
+    set_threads(threads)  # first: torch and BLAS read it as they load
+
     from disco_cli.console import steps, warn
     from disco_cli.errors import DiscoError
     from disco_cli.evaluation.report import model_run, report_and_print
     from disco_cli.evaluation.runs import (
         check_loop_queries,
+        exclusion_advice,
         exclusion_limits,
         loop_closure,
         posed_scans,
@@ -110,9 +115,7 @@ def evaluate_loops(
     from disco_cli.model import load_model
     from disco_cli.output_paths import check_output_folder
     from disco_cli.pipeline import file_beside, scan_paths
-    from disco_cli.threads import set_threads
 
-    set_threads(threads)  # before the first torch op
     if report is not None:  # before the work, which the report would otherwise lose
         check_output_folder(report, what="the report")
     if exclude_seconds is not None and exclude_frames is not None:
@@ -127,14 +130,7 @@ def evaluate_loops(
     if exclude_frames is None:
         t = posed_times(file_beside(sequence, times, "times.txt"), all_paths, paths)
     limit = exclusion_limits(len(paths), exclude_frames, t, seconds)
-    if exclude_frames is not None:
-        advice = f"lower --exclude-frames (now {exclude_frames}; {len(paths)} scans)"
-    else:
-        span = float(t[-1] - t[0]) if t is not None and len(t) else 0.0
-        advice = (
-            f"lower --exclude-seconds (now {seconds:g} s; the sequence spans {span:.1f} s) "
-            "or give --exclude-frames N"
-        )
+    advice = exclusion_advice(len(paths), exclude_frames, t, seconds)
     check_loop_queries(T, limit, radius, advice, warn)  # before the work: blank figures otherwise
     model = apply_rerank(load_model(model_name, device=device), rerank, rerank_wider)
     with steps("embedding", len(paths)) as step:

@@ -92,6 +92,10 @@ def evaluate(
     quiet: QuietOpt = False,
 ) -> None:
     """Multi-session evaluation: Recall@N, Recall@1%, PR AUC, F1max, yaw error vs a database."""
+    from disco_cli.threads import set_threads
+
+    set_threads(threads)  # first: torch and BLAS read it as they load
+
     from disco_cli.console import RowWriter, stderr, steps, warn
     from disco_cli.errors import DiscoError, PoseFileError
     from disco_cli.evaluation.report import model_run, report_and_print
@@ -102,9 +106,7 @@ def evaluate(
     from disco_cli.output_paths import check_output_folder
     from disco_cli.pipeline import file_beside, scan_paths
     from disco_cli.protocols import TABLE_COLUMNS, run_protocol, table_rows
-    from disco_cli.threads import set_threads
 
-    set_threads(threads)  # before the first torch op
     if report is not None:  # before the work, which the report would otherwise lose
         check_output_folder(report, what="the report")
     if protocol is not None:  # the paper's sessions and thresholds, printed as its table

@@ -73,6 +73,10 @@ def loops(
     quiet: QuietOpt = False,
 ) -> None:
     """Detect loop closures along one sequence of scans (by default each scan searches the scans at least 50 frames before it)."""  # noqa: E501
+    from disco_cli.threads import set_threads
+
+    set_threads(threads)  # first: torch and BLAS read it as they load
+
     import numpy as np
 
     from disco_cli.console import RowWriter, in_blocks, steps
@@ -81,9 +85,7 @@ def loops(
     from disco_cli.map import stored_embeddings
     from disco_cli.pipeline import sequence_times
     from disco_cli.readers import list_scans
-    from disco_cli.threads import set_threads
 
-    set_threads(threads)  # before the first torch op
     if exclude_frames is not None and exclude_seconds is not None:
         raise fail("give --exclude-frames or --exclude-seconds, not both")
     if output is not None:

@@ -90,12 +90,14 @@ def query(
     snap_radius: SnapRadiusOpt = None,
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
+    from disco_cli.threads import set_threads
+
+    set_threads(threads)  # first: torch and BLAS read it as they load
+
     from disco_cli.console import RowWriter
     from disco_cli.map import Map
     from disco_cli.pipeline import QueryPoses, query_paths
-    from disco_cli.threads import set_threads
 
-    set_threads(threads)  # before the first torch op
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --poses")
     with_pose = pose or verify

@@ -68,11 +68,12 @@ def serve(
     threads: ThreadsOpt = None,
 ) -> None:
     """Answer queries against one map over a local socket, loading it and the model once."""
-    from disco_cli.map import Map
-    from disco_cli.serve import QueryService, ServeOptions, make_server, serve_forever
     from disco_cli.threads import set_threads
 
-    set_threads(threads)  # before the first torch op
+    set_threads(threads)  # first: torch and BLAS read it as they load
+
+    from disco_cli.map import Map
+    from disco_cli.serve import QueryService, ServeOptions, make_server, serve_forever
 
     if port is None and socket_path is None:
         socket_path = Path("disco.sock")

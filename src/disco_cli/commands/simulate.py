@@ -175,13 +175,15 @@ def simulate(
     quiet: QuietOpt = False,
 ) -> None:
     """Simulate a LiDAR driving through a procedural town, in several sessions."""
+    from disco_cli.threads import set_threads
+
+    threads = set_threads(threads)  # first: torch and BLAS read it as they load
+
     from dataclasses import replace
 
     from disco_cli.simulator import ChangeParams, RobotParams, TownParams
     from disco_cli.simulator import simulate as run
-    from disco_cli.threads import set_threads
 
-    threads = set_threads(threads)  # the ray-casting threads
     if frames is not None and length_m is not None:
         raise fail("give --frames or --length-m, not both")
     if out.exists() and (out / "world.json").exists() and not force:

@@ -193,16 +193,18 @@ def train(
     quiet: QuietOpt = False,
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
+    from disco_cli.threads import set_threads
+
+    threads = set_threads(threads)  # first: torch and BLAS read it as they load
+
     from disco_cli.bev import BEVConfig
     from disco_cli.output_paths import check_output_file
     from disco_cli.pipeline import check_device
     from disco_cli.readers import oxford
-    from disco_cli.threads import set_threads
     from disco_cli.training.data import load_training_data
     from disco_cli.training.loop import TrainOptions, resumable_checkpoint
     from disco_cli.training.loop import train as run_training
 
-    threads = set_threads(threads)  # before the first torch op
     check_device(device)
     if self_supervised and lambda_verify > 0:
         raise fail("--lambda-verify needs poses (other passes of a place); not --self-supervised")

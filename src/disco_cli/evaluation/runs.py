@@ -130,6 +130,20 @@ def check_retrieval_queries(query_poses: np.ndarray, map_rows: np.ndarray, radiu
     )
 
 
+def exclusion_advice(
+    n: int, exclude_frames: int | None, times: np.ndarray | None, seconds: float
+) -> str:
+    """Which option shortens eval-loops' exclusion window, with its value and the
+    sequence's length, for `check_loop_queries`' message."""
+    if exclude_frames is not None:
+        return f"lower --exclude-frames (now {exclude_frames}; {n} scans)"
+    span = float(times[-1] - times[0]) if times is not None and len(times) else 0.0
+    return (
+        f"lower --exclude-seconds (now {seconds:g} s; the sequence spans {span:.1f} s) "
+        "or give --exclude-frames N"
+    )
+
+
 def check_loop_queries(
     poses: np.ndarray,
     limit: np.ndarray,
