@@ -156,13 +156,7 @@ def test_gt_loops_calib_file_and_none(tmp_path) -> None:
 SYNONYMS = [
     ("--max-distance", "--threshold"),  # the distance cut of query and loops
     ("--poses", "--query-poses"),  # the poses of the scans given on the command line
-    pytest.param(
-        "--threads",
-        "--workers",  # how many threads a command computes with
-        marks=pytest.mark.xfail(
-            strict=True, reason="--workers becomes --threads on the field-cli branch (issue 26)"
-        ),
-    ),
+    ("--threads", "--workers"),  # how many threads a command computes with
 ]
 
 

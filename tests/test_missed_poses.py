@@ -153,7 +153,7 @@ def test_eval_with_queries_nowhere_near_the_map(
     T[:, 3] += 1e5  # every query 100 km from the map
     poses = tmp_path / "far.txt"
     np.savetxt(poses, T)
-    args = ["eval", str(samples / "01"), "-d", str(samples_spectral_db), "--query-poses"]
+    args = ["eval", str(samples / "01"), "-d", str(samples_spectral_db), "--poses"]
     res = runner.invoke(app, [*args, str(poses), "--calib", "none"])
     line = _one_error_line(res)
     assert "0 of 26 queries can be scored" in line and "--radius" in line

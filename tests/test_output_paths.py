@@ -180,7 +180,7 @@ def test_train_resume_of_a_file_that_cannot_be_resumed_fails_before_training(
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a checkpoint")
     res = runner.invoke(app, ["train", str(samples / "00"), "-o", str(junk), "--resume"])
-    _one_line_error(res, str(junk), "not a readable model checkpoint")
+    _one_line_error(res, str(junk), "not a disco checkpoint")
     other = tmp_path / "w16.pt"  # a width-16 network, resumed as the default width 8
     config = default_model_config(BEVConfig().heights, 16)
     save_checkpoint(other, {"model_config": {**config, "residual": True}, "state_dict": {}})

@@ -200,7 +200,8 @@ def test_simulate_threads_reach_the_ray_caster(
 def test_bad_threads_option_is_one_usage_error(value: str, tmp_path: Path) -> None:
     res = runner.invoke(app, ["query", "x.bin", "-d", str(tmp_path / "m.db"), "--threads", value])
     assert res.exit_code == 2
-    assert "--threads" in res.output
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "--threads" in lines[0], res.output
     assert "Traceback" not in res.output
 
 

@@ -52,9 +52,12 @@ def check_output_file(
     return path
 
 
-def check_output_folder(path: str | Path, *, what: str = "files") -> Path:
+def check_output_folder(path: str | Path | None, *, what: str = "files") -> Path | None:
     """`path` as a Path if it is a folder that takes files, or can be made one (its
-    parent exists); else one-line `DiscoError`. The folder itself is not created."""
+    parent exists); else one-line `DiscoError`. The folder itself is not created.
+    None (no such output asked for) passes as None."""
+    if path is None:
+        return None
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise DiscoError(f"{path}: is a file, not a folder; give a folder (new or existing)")

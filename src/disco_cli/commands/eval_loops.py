@@ -99,7 +99,6 @@ def evaluate_loops(
     from disco_cli.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
-
     from disco_cli.console import steps, warn
     from disco_cli.errors import DiscoError
     from disco_cli.evaluation.report import model_run, report_and_print
@@ -116,8 +115,7 @@ def evaluate_loops(
     from disco_cli.output_paths import check_output_folder
     from disco_cli.pipeline import file_beside, scan_paths
 
-    if report is not None:  # before the work, which the report would otherwise lose
-        check_output_folder(report, what="the report")
+    check_output_folder(report, what="the report")  # before the work it would lose
     if exclude_seconds is not None and exclude_frames is not None:
         raise DiscoError("give --exclude-seconds or --exclude-frames, not both")
     all_paths = scan_paths(sequence, scan_format, topic)

@@ -95,7 +95,6 @@ def evaluate(
     from disco_cli.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
-
     from disco_cli.console import RowWriter, stderr, steps, warn
     from disco_cli.errors import DiscoError, PoseFileError
     from disco_cli.evaluation.report import model_run, report_and_print
@@ -107,8 +106,7 @@ def evaluate(
     from disco_cli.pipeline import file_beside, scan_paths
     from disco_cli.protocols import TABLE_COLUMNS, run_protocol, table_rows
 
-    if report is not None:  # before the work, which the report would otherwise lose
-        check_output_folder(report, what="the report")
+    check_output_folder(report, what="the report")  # before the work it would lose
     if protocol is not None:  # the paper's sessions and thresholds, printed as its table
         if len(queries) != 1:
             raise DiscoError("--protocol takes one dataset folder")
