@@ -547,7 +547,7 @@ def test_messages_read_back_by_name_in_any_order(data: Path, kind: str) -> None:
         np.testing.assert_array_equal(got, want)
     with pytest.raises(ScanReadError, match="no message with this header stamp"):
         read_scan(f"{data / map_name}#/points@{stamp(3) + 1}")
-    # Reading threads (build-db --workers) share the bag and its cursor.
+    # Reading threads (build-db --threads) share the bag and its cursor.
     from concurrent.futures import ThreadPoolExecutor
 
     bags._close_all()
