@@ -64,6 +64,11 @@ def warn(message: str) -> None:
     stderr.print(f"[yellow]warning:[/] {escape(message)}", soft_wrap=True)
 
 
+def note(message: str) -> None:
+    """One line of information on stderr (e.g. an index being built)."""
+    stderr.print(f"note: {escape(message)}", soft_wrap=True, highlight=False)
+
+
 def fail(message: str, code: int = 1) -> typer.Exit:
     """Print one error line and return the Exit to raise: `raise fail("...")`."""
     error(message)

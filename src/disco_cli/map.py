@@ -219,6 +219,10 @@ class Map:
         self._points = PointCache(self._read_match, size=32)
         self._missing: set[str] = set()
         self.scan_root: str | Path | None = None
+        # Which signature index answers (disco_cli.index: auto, exact or ann), and who
+        # is told when an approximate index is built or its sidecar cannot be used.
+        self.index_kind = "auto"
+        self.on_index_note: Callable[[str], None] = lambda msg: warnings.warn(msg, stacklevel=4)
         # Told once per stored scan that cannot be found or read (default: a warning).
         self.on_missing_scan: Callable[[str], None] = lambda msg: warnings.warn(msg, stacklevel=4)
 
@@ -261,13 +265,19 @@ class Map:
         model: Any = None,
         device: str = "cpu",
         scan_root: str | Path | None = None,
+        index: str = "auto",
     ) -> Map:
         """An existing map. `model` defaults to the one that built it; another is refused.
         A stored scan (read for poses) is found at its stored path, else relative to the
-        map's folder, else under `scan_root` (docs/database.md)."""
+        map's folder, else under `scan_root` (docs/database.md). `index`: the signature
+        search, `exact`, `ann` (approximate, for maps of millions of scans; needs
+        `pip install 'disco-cli[ann]'`) or `auto` (ann from 200,000 scans when installed;
+        `disco_cli.index`)."""
+        from disco_cli.index import check_index_kind
         from disco_cli.pipeline import check_device
 
         check_device(device)
+        check_index_kind(index)
         db = Database.open(path, writable=writable)
         try:
             net, source = model_for_database(db, model, device)
@@ -276,6 +286,7 @@ class Map:
             raise
         m = cls(Path(path), db, net, source, writable)
         m.scan_root = scan_root
+        m.index_kind = index
         return m
 
     def close(self) -> None:
@@ -551,13 +562,13 @@ class Map:
         self._snapshot = None
 
     def _index(self) -> tuple[np.ndarray, Any]:
-        from disco_cli.side_views import index_for
+        from disco_cli.index import index_for_database
 
         self._check_open()
         if self._db is None:
             raise DatabaseError(self.path, "the database is empty")
         if self._snapshot is None:
-            self._snapshot = index_for(self._db)
+            self._snapshot = index_for_database(self._db, self.index_kind, self.on_index_note)
         return self._snapshot
 
     def _exclude_rows(self, exclude: Any) -> np.ndarray | None:

@@ -83,7 +83,22 @@ class ViewIndex:
         views_per_scan = np.bincount(owner, minlength=self.n_scans) if len(owner) else None
         self.most_views = 0 if views_per_scan is None else int(views_per_scan.max())
         both = np.concatenate([np.asarray(signatures, np.float32), view_signatures], axis=0)
-        self._index = SignatureIndex(both)
+        self._index: Any = SignatureIndex(both)
+
+    @classmethod
+    def over(cls, inner: Any, n_scans: int, view_owner: np.ndarray) -> ViewIndex:
+        """A `ViewIndex` over an index built elsewhere (the approximate index of
+        `index/ann.py`) whose rows are the `n_scans` scans, then views of `view_owner`."""
+        view = cls.__new__(cls)
+        owner = np.asarray(view_owner, dtype=np.int64).reshape(-1)
+        if len(inner) != n_scans + len(owner):
+            raise ValueError("the index must hold the scans, then their views")
+        view.n_scans = n_scans
+        view.owner = np.concatenate([np.arange(n_scans, dtype=np.int64), owner])
+        counts = np.bincount(owner, minlength=n_scans) if len(owner) else None
+        view.most_views = 0 if counts is None else int(counts.max())
+        view._index = inner
+        return view
 
     def __len__(self) -> int:
         return self.n_scans

@@ -204,6 +204,19 @@ SnapRadiusOpt = Annotated[
 ]
 
 
+IndexOpt = Annotated[
+    str,
+    typer.Option(
+        "--index",
+        metavar="auto|exact|ann",
+        help="The signature search: exact, ann (approximate, for maps of millions of scans; "
+        "kept beside the map as MAP.ann and rebuilt when the map changed; needs "
+        "pip install 'disco-cli[ann]') or auto (ann from 200,000 scans when installed).",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
+
+
 def apply_snap(model: Any, radius: float | None) -> Any:
     """Set the model's snap radius when --snap-radius was given; returns the model."""
     if radius is not None:

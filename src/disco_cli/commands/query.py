@@ -20,6 +20,7 @@ from disco_cli.commands.options import (
     DeviceOpt,
     ExcludeRadiusOpt,
     ExtrinsicOpt,
+    IndexOpt,
     MaxDistanceOpt,
     MaxTimeGapOpt,
     OutputFormatOpt,
@@ -43,7 +44,7 @@ from disco_cli.commands.options import (
     poses_option,
     topk_option,
 )
-from disco_cli.console import error, fail, handle_errors, warn
+from disco_cli.console import error, fail, handle_errors, note, warn
 
 COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
 POSE_COLUMNS = ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "accepted"]
@@ -88,6 +89,7 @@ def query(
     rerank_wider: RerankWiderOpt = None,
     refine_yaw: RefineYawOpt = None,
     snap_radius: SnapRadiusOpt = None,
+    index: IndexOpt = "auto",
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each."""
     from disco_cli.threads import set_threads
@@ -108,8 +110,9 @@ def query(
     fmt_name = scan_format.value if scan_format is not None else None
     paths, known = query_paths(scans, fmt_name, topic)
     failed, poses_of, exclude = 0, None, None
-    with Map.open(db_path, model=model, device=device, scan_root=scan_root) as m:
+    with Map.open(db_path, model=model, device=device, scan_root=scan_root, index=index) as m:
         m.on_missing_scan = warn
+        m.on_index_note = note
         apply_rerank(m.model, rerank, rerank_wider)
         apply_refine_yaw(m.model, refine_yaw)
         apply_snap(m.model, snap_radius)

@@ -95,13 +95,16 @@ def multi_session(
     scan_format: str | None = None,
     on_progress: Callable[[int], None] | None = None,
     source: str = "query poses",
+    index: str = "auto",
+    note: Callable[[str], None] | None = None,
 ) -> Any:
     """Recall@1..topk, Recall@1%, PR AUC, F1max and yaw error of `paths` (with their
-    `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`."""
+    `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`, searched
+    with the `index` kind (`disco_cli.index`; `note` hears of an index being built)."""
     from disco_cli.evaluation.metrics import one_percent_n
+    from disco_cli.index import index_for_database
     from disco_cli.pipeline import embed_paths
     from disco_cli.search import match_queries
-    from disco_cli.side_views import index_for
 
     if len(query_poses) != len(paths):
         raise PoseFileError(f"{source}: {len(query_poses)} poses for {len(paths)} query scans")
@@ -109,10 +112,10 @@ def multi_session(
     if not np.isfinite(db_poses[:, :2]).all():
         raise DatabaseError(db.path, "some scans have no pose; build it with --poses")
     check_retrieval_queries(query_poses, db_poses, radius)  # before the work
-    ids, index = index_for(db)
+    ids, searched = index_for_database(db, index, note)
     sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
     depth = max(topk, one_percent_n(len(ids)))
-    matches = match_queries(index, ids, db, model, sigs, feats, depth)
+    matches = match_queries(searched, ids, db, model, sigs, feats, depth)
     return score_retrieval(matches, depth, topk, query_poses, db_poses, radius)
 
 
