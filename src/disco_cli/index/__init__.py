@@ -18,7 +18,6 @@ search grows past 5 ms and 1 GB and keeps growing linearly (27 ms and 5 GB at 1M
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -44,8 +43,12 @@ INSTALL_HINT = "the approximate index needs faiss: pip install 'disco-cli[ann]'"
 
 
 def ann_available() -> bool:
-    """Whether the optional extra (faiss) is installed."""
-    return importlib.util.find_spec("faiss") is not None
+    """Whether the optional extra (faiss) is installed (and imports)."""
+    try:
+        import faiss  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def check_index_kind(kind: str) -> str:
