@@ -24,7 +24,7 @@ Measured, with the exact `SignatureIndex` (one thread) as the baseline of the sa
 - pipeline R@1: the whole query (re-ranking by feature correlation, the wider pass and
   the snap, as `disco query`) with each index; a match is true within 5 m in the query's
   own town (a generated row stands for the map scan it was mostly made from);
-- build: seconds to train and fill the approximate index (2 threads);
+- build: seconds to train and fill the approximate index (--build-threads, 2);
 - map: bytes per scan of a map file holding one town's 400 scans (`Database.create`,
   the writer of `disco build-db`).
 """
@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -182,8 +183,25 @@ def main() -> int:
     ap.add_argument("--k-factor", type=int, default=10)
     ap.add_argument("--out", type=Path, default=REPO / "out" / "scale")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--build-threads", type=int, default=2, help="threads that build the index")
+    ap.add_argument(
+        "--save-signatures",
+        type=Path,
+        help="also write the towns' signatures (map and query sessions) to this .npz",
+    )
+    ap.add_argument(
+        "--signatures",
+        type=Path,
+        help="take the towns' signatures from a --save-signatures file instead of "
+        "simulating and embedding (no features there: no pipeline R@1, no map size)",
+    )
     args = ap.parse_args()
-    print_header("bench_scale")
+    if args.signatures is None:
+        print_header("bench_scale")
+    else:  # a machine without the compiled core (it only names the BEV kernel)
+        from _common import cpu_model
+
+        print(f"# bench_scale on machine: {cpu_model()}, {os.cpu_count()} cores", flush=True)
 
     import torch
 
@@ -195,7 +213,20 @@ def main() -> int:
 
     torch.set_num_threads(2)
     model = load_model("default")
-    data = towns(args.out, model)
+    if args.signatures is not None:
+        with np.load(args.signatures) as f:
+            data = [
+                {"ms": f[f"ms{k}"], "qs": f[f"qs{k}"], "mp": f[f"mp{k}"], "qp": f[f"qp{k}"]}
+                for k in range(int(f["towns"]))
+            ]
+    else:
+        data = towns(args.out, model)
+    if args.save_signatures is not None:
+        keep = {"towns": len(data)}
+        for k, t in enumerate(data):
+            keep |= {f"{a}{k}": t[a] for a in ("ms", "qs", "mp", "qp")}
+        np.savez_compressed(args.save_signatures, **keep)
+    with_features = "mf" in data[0]
     routes = [t["ms"] for t in data]
     n_real = sum(len(r) for r in routes)
     if args.n < n_real:
@@ -215,7 +246,7 @@ def main() -> int:
         qx, qy, _ = xy_yaw(t["qp"])
         q_xy.append(np.c_[qx + k * TOWN_SPACING, qy])
         qs.append(t["qs"])
-        qf.append(t["qf"])
+        qf.append(t["qf"] if with_features else np.zeros((len(t["qs"]), 1), np.float32))
     pose4, q_xy = np.concatenate(pose4), np.concatenate(q_xy)
     qs, qf = np.concatenate(qs), np.concatenate(qf)
     pick = np.random.default_rng(args.seed + 1).choice(
@@ -224,7 +255,7 @@ def main() -> int:
     qs, qf, q_xy = qs[pick], qf[pick], q_xy[pick]
     near = np.hypot(*(pose4[None, :, :2] - q_xy[:, None]).transpose(2, 0, 1)).min(axis=1)
     has = near <= RADIUS
-    rows = _Rows(base, np.concatenate([t["mf"] for t in data]), pose4)
+    rows = _Rows(base, np.concatenate([t["mf"] for t in data]), pose4) if with_features else None
 
     # The exact baseline, one thread (the int8 pre-scan runs from 4,096 rows).
     r0 = rss_mib()
@@ -241,12 +272,12 @@ def main() -> int:
         truth.append(r)
     truth = np.array(truth)
     exact_ms = float(np.median(ts)) * 1e3
-    exact_r1 = pipeline_r1(exact, args.n, rows, model, qs, qf, q_xy, has)
+    exact_r1 = pipeline_r1(exact, args.n, rows, model, qs, qf, q_xy, has) if rows else None
     del exact
 
     import faiss
 
-    faiss.omp_set_num_threads(2)
+    faiss.omp_set_num_threads(args.build_threads)
     params = default_params(args.n, sigs.shape[1])
     t0 = time.perf_counter()
     ann = AnnIndex.build(sigs, params)
@@ -271,20 +302,22 @@ def main() -> int:
         loaded = json.loads(proc.stdout)
 
         # Bytes per scan of a real map file: one town, as build-db writes it.
-        t = data[0]
-        mx, my, myaw = xy_yaw(t["mp"])
-        db = Database.create(
-            Path(tmp) / "map.db",
-            ModelInfo.of(model),
-            ScanBatch(
-                [f"scan{i:06d}.bin" for i in range(len(t["ms"]))],
-                t["ms"],
-                t["mf"],
-                np.c_[mx, my, t["mp"][:, 2, 3], myaw],
-            ),
-        )
-        with db:
-            per_scan = db.size_bytes() / len(db)
+        per_scan = None
+        if with_features:
+            t = data[0]
+            mx, my, myaw = xy_yaw(t["mp"])
+            db = Database.create(
+                Path(tmp) / "map.db",
+                ModelInfo.of(model),
+                ScanBatch(
+                    [f"scan{i:06d}.bin" for i in range(len(t["ms"]))],
+                    t["ms"],
+                    t["mf"],
+                    np.c_[mx, my, t["mp"][:, 2, 3], myaw],
+                ),
+            )
+            with db:
+                per_scan = db.size_bytes() / len(db)
 
     print(
         f"n={args.n} rows ({n_real} real, generated in {gen_s:.0f} s); "
@@ -298,15 +331,18 @@ def main() -> int:
         r10 = float(np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, truth)]))
         ann.set_search(run["nprobe"], args.k_factor)
         faiss.omp_set_num_threads(1)
-        ann_r1 = pipeline_r1(ann, args.n, rows, model, qs, qf, q_xy, has)
+        pipeline = "no pipeline R@1 (no features)"
+        if rows is not None:
+            ann_r1 = pipeline_r1(ann, args.n, rows, model, qs, qf, q_xy, has)
+            pipeline = f"pipeline R@1 {ann_r1:.4f} (exact {exact_r1:.4f})"
+        map_size = "" if per_scan is None else f", map {per_scan / 1024:.1f} KiB/scan"
         print(
             f"nprobe {run['nprobe']}: search {run['ms']:.2f} ms (exact {exact_ms:.2f} ms, "
             f"x{exact_ms / run['ms']:.1f}), memory {loaded['rss_mib']:.0f} MiB "
             f"(exact {exact_mib:.0f} MiB), recall@1 {r1:.4f} recall@10 {r10:.4f}, "
-            f"pipeline R@1 {ann_r1:.4f} (exact {exact_r1:.4f}), build {build_s:.0f} s "
-            f"(exact {exact_build:.1f} s), load {loaded['load_s']:.1f} s, "
-            f"sidecar {side.stat().st_size / args.n:.0f} B/scan, "
-            f"map {per_scan / 1024:.1f} KiB/scan",
+            f"{pipeline}, build {build_s:.0f} s (exact {exact_build:.1f} s), "
+            f"load {loaded['load_s']:.1f} s, sidecar {side.stat().st_size / args.n:.0f} B/scan"
+            f"{map_size}",
             flush=True,
         )
     return 0
