@@ -3,7 +3,7 @@
 Layout (chosen by measurement at 1,000,000 signatures, docs/benchmarks.md#a-million-scans):
 
 1. a PCA to 256 dimensions (96 % of the signatures' variance), from 8,192 rows on;
-2. an inverted file of `nlist` clusters (about 4 sqrt(N)) holding each row's 8-bit
+2. an inverted file of `nlist` clusters (about sqrt(N)) holding each row's 8-bit
    code (one byte per dimension); a query scans the `nprobe` nearest clusters;
 3. the `k_factor * k` best of those re-measured with 8-bit codes of all 1024
    dimensions (faiss `IndexRefine`), of which the k best are returned.
@@ -68,10 +68,13 @@ class AnnParams:
 
 
 def default_params(n: int, dim: int) -> AnnParams:
-    """The parameters for a map of `n` signatures of `dim` dimensions: about 4 sqrt(n)
+    """The parameters for a map of `n` signatures of `dim` dimensions: about sqrt(n)
     clusters (a power of two, at least 39 training rows each, as faiss's k-means
-    asks), a sixteenth of them scanned, 10 candidates re-measured per result."""
-    nlist = 2 ** round(math.log2(max(4.0 * math.sqrt(max(n, 1)), 1.0)))
+    asks), a sixteenth of them scanned, 10 candidates re-measured per result. A query's
+    time goes to the codes of the clusters it scans (n / 16 of them), not to finding
+    the clusters, so more clusters would not make it faster at the same share scanned;
+    they would make the build slower (its clustering grows as nlist^2)."""
+    nlist = 2 ** round(math.log2(max(math.sqrt(max(n, 1)), 1.0)))
     nlist = int(max(1, min(nlist, n // 39, 65536)))
     pca = _PCA_DIM if dim > _PCA_DIM and n >= _PCA_MIN_ROWS else 0
     return AnnParams(nlist=nlist, nprobe=max(1, nlist // 16), pca=pca, k_factor=10)
