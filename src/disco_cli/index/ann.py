@@ -70,16 +70,18 @@ class AnnParams:
 def default_params(n: int, dim: int) -> AnnParams:
     """The parameters for a map of `n` signatures of `dim` dimensions: about sqrt(n)
     clusters (a power of two, at least 39 training rows each, as faiss's k-means
-    asks), a sixteenth of them scanned but at least 4,096 rows' worth (every row of a
-    small map: scanning them costs a few microseconds), 10 candidates re-measured per
-    result. A query's
-    time goes to the codes of the clusters it scans (n / 16 of them), not to finding
-    the clusters, so more clusters would not make it faster at the same share scanned;
-    they would make the build slower (its clustering grows as nlist^2)."""
+    asks), an eighth of them scanned but at least 4,096 rows' worth (every row of a
+    small map: scanning them costs microseconds), 10 candidates re-measured per result.
+
+    A query's time goes to the codes of the clusters it scans (n / 8 of them), not to
+    finding the clusters, so more clusters would not make it faster at the same share
+    scanned; they would make the build slower (its clustering grows as nlist^2). At a
+    million scans an eighth took 2.3 ms per query and found the exact top 1 for 96 %
+    of the queries (a sixteenth: 1.0 ms, 94 %; docs/benchmarks.md)."""
     nlist = 2 ** round(math.log2(max(math.sqrt(max(n, 1)), 1.0)))
     nlist = int(max(1, min(nlist, n // 39, 65536)))
     pca = _PCA_DIM if dim > _PCA_DIM and n >= _PCA_MIN_ROWS else 0
-    nprobe = max(nlist // 16, math.ceil(nlist * 4096 / max(n, 1)))
+    nprobe = max(nlist // 8, math.ceil(nlist * 4096 / max(n, 1)))
     return AnnParams(nlist=nlist, nprobe=min(max(nprobe, 1), nlist), pca=pca, k_factor=10)
 
 
