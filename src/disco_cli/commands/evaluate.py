@@ -160,5 +160,6 @@ def evaluate(
         "query_poses": str(poses_file) if pose_topic is None else pose_topic,
         "radius_m": radius,
         "topk": topk,
+        "index": index,  # the search asked for (auto, exact or ann)
     }
     report_and_print(ev, run, report, fmt)
