@@ -157,3 +157,32 @@ def test_sidecar_is_refreshed_after_append_and_rebuilt_when_damaged(samples, tmp
     code, _, err = run("query", str(own), "--db", str(db), "--index", "ann")
     assert code == 0 and "rebuilding" in err
     assert "Traceback" not in err
+
+
+def test_a_sidecar_faiss_cannot_read_is_refused_not_raised(tmp_path):
+    pytest.importorskip("faiss")
+    import hashlib
+    import struct
+
+    from disco_cli.index.ann import AnnIndex, SidecarError
+
+    # Well-formed around a body that is no faiss index (another faiss's, say): the
+    # checksum holds, faiss refuses it, and so does the loader, with a reason.
+    key = {"rows": 3}
+    body = b"IxNotAnIndex" * 10 + np.arange(3, dtype="<i8").tobytes()
+    header = {
+        "format": 1,
+        "key": key,
+        "params": {"nlist": 1, "nprobe": 1, "pca": 0, "k_factor": 1, "refine": "SQ8"},
+        "rows": 3,
+        "dim": 4,
+        "index_bytes": 120,
+        "ids": 3,
+        "owner": 0,
+        "sha256": hashlib.sha256(body).hexdigest(),
+    }
+    blob = json.dumps(header).encode()
+    side = tmp_path / "map.db.ann"
+    side.write_bytes(body + blob + struct.pack("<Q8s", len(blob), b"DISCOANN"))
+    with pytest.raises(SidecarError, match="faiss cannot read it"):
+        AnnIndex.load(side, key)

@@ -264,8 +264,12 @@ class AnnIndex:
             raise SidecarError("missing") from None
         except (OSError, ValueError, KeyError, TypeError, struct.error) as exc:
             raise SidecarError(f"unreadable ({exc})") from None
-        # The checksum held, so this is the index that was written.
-        index = faiss.read_index(str(path))
+        # The checksum held, so this is the index that was written (by this faiss or
+        # another version, which may not read it).
+        try:
+            index = faiss.read_index(str(path))
+        except RuntimeError as exc:
+            raise SidecarError(f"faiss cannot read it ({str(exc).splitlines()[0]})") from None
         if index.ntotal != n or index.d != dim:
             raise SidecarError("the index does not hold its rows")
         return cls(index, n, dim, params), ids, (own if n_own else None)
