@@ -20,7 +20,6 @@ from disco_cli.commands.options import (
     CalibOpt,
     DeviceOpt,
     ExtrinsicOpt,
-    IndexOpt,
     MaxTimeGapOpt,
     MetricsFormatOpt,
     OxfordScaleOpt,
@@ -88,7 +87,6 @@ def evaluate(
     rerank_wider: RerankWiderOpt = None,
     refine_yaw: RefineYawOpt = None,
     snap_radius: SnapRadiusOpt = None,
-    index: IndexOpt = "auto",
     report: ReportOpt = None,
     fmt: MetricsFormatOpt = None,
     quiet: QuietOpt = False,
@@ -98,7 +96,6 @@ def evaluate(
 
     set_threads(threads)  # first: torch and BLAS read it as they load
     from disco_cli.console import RowWriter, stderr, steps, warn
-    from disco_cli.console import note as say_note
     from disco_cli.errors import DiscoError, PoseFileError
     from disco_cli.evaluation.report import model_run, report_and_print
     from disco_cli.evaluation.runs import multi_session, posed_scans
@@ -134,24 +131,13 @@ def evaluate(
     opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
     paths, q_poses = posed_scans(paths, poses_file, opts, warn, pose_topic)
     with (
-        Map.open(db_path, model=model_name, device=device, index=index) as m,
+        Map.open(db_path, model=model_name, device=device) as m,
         steps("embedding", len(paths)) as step,
     ):
         apply_rerank(m.model, rerank, rerank_wider)
         apply_refine_yaw(m.model, refine_yaw)
         apply_snap(m.model, snap_radius)
-        ev = multi_session(
-            paths,
-            q_poses,
-            m.database,
-            m.model,
-            radius,
-            topk,
-            scan_format,
-            step,
-            index=index,
-            note=say_note,
-        )
+        ev = multi_session(paths, q_poses, m.database, m.model, radius, topk, scan_format, step)
     run = {
         "protocol": "multi-session",
         **model_run(m.model),
@@ -160,6 +146,5 @@ def evaluate(
         "query_poses": str(poses_file) if pose_topic is None else pose_topic,
         "radius_m": radius,
         "topk": topk,
-        "index": index,  # the search asked for (auto, exact or ann)
     }
     report_and_print(ev, run, report, fmt)
