@@ -6,7 +6,12 @@ features)`, `yaw(query_features, match_features) -> degrees`, `rerank_candidates
 
 Names: `default` (the shipped weights), `spectral` (training-free, no torch needed),
 `scancontext` (the Scan Context baseline); anything else is a checkpoint path, in this
-project's layout or in the layout of the authors' DiSCO-pytorch release.
+project's layout or in the layout of the authors' DiSCO-pytorch release, or an `.npz`
+of weights (`weights_npz.py`).
+
+On the CPU a model of this project's layout runs its U-Net in NumPy (`unet_numpy.py`);
+`default` and `.npz` weights then never import torch, which is most of the time a
+one-scan `disco query` takes.
 """
 
 from __future__ import annotations
@@ -20,6 +25,11 @@ from disco_cli.errors import ModelError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.pt"
+
+
+def npz_beside(checkpoint: Path) -> Path:
+    """The torch-free copy of a checkpoint's weights (`weights_npz.py`), where shipped."""
+    return checkpoint.with_suffix(".npz")
 
 
 def _spectral(device: str) -> Any:
@@ -36,6 +46,8 @@ def _scancontext(device: str) -> Any:
 def _default(device: str) -> Any:
     if not DEFAULT_WEIGHTS.is_file():
         raise ModelError(f"{DEFAULT_WEIGHTS}: no shipped weights yet; use --model spectral")
+    if device == "cpu" and npz_beside(DEFAULT_WEIGHTS).is_file():
+        return load_npz_model(npz_beside(DEFAULT_WEIGHTS), name="default")
     return load_checkpoint_model(DEFAULT_WEIGHTS, device=device, name="default")
 
 
@@ -55,7 +67,35 @@ def load_model(name_or_path: str | Path = "default", device: str = "cpu") -> Any
     key = str(name_or_path)
     if key in MODELS:
         return MODELS[key](device)
+    if Path(key).suffix == ".npz" and device == "cpu":
+        return load_npz_model(Path(key))
     return load_checkpoint_model(Path(key), device=device)
+
+
+def load_npz_model(path: str | Path, name: str | None = None) -> Any:
+    """A DiscoModel on the CPU from an `.npz` of weights, without torch."""
+    from disco_cli.model.weights_npz import read_npz
+
+    path = Path(path)
+    state, meta = read_npz(path)
+    return _frozen_model(state, meta.get("bev_config"), meta.get("model_config"), path, name)
+
+
+def _frozen_model(state: Any, bev: Any, model_config: Any, path: Path, name: str | None) -> Any:
+    from disco_cli.bev import BEVConfig
+    from disco_cli.model.disco import DiscoModel, to_numpy
+    from disco_cli.model.unet_numpy import FrozenUNet
+
+    try:
+        arrays = {str(k): to_numpy(v) for k, v in dict(state).items()}
+        model_config = dict(model_config)
+        bev_config = BEVConfig.from_dict(dict(bev))
+        net = FrozenUNet(arrays, model_config)
+    except (KeyError, TypeError, ValueError) as exc:
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ModelError(f"{path}: damaged weights ({reason[:200]})") from None
+    name = name or Path(path).stem
+    return DiscoModel(net, bev_config, model_config, name=name, state=arrays)
 
 
 def load_checkpoint_model(path: str | Path, device: str = "cpu", name: str | None = None) -> Any:
@@ -79,6 +119,10 @@ def model_from_checkpoint(
     from disco_cli.bev import BEVConfig
     from disco_cli.model.disco import DiscoModel, build_net
 
+    if device == "cpu":
+        # torch read the file; the NumPy U-Net runs it (the same features, faster).
+        state = ckpt.get("state_dict")
+        return _frozen_model(state, ckpt.get("bev_config"), ckpt.get("model_config"), path, name)
     try:
         model_config = dict(ckpt["model_config"])
         bev_config = BEVConfig.from_dict(dict(ckpt["bev_config"]))
@@ -90,4 +134,4 @@ def model_from_checkpoint(
     return DiscoModel(net, bev_config, model_config, name=name or Path(path).stem, device=device)
 
 
-__all__ = ["MODELS", "DEFAULT_WEIGHTS", "load_model", "load_checkpoint_model"]
+__all__ = ["MODELS", "DEFAULT_WEIGHTS", "load_model", "load_checkpoint_model", "load_npz_model"]

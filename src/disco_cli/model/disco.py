@@ -1,4 +1,10 @@
-"""A learned DiSCO model: the U-Net F_cnn in torch, signatures and yaw in numpy."""
+"""A learned DiSCO model: the U-Net F_cnn in torch or NumPy, signatures and yaw in NumPy.
+
+A model loaded for inference on the CPU runs the U-Net in NumPy (`unet_numpy.FrozenUNet`):
+the same output within float32 rounding, faster, and without importing torch where the
+weights come from a `.npz` file (the shipped `default` does). Training, CUDA and the
+models built from a torch network run the torch network.
+"""
 
 from __future__ import annotations
 
@@ -7,11 +13,11 @@ import json
 from typing import Any
 
 import numpy as np
-import torch
 
+from disco_cli.blas_threads import one_blas_thread
 from disco_cli.errors import ModelError
 from disco_cli.model.signature import DEFAULT_CROP, signatures
-from disco_cli.model.unet import DiscoNet
+from disco_cli.model.unet_numpy import FrozenUNet
 from disco_cli.model.verify import aligned_correlation
 from disco_cli.model.yaw import estimate_yaw
 from disco_cli.model.yaw_refine import query_in_match_frame, refine_yaw
@@ -47,7 +53,10 @@ def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
     }
 
 
-def build_net(model_config: dict[str, Any]) -> DiscoNet:
+def build_net(model_config: dict[str, Any]) -> Any:
+    """The torch DiscoNet of a model configuration."""
+    from disco_cli.model.unet import DiscoNet
+
     return DiscoNet(
         in_channels=int(model_config["in_channels"]),
         width=int(model_config["width"]),
@@ -58,12 +67,21 @@ def build_net(model_config: dict[str, Any]) -> DiscoNet:
     )
 
 
-def weights_hash(state_dict: dict[str, torch.Tensor], config: dict[str, Any]) -> str:
+def weights_hash(state_dict: dict[str, Any], config: dict[str, Any]) -> str:
+    """Fingerprint of weights (torch tensors or NumPy arrays: the same for both)."""
     h = hashlib.sha256(json.dumps(config, sort_keys=True).encode())
     for key in sorted(state_dict):
         h.update(key.encode())
-        h.update(state_dict[key].detach().cpu().contiguous().numpy().tobytes())
+        h.update(to_numpy(state_dict[key]).tobytes())
     return h.hexdigest()[:16]
+
+
+def to_numpy(value: Any) -> np.ndarray:
+    """A weight as a contiguous NumPy array (a torch tensor is copied off its device)."""
+    if hasattr(value, "detach"):  # a torch tensor
+        value = value.detach().cpu().contiguous().numpy()
+    value = np.asarray(value)  # (np.ascontiguousarray would make a 0-d array 1-d)
+    return value if value.flags.c_contiguous else value.copy(order="C")
 
 
 class DiscoModel:
@@ -72,17 +90,24 @@ class DiscoModel:
     Features: a residual network keeps two images per scan, [2, R, S]: F_cnn's output G
     (signature and yaw) and the U-Net's learned correction U (re-ranking, see verify.py);
     other networks keep G alone, [R, S], and re-rank with it.
+
+    `net` is a torch DiscoNet, or a `FrozenUNet` with `state` (the state dict as NumPy
+    arrays, which the fingerprint is taken of).
     """
 
     def __init__(
         self,
-        net: DiscoNet,
+        net: Any,
         bev_config: Any,
         model_config: dict[str, Any],
         name: str = "disco",
         device: str = "cpu",
+        state: dict[str, np.ndarray] | None = None,
     ):
-        self.net = net.to(device).eval()
+        self.frozen = isinstance(net, FrozenUNet)
+        if self.frozen and state is None:
+            raise ValueError("a FrozenUNet model needs the state dict it was made from")
+        self.net = net if self.frozen else net.to(device).eval()
         self.device = device
         self.bev_config = bev_config
         self.model_config = dict(model_config)
@@ -96,7 +121,7 @@ class DiscoModel:
         self.snap_margin = SNAP_MARGIN
         # The name is left out: the same weights loaded as `default` or by path are one model.
         config = {k: v for k, v in self.config_dict().items() if k != "model"}
-        self.fingerprint = weights_hash(self.net.state_dict(), config)
+        self.fingerprint = weights_hash(state if self.frozen else self.net.state_dict(), config)
 
     def config_dict(self) -> dict[str, Any]:
         return {
@@ -108,7 +133,6 @@ class DiscoModel:
             "features": "G,U" if self.two_channel else "G",
         }
 
-    @torch.no_grad()
     def features(self, bevs: np.ndarray) -> np.ndarray:
         b = np.asarray(bevs, dtype=np.float32)
         if b.ndim != 4:
@@ -121,17 +145,30 @@ class DiscoModel:
             )
         out = []
         for i in range(0, len(b), _BATCH):
-            x = torch.from_numpy(b[i : i + _BATCH]).to(self.device)
-            if self.two_channel:
-                u = self.net.unet.correction(x)
-                f = torch.stack([u + x.sum(dim=1), u], dim=1)
-            else:
-                f = self.net(x)
-            out.append(f.float().cpu().numpy())
+            out.append(self._forward(b[i : i + _BATCH]))
         if not out:
             shape = ((2,) if self.two_channel else ()) + b.shape[2:]
             return np.zeros((0, *shape), np.float32)
         return np.concatenate(out)
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        """Features of one batch of BEVs [B, H, R, S]."""
+        if self.frozen:
+            with one_blas_thread():
+                u = self.net.correction(x)
+            if self.two_channel:
+                return np.stack([u + x.sum(axis=1), u], axis=1)
+            return u
+        import torch
+
+        with torch.no_grad():
+            t = torch.from_numpy(x).to(self.device)
+            if self.two_channel:
+                u = self.net.unet.correction(t)
+                f = torch.stack([u + t.sum(dim=1), u], dim=1)
+            else:
+                f = self.net(t)
+            return f.float().cpu().numpy()
 
     def _g(self, features: np.ndarray) -> np.ndarray:
         """F_cnn's output G of features [..., (2,) R, S]."""
