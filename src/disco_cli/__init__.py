@@ -11,12 +11,6 @@ the compiled core load only when first used.
 from __future__ import annotations
 
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("disco-cli")
-except PackageNotFoundError:  # running from a source tree without an install
-    __version__ = "0+unknown"
 
 # public name -> module that defines it
 _LAZY = {
@@ -43,7 +37,21 @@ _LAZY = {
 __all__ = ["__version__", *_LAZY]
 
 
+def _version() -> str:
+    # importlib.metadata and the scan of installed packages cost 50-150 ms, a tenth of
+    # a one-scan query: only `--version` and writing a map need the version.
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("disco-cli")
+    except PackageNotFoundError:  # running from a source tree without an install
+        return "0+unknown"
+
+
 def __getattr__(name: str):
+    if name == "__version__":
+        globals()["__version__"] = value = _version()
+        return value
     if name in _LAZY:
         return getattr(import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'disco_cli' has no attribute {name!r}")
