@@ -21,7 +21,6 @@ torch = pytest.importorskip("torch")
 from conftest import REPO  # noqa: E402
 
 from disco_cli.bev import BEVConfig, polar_bev  # noqa: E402
-from disco_cli.blas_threads import _functions, one_blas_thread  # noqa: E402
 from disco_cli.errors import ModelError  # noqa: E402
 from disco_cli.model import DEFAULT_WEIGHTS, load_model, npz_beside  # noqa: E402
 from disco_cli.model.checkpoint import read_checkpoint  # noqa: E402
@@ -227,13 +226,3 @@ def test_the_query_path_never_imports_torch(samples, tmp_path):
     assert out.returncode == 0, out.stderr
     assert "TORCH False" in out.stdout
     assert "000004.bin" in out.stdout  # the right place (README's example)
-
-
-def test_one_blas_thread_sets_and_restores():
-    getters = [get for _, get, _ in _functions() if get is not None]
-    if not getters:
-        pytest.skip("NumPy here does not use an OpenBLAS that tells its thread count")
-    before = [get() for get in getters]
-    with one_blas_thread():
-        assert [get() for get in getters] == [1] * len(getters)
-    assert [get() for get in getters] == before

@@ -89,7 +89,9 @@ def main() -> None:
     """Console entry point: clean exits on Ctrl-C and on a closed pipe (`| head`)."""
     from disco_cli.console import error
     from disco_cli.errors import DiscoError
+    from disco_cli.malloc_tuning import keep_freed_memory
 
+    keep_freed_memory()  # a query's arrays reuse mapped pages (malloc_tuning.py)
     try:
         app()
     except DiscoError as exc:  # commands catch these; this is the safety net
