@@ -13,6 +13,12 @@
    nearly every query's best match here, so the winner's yaw is refined twice) cost,
    each timed against a search without it; median of each stage.
 3. Time to the first result of `disco query` as a fresh process, by stage.
+4. With a learned model: its embedding with the NumPy U-Net the CPU models use
+   (`unet_numpy.py`) against torch's U-Net on the same weights (one torch thread, as
+   queries run), interleaved in this process, and the ratio.
+
+Like the `disco` command, the process first asks glibc to keep freed memory
+(`malloc_tuning.py`); `--glibc-default` leaves glibc as it is, for the ratio.
 
 With --open N...: only what the integrity check on opening costs, on maps of N
 synthetic scans: `Database.open` with and without `verify`, and a fresh one-scan
@@ -30,8 +36,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import interleaved_medians_ms, model_arg, print_header, synthetic_scan
 from _common import median_of_ms as median_ms
-from _common import model_arg, print_header, synthetic_scan
 
 
 def rss_mib() -> float:
@@ -257,6 +263,57 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
     return out | {"db": str(db_path), "scan": str(scans[0])}
 
 
+def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
+    """Embedding one scan with the model as loaded (NumPy U-Net) vs the same weights in
+    torch's U-Net on one thread, interleaved; None for a model without a U-Net."""
+    from disco_cli.model import load_model
+    from disco_cli.model.checkpoint import read_checkpoint
+    from disco_cli.model.disco import DiscoModel, build_net
+
+    model = load_model(model_name)
+    if not getattr(model, "frozen", False):
+        return None
+    import torch
+
+    path = Path(model_name) if Path(model_name).is_file() else None
+    if path is None:
+        from disco_cli.model import DEFAULT_WEIGHTS
+
+        path = DEFAULT_WEIGHTS
+    ckpt = read_checkpoint(path)
+    net = build_net(ckpt["model_config"])
+    net.load_state_dict(ckpt["state_dict"])
+    ref = DiscoModel(net, model.bev_config, model.model_config)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    bevs = [polar_bev_of(model, synthetic_scan(200 + i))[None] for i in range(4)]
+    it = iter(range(10**9))
+
+    def numpy_embed():
+        model.embed(bevs[next(it) % 4])
+
+    def torch_embed():
+        ref.embed(bevs[next(it) % 4])
+
+    def numpy_unet():
+        model.features(bevs[next(it) % 4])
+
+    def torch_unet():
+        ref.features(bevs[next(it) % 4])
+
+    try:
+        t = interleaved_medians_ms(
+            {"numpy": numpy_embed, "torch": torch_embed, "nu": numpy_unet, "tu": torch_unet},
+            rounds,
+            block=5,
+        )
+    finally:
+        torch.set_num_threads(threads)
+    sig0, _ = ref.embed(bevs[0])
+    sig1, _ = model.embed(bevs[0])
+    return t | {"sig_diff": float(np.abs(sig0 - sig1).max())}
+
+
 def bench_first_result(db: str, scan: str, model: str) -> dict:
     """Wall time of a fresh `disco query` process, and how it splits (from -X importtime
     is too fine; instead time the phases in a fresh interpreter)."""
@@ -423,8 +480,18 @@ def main() -> None:
         help="only measure the integrity check on opening maps of N scans",
     )
     ap.add_argument("--reps", type=int, default=7, help="rounds for --open")
+    ap.add_argument(
+        "--glibc-default",
+        action="store_true",
+        help="leave glibc's allocator settings as they are (the CLI changes them)",
+    )
     args = ap.parse_args()
+    if not args.glibc_default:
+        from disco_cli.malloc_tuning import keep_freed_memory
+
+        keep_freed_memory()
     print_header("bench_query")
+    print(f"  glibc keeps freed memory (as `disco` does): {not args.glibc_default}")
     if args.yaw_f16:
         with tempfile.TemporaryDirectory() as tmp:
             y = bench_yaw_f16(args.model, *args.yaw_f16, Path(tmp))
@@ -480,6 +547,15 @@ def main() -> None:
             f"query here) and the snap to the nearest map scan {s['snap']:.2f} (a second "
             "parallax-free yaw: here the snap moves nearly every query's best match)"
         )
+        e = bench_embed(model)
+        if e is not None:
+            print(
+                f"embed one scan ({what}), interleaved medians: {e['numpy']:.2f} ms with "
+                f"the NumPy U-Net vs {e['torch']:.2f} ms with torch's on one thread "
+                f"({e['torch'] / e['numpy']:.2f}x); the U-Net alone {e['nu']:.2f} vs "
+                f"{e['tu']:.2f} ms ({e['tu'] / e['nu']:.2f}x); signatures differ by at most "
+                f"{e['sig_diff']:.1e}"
+            )
         f = bench_first_result(s["db"], s["scan"], model)
         print(
             f"first result of a fresh `disco query` process: {f['total_ms']:.0f} ms; a fresh "

@@ -207,8 +207,11 @@ class FrozenUNet:
 
     @staticmethod
     def _pool(x: np.ndarray) -> np.ndarray:
-        c, b, r, s = x.shape
-        return x.reshape(c, b, r // 2, 2, s // 2, 2).max(axis=(3, 5))
+        """2 x 2 max-pooling: the maximum of four strided views (a reduction over the
+        reshaped pairs' axes was a third of the network's time)."""
+        out = np.maximum(x[..., 0::2, 0::2], x[..., 0::2, 1::2])
+        np.maximum(out, x[..., 1::2, 0::2], out=out)
+        return np.maximum(out, x[..., 1::2, 1::2], out=out)
 
     def correction(self, bevs: np.ndarray) -> np.ndarray:
         """The convolutional output [B, R, S] of BEVs [B, H, R, S] (float32)."""
