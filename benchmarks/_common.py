@@ -131,6 +131,13 @@ def synthetic_scan(seed: int, n: int = 30000) -> np.ndarray:
     return np.column_stack([xy, z, rng.random(n)]).astype(np.float32)
 
 
+def disco_command() -> list[str]:
+    """How to run the `disco` command with this interpreter: its console script beside
+    the interpreter, else `python -m disco_cli.cli`."""
+    exe = Path(sys.executable).parent / "disco"
+    return [str(exe)] if exe.is_file() else [sys.executable, "-m", "disco_cli.cli"]
+
+
 def model_arg(name: str, tmp: Path) -> tuple[str, str]:
     """The --model argument to use, and what it is: `default` without shipped
     weights becomes the same architecture, untrained (the same cost), saved in tmp."""

@@ -27,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import REPO, print_header
+from _common import REPO, disco_command, print_header
 
 _PHASES = """
 import sys, time
@@ -56,11 +56,6 @@ _NAMES = (
 )
 
 
-def disco_exe() -> list[str]:
-    exe = Path(sys.executable).parent / "disco"
-    return [str(exe)] if exe.is_file() else [sys.executable, "-m", "disco_cli.cli"]
-
-
 def timed(cmd: list[str], env: dict) -> float:
     t = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True, env=env)
@@ -83,12 +78,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         db = Path(tmp) / "map.db"
         subprocess.run(
-            [*disco_exe(), "build-db", str(args.map), "-o", str(db)],
+            [*disco_command(), "build-db", str(args.map), "-o", str(db)],
             check=True,
             capture_output=True,
             env=env,
         )
-        query = [*disco_exe(), "query", str(args.scan), "--db", str(db), "--format", "tsv"]
+        query = [*disco_command(), "query", str(args.scan), "--db", str(db), "--format", "tsv"]
         variants = {
             "default (.npz, NumPy U-Net)": query,
             "default.pt (torch import)": [*query, "--model", str(DEFAULT_WEIGHTS)],

@@ -36,7 +36,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import interleaved_medians_ms, model_arg, print_header, synthetic_scan
+from _common import (
+    disco_command,
+    interleaved_medians_ms,
+    model_arg,
+    print_header,
+    synthetic_scan,
+)
 from _common import median_of_ms as median_ms
 
 
@@ -147,7 +153,7 @@ def bench_open(model_name: str, n: int, tmp: Path, reps: int) -> dict:
     fresh: dict[bool, list[float]] = {True: [], False: []}
     fresh_open: dict[bool, list[float]] = {True: [], False: []}
     cli = []
-    exe = Path(sys.executable).parent / "disco"
+    exe = disco_command()
     for _ in range(max(3, reps // 2)):
         for v in (True, False):
             args = [str(db), model_name, str(scan), "1" if v else "0"]
@@ -163,7 +169,7 @@ def bench_open(model_name: str, n: int, tmp: Path, reps: int) -> dict:
         t = time.perf_counter()
         subprocess.run(
             [
-                str(exe),
+                *exe,
                 "query",
                 str(scan),
                 "--db",
@@ -212,20 +218,23 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
     ids, sigs = db.signatures()
     index = SignatureIndex(sigs)
     keys = ("read", "bev", "embed", "search", "yaw_rows", "total", "refine", "wider", "snap")
+    cpu = {"total": [], "embed": []}  # process CPU time: the work, apart from waiting
     stages = {k: [] for k in keys}
     wider = getattr(model, "rerank_wider", 0)
     for p in scans:
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         pts = read_scan(p)
         t1 = time.perf_counter()
         bev = polar_bev_of(model, pts)
-        t2 = time.perf_counter()
+        c2, t2 = time.process_time(), time.perf_counter()
         sig, feat = model.embed(bev[None])
-        t3 = time.perf_counter()
+        c3, t3 = time.process_time(), time.perf_counter()
         index.search(sig, 10)
-        t4 = time.perf_counter()
+        c4, t4 = time.process_time(), time.perf_counter()
         match_queries(index, ids, db, model, sig, feat, 10)  # search again + rows + yaw
-        t5 = time.perf_counter()
+        c5, t5 = time.process_time(), time.perf_counter()
+        cpu["total"].append((c3 - c0) + (c5 - c4))
+        cpu["embed"].append(c3 - c2)
         # Costs as differences, all three with the rows now in SQLite's page cache (the
         # first call above read them cold): as above, then without the parallax-free yaw
         # of the best match, then without re-ranking wider (which every query here gets:
@@ -260,6 +269,7 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
             stages[k].append(v)
     db.close()
     out = {k: median_ms(v[2:]) for k, v in stages.items()}
+    out |= {f"cpu_{k}": median_ms(v[2:]) for k, v in cpu.items()}
     return out | {"db": str(db_path), "scan": str(scans[0])}
 
 
@@ -317,10 +327,10 @@ def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
 def bench_first_result(db: str, scan: str, model: str) -> dict:
     """Wall time of a fresh `disco query` process, and how it splits (from -X importtime
     is too fine; instead time the phases in a fresh interpreter)."""
-    exe = Path(sys.executable).parent / "disco"
+    exe = disco_command()
     t = time.perf_counter()
     subprocess.run(
-        [str(exe), "query", scan, "--db", db, "--format", "tsv", "--model", model],
+        [*exe, "query", scan, "--db", db, "--format", "tsv", "--model", model],
         check=True,
         capture_output=True,
     )
@@ -360,7 +370,7 @@ def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
     model = load_model(model_name)
     scan = tmp / "mq.bin"
     synthetic_scan(7).tofile(scan)
-    exe = Path(sys.executable).parent / "disco"
+    exe = disco_command()
     out = {}
     for rows in (100, n):
         db = tmp / f"mem{rows}.db"
@@ -376,7 +386,7 @@ def bench_memory(model_name: str, n: int, tmp: Path) -> dict:
                 sys.executable,
                 "-c",
                 code,
-                str(exe),
+                *exe,
                 "query",
                 str(scan),
                 "--db",
@@ -545,7 +555,9 @@ def main() -> None:
             f"of the latter, the parallax-free yaw of the best match {s['refine']:.2f} and "
             f"re-ranking down to 40 where none of the 10 matches well {s['wider']:.2f} (every "
             f"query here) and the snap to the nearest map scan {s['snap']:.2f} (a second "
-            "parallax-free yaw: here the snap moves nearly every query's best match)"
+            "parallax-free yaw: here the snap moves nearly every query's best match); "
+            f"process CPU time per query {s['cpu_total']:.2f} ms, of the embed "
+            f"{s['cpu_embed']:.2f} ms (medians)"
         )
         e = bench_embed(model)
         if e is not None:
