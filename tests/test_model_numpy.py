@@ -204,7 +204,7 @@ def test_default_on_real_scans_matches_torch(realdata):
 @needs_default
 def test_the_query_path_never_imports_torch(samples, tmp_path):
     """`disco build-db` and `disco query` with the shipped model, in a fresh interpreter:
-    the answer comes, and torch is not among the loaded modules."""
+    the answer comes, and neither torch nor scipy.fft is among the loaded modules."""
     db = tmp_path / "m.db"
     code = (
         "import sys\n"
@@ -215,6 +215,7 @@ def test_the_query_path_never_imports_torch(samples, tmp_path):
         "    except SystemExit as e:\n"
         "        assert not e.code, e.code\n"
         "print('TORCH', any(m == 'torch' or m.startswith('torch.') for m in sys.modules))\n"
+        "print('SCIPYFFT', 'scipy.fft' in sys.modules)\n"
     )
     args = ["build-db", str(samples / "00"), f"-o{db}"]
     args += ["query", str(samples / "01" / "velodyne" / "000005.bin"), "--db", str(db)]
@@ -225,4 +226,5 @@ def test_the_query_path_never_imports_torch(samples, tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert "TORCH False" in out.stdout
+    assert "SCIPYFFT False" in out.stdout  # model/fft.py loads only SciPy's pocketfft
     assert "000004.bin" in out.stdout  # the right place (README's example)

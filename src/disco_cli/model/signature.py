@@ -15,7 +15,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import scipy.fft
+
+from disco_cli.model import fft
 
 DEFAULT_CROP = (32, 32)
 
@@ -49,8 +50,8 @@ def signatures(
         from disco_cli.threads import get_threads
 
         workers = get_threads()
-    spec = scipy.fft.fft2(g, axes=(1, 2), workers=workers)
-    spec = scipy.fft.fftshift(spec, axes=(1, 2))[:, _window(r, cr), _window(s, cs)]
+    spec = fft.fft2(g, axes=(1, 2), workers=workers)
+    spec = np.fft.fftshift(spec, axes=(1, 2))[:, _window(r, cr), _window(s, cs)]
     sig = np.abs(spec).reshape(b, -1).astype(np.float32)
     norm = np.linalg.norm(sig, axis=1, keepdims=True)
     return sig / np.maximum(norm, 1e-12)

@@ -11,7 +11,8 @@ comparing the top few candidates this way costs a fraction of a millisecond.
 from __future__ import annotations
 
 import numpy as np
-import scipy.fft
+
+from disco_cli.model import fft
 
 
 def aligned_correlation(query: np.ndarray, candidates: np.ndarray) -> np.ndarray:
@@ -29,9 +30,9 @@ def aligned_correlation(query: np.ndarray, candidates: np.ndarray) -> np.ndarray
     q = q - q.mean()
     c = c - c.mean(axis=(1, 2), keepdims=True)
     norms = np.linalg.norm(q) * np.linalg.norm(c.reshape(len(c), -1), axis=1)
-    fq = scipy.fft.rfft(q, axis=-1)
-    fc = scipy.fft.rfft(c, axis=-1)
-    curves = scipy.fft.irfft((fq[None] * np.conj(fc)).sum(axis=1), n=q.shape[-1], axis=-1)
+    fq = fft.rfft(q, axis=-1)
+    fc = fft.rfft(c, axis=-1)
+    curves = fft.irfft((fq[None] * np.conj(fc)).sum(axis=1), n=q.shape[-1], axis=-1)
     # An empty image correlates with nothing: score it as unrelated rather than dividing by 0.
     score = np.where(norms > 0, curves.max(axis=1) / np.where(norms > 0, norms, 1.0), 0.0)
     return np.clip(score, -1.0, 1.0)  # rounding can step a hair past 1 for a copy

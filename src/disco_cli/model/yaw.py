@@ -20,7 +20,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import scipy.fft
+
+from disco_cli.model import fft
 
 # Relative floor of the cross-power normalization: keeps empty rings and empty
 # frequencies from turning into pure noise when divided by their own magnitude.
@@ -52,8 +53,8 @@ def correlation_curves(query: np.ndarray, matches: np.ndarray, workers: int = 1)
         m = m[None]
     if q.ndim != 2 or m.ndim != 3 or m.shape[1:] != q.shape:
         raise ValueError(f"query [R, S] and matches [K, R, S] must agree: {q.shape} vs {m.shape}")
-    fq = scipy.fft.rfft(q, axis=-1, workers=workers)
-    fm = scipy.fft.rfft(m, axis=-1, workers=workers)
+    fq = fft.rfft(q, axis=-1, workers=workers)
+    fm = fft.rfft(m, axis=-1, workers=workers)
     # float32 weights keep the spectra complex64 (float64 ones doubled the work).
     weights = ring_weights(q.shape[0]).astype(np.float32)
     return curves_of_cross_power(fq[None] * np.conj(fm), weights, q.shape[-1], workers)
@@ -68,7 +69,7 @@ def curves_of_cross_power(
     mag = np.abs(cross)
     floor = _EPS_REL * mag.max(axis=(1, 2), keepdims=True) + 1e-12
     spec = (cross / (mag + floor)) * weights[None, :, None]
-    return scipy.fft.irfft(spec.sum(axis=1), n=sectors, axis=-1, workers=workers)
+    return fft.irfft(spec.sum(axis=1), n=sectors, axis=-1, workers=workers)
 
 
 def peak_shift(curves: np.ndarray) -> np.ndarray:

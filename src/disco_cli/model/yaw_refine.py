@@ -19,8 +19,8 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-import scipy.fft
 
+from disco_cli.model import fft
 from disco_cli.model.yaw import curves_of_cross_power, peak_shift, ring_weights, shift_to_yaw
 
 # Bumped whenever the refined yaw can change for the same weights (cached evaluations
@@ -114,7 +114,7 @@ def _sample(img: np.ndarray, sampling: tuple, pairs: np.ndarray | None = None) -
 def _curves(views: np.ndarray, match_spectrum: np.ndarray) -> np.ndarray:
     """Phase-correlation curves [M, S] of views [M, R, S] against one match's spectrum
     (yaw.py's curves; float32 weights keep the sums in single precision)."""
-    cross = scipy.fft.rfft(views, axis=-1) * np.conj(match_spectrum)[None]
+    cross = fft.rfft(views, axis=-1) * np.conj(match_spectrum)[None]
     weights = ring_weights(views.shape[1]).astype(np.float32)
     return curves_of_cross_power(cross, weights, views.shape[-1])
 
@@ -129,7 +129,7 @@ def refine_one(
         raise ValueError(
             f"query and match must be [R, S] images of one shape: {q.shape}, {m.shape}"
         )
-    fm = scipy.fft.rfft(m, axis=-1)
+    fm = fft.rfft(m, axis=-1)
     table = _pairs(q)
     rings, sectors = q.shape
     positions, sampling = _coarse_sampling(rings, sectors, float(max_range))
