@@ -11,7 +11,7 @@
    before); and `python -c pass` (the interpreter's own start and exit). Medians and
    the ratio of the first two.
 3. Where a fresh process spends it: each phase timed inside one fresh interpreter per
-   run (NumPy, `import disco_cli.cli`, SciPy's FFT, opening the map with its model,
+   run (NumPy, `import disco_cli.cli`, the FFT (model/fft.py), opening the map with its model,
    then reading signatures, building the index and the query itself), medians over
    `--runs`.
 """
@@ -36,7 +36,8 @@ import numpy
 t1 = time.perf_counter()
 import disco_cli.cli
 t2 = time.perf_counter()
-import scipy.fft
+from disco_cli.model import fft
+fft.backend()
 t3 = time.perf_counter()
 from disco_cli.map import Map
 m = Map.open(sys.argv[1])
@@ -44,13 +45,13 @@ t4 = time.perf_counter()
 results = list(m.query_files([sys.argv[2]], topk=10))
 t5 = time.perf_counter()
 assert results and results[0].error is None, results
-print(t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4,
+print(t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, fft.backend(),
       any(k == "torch" or k.startswith("torch.") for k in sys.modules))
 """
 _NAMES = (
     "import numpy",
     "import disco_cli.cli",
-    "import scipy.fft",
+    "load the FFT",
     "open map + load model",
     "signatures + index + first query",
 )
@@ -91,7 +92,7 @@ def main() -> None:
         }
         times: dict[str, list[float]] = {k: [] for k in variants}
         phases: list[list[float]] = []
-        torch_seen = set()
+        torch_seen, backends = set(), set()
         for _ in range(args.runs):
             for name, cmd in variants.items():
                 times[name].append(timed(cmd, env))
@@ -102,7 +103,8 @@ def main() -> None:
                 text=True,
                 env=env,
             ).stdout.split()
-            phases.append([float(v) for v in out[:-1]])
+            phases.append([float(v) for v in out[:-2]])
+            backends.add(out[-2])
             torch_seen.add(out[-1])
     med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
     new, old, bare = med.values()
@@ -115,7 +117,8 @@ def main() -> None:
     print(
         "inside a fresh interpreter (medians): "
         + ", ".join(f"{n} {v:.0f}" for n, v in zip(_NAMES, split))
-        + f" ms; torch imported: {' / '.join(sorted(torch_seen))}"
+        + f" ms; FFT from {' / '.join(sorted(backends))}; torch imported: "
+        + " / ".join(sorted(torch_seen))
     )
 
 
