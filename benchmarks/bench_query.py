@@ -18,7 +18,8 @@
    queries run), interleaved in this process, and the ratio.
 
 Like the `disco` command, the process first asks glibc to keep freed memory
-(`malloc_tuning.py`); `--glibc-default` leaves glibc as it is, for the ratio.
+(`malloc_tuning.py`) and OpenBLAS to use one thread (`blas_threads.py`);
+`--process-defaults` leaves both as they are, for the ratio.
 
 With --open N...: only what the integrity check on opening costs, on maps of N
 synthetic scans: `Database.open` with and without `verify`, and a fresh one-scan
@@ -491,17 +492,22 @@ def main() -> None:
     )
     ap.add_argument("--reps", type=int, default=7, help="rounds for --open")
     ap.add_argument(
-        "--glibc-default",
+        "--process-defaults",
         action="store_true",
-        help="leave glibc's allocator settings as they are (the CLI changes them)",
+        help="leave glibc's allocator and OpenBLAS's threads as they are (disco sets both)",
     )
     args = ap.parse_args()
-    if not args.glibc_default:
+    if not args.process_defaults:
+        from disco_cli.blas_threads import one_blas_thread_for_process
         from disco_cli.malloc_tuning import keep_freed_memory
 
         keep_freed_memory()
+        one_blas_thread_for_process()
     print_header("bench_query")
-    print(f"  glibc keeps freed memory (as `disco` does): {not args.glibc_default}")
+    print(
+        "  glibc keeps freed memory and OpenBLAS runs one thread (as `disco` sets them): "
+        f"{not args.process_defaults}"
+    )
     if args.yaw_f16:
         with tempfile.TemporaryDirectory() as tmp:
             y = bench_yaw_f16(args.model, *args.yaw_f16, Path(tmp))

@@ -68,6 +68,20 @@ def _functions() -> list[tuple[Any, Any, Any]]:
     return _libs
 
 
+def one_blas_thread_for_process() -> bool:
+    """NumPy's matrix products run on the calling thread from now on, in every thread.
+    The `disco` command calls this: a product split over two threads once leaves
+    OpenBLAS's workers spinning for a while after it, taking a core from whatever the
+    process does next (a one-thread U-Net next to them ran 2-4x slower). True where an
+    OpenBLAS took it."""
+    done = False
+    for _, _, put in _functions():
+        if put is not None:
+            put(1)
+            done = True
+    return done
+
+
 @contextmanager
 def one_blas_thread() -> Iterator[None]:
     """Within the block, NumPy's matrix products run on the calling thread only."""
