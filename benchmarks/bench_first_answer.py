@@ -5,11 +5,12 @@
 1. A map of `--map` (default the 26 sample scans) is built once with `disco build-db`.
 2. `disco query SCAN --db map.db --format tsv` as a fresh process, `--runs` times, each
    round running three variants one after the other (so they see the same spells of
-   load on a shared machine): the shipped model (`default`, weights from default.npz,
-   NumPy U-Net: torch is never imported); the same weights from the torch checkpoint
-   (`--model .../default.pt`: torch is imported to read them, as every query did
-   before); and `python -c pass` (the interpreter's own start and exit). Medians and
-   the ratio of the first two.
+   load on a shared machine); wall time, and the child's CPU time (user + system, all
+   threads), which a busy machine inflates far less. The variants: the shipped model
+   (`default`, weights from default.npz, NumPy U-Net: torch is never imported); the
+   same weights from the torch checkpoint (`--model .../default.pt`: torch is imported
+   to read them, as every query did before); and `python -c pass` (the interpreter's
+   own start and exit). Medians and the ratio of the first two.
 3. Where a fresh process spends it: each phase timed inside one fresh interpreter per
    run (NumPy, `import disco_cli.cli`, the FFT (model/fft.py), opening the map with its model,
    then reading signatures, building the index and the query itself), medians over
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -57,10 +59,15 @@ _NAMES = (
 )
 
 
-def timed(cmd: list[str], env: dict) -> float:
+def timed(cmd: list[str], env: dict) -> tuple[float, float]:
+    """(wall s, CPU s of the child: user + system, all its threads)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True, env=env)
-    return time.perf_counter() - t
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu
 
 
 def main() -> None:
@@ -91,11 +98,14 @@ def main() -> None:
             "python -c pass": [sys.executable, "-c", "pass"],
         }
         times: dict[str, list[float]] = {k: [] for k in variants}
+        cpus: dict[str, list[float]] = {k: [] for k in variants}
         phases: list[list[float]] = []
         torch_seen, backends = set(), set()
         for _ in range(args.runs):
             for name, cmd in variants.items():
-                times[name].append(timed(cmd, env))
+                wall, cpu = timed(cmd, env)
+                times[name].append(wall)
+                cpus[name].append(cpu)
             out = subprocess.run(
                 [sys.executable, "-c", _PHASES, str(db), str(args.scan)],
                 check=True,
@@ -107,11 +117,15 @@ def main() -> None:
             backends.add(out[-2])
             torch_seen.add(out[-1])
     med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
+    cpu = {k: statistics.median(v) * 1e3 for k, v in cpus.items()}
     new, old, bare = med.values()
+    cnew, cold, cbare = cpu.values()
     print(
         f"fresh `disco query` of one scan against {args.map} ({args.runs} runs, medians): "
         f"{new:.0f} ms with `default` vs {old:.0f} ms from the torch checkpoint "
-        f"({old / new:.2f}x); the interpreter alone (python -c pass) {bare:.0f} ms"
+        f"({old / new:.2f}x); the interpreter alone (python -c pass) {bare:.0f} ms; "
+        f"the processes' CPU time (user + system, all threads) {cnew:.0f} vs {cold:.0f} ms "
+        f"({cold / cnew:.2f}x), python -c pass {cbare:.0f} ms"
     )
     split = [statistics.median(p[i] for p in phases) * 1e3 for i in range(len(_NAMES))]
     print(
