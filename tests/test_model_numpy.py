@@ -26,7 +26,7 @@ from disco_cli.model import DEFAULT_WEIGHTS, load_model, npz_beside  # noqa: E40
 from disco_cli.model.checkpoint import read_checkpoint  # noqa: E402
 from disco_cli.model.disco import DiscoModel, build_net, default_model_config  # noqa: E402
 from disco_cli.model.unet_numpy import FrozenUNet  # noqa: E402
-from disco_cli.model.weights_npz import read_npz, save_npz  # noqa: E402
+from disco_cli.model.weights_npz import file_sha256, read_npz, save_npz  # noqa: E402
 from disco_cli.readers import list_scans, read_scan  # noqa: E402
 
 H, R, S = 20, 40, 120
@@ -153,6 +153,7 @@ def test_shipped_npz_holds_the_shipped_checkpoint():
     assert meta["model_config"] == ckpt["model_config"]
     assert meta["bev_config"] == ckpt["bev_config"]
     assert meta["command"] == ckpt["command"]
+    assert meta["source_sha256"] == file_sha256(DEFAULT_WEIGHTS)  # else default uses torch
 
 
 def _torch_default() -> DiscoModel:
@@ -228,3 +229,30 @@ def test_the_query_path_never_imports_torch(samples, tmp_path):
     assert "TORCH False" in out.stdout
     assert "SCIPYFFT False" in out.stdout  # model/fft.py loads only SciPy's pocketfft
     assert "000004.bin" in out.stdout  # the right place (README's example)
+
+
+@needs_default
+def test_default_reads_the_pt_when_the_npz_is_of_other_weights(tmp_path, monkeypatch):
+    """New default.pt without a new default.npz: the .npz no longer matches the .pt's
+    SHA-256, and `default` is the .pt's weights (read with torch), not the stale copy."""
+    import shutil
+
+    import disco_cli.model as registry
+    from disco_cli.model.checkpoint import save_checkpoint
+
+    ckpt = read_checkpoint(DEFAULT_WEIGHTS)
+    ckpt["state_dict"]["unet.conv_last.bias"] = ckpt["state_dict"]["unet.conv_last.bias"] + 1
+    ckpt.pop("format")
+    pt = tmp_path / "default.pt"
+    save_checkpoint(pt, ckpt)
+    shutil.copy(npz_beside(DEFAULT_WEIGHTS), npz_beside(pt))
+    monkeypatch.setattr(registry, "DEFAULT_WEIGHTS", pt)
+    stale = load_model(str(npz_beside(pt)))
+    fresh = load_model("default")
+    assert fresh.fingerprint != stale.fingerprint
+    assert fresh.fingerprint == load_model(str(pt)).fingerprint
+    # Made again from the new .pt, the copy is used.
+    from disco_cli.model.weights_npz import convert
+
+    convert(pt, npz_beside(pt))
+    assert load_model("default").fingerprint == fresh.fingerprint

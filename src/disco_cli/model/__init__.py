@@ -47,7 +47,14 @@ def _default(device: str) -> Any:
     if not DEFAULT_WEIGHTS.is_file():
         raise ModelError(f"{DEFAULT_WEIGHTS}: no shipped weights yet; use --model spectral")
     if device == "cpu" and npz_beside(DEFAULT_WEIGHTS).is_file():
-        return load_npz_model(npz_beside(DEFAULT_WEIGHTS), name="default")
+        from disco_cli.model.weights_npz import file_sha256, read_npz
+
+        npz = npz_beside(DEFAULT_WEIGHTS)
+        state, meta = read_npz(npz)
+        # Only a copy of these very weights: new default.pt without a new .npz -> torch.
+        if meta.get("source_sha256") == file_sha256(DEFAULT_WEIGHTS):
+            bev, cfg = meta.get("bev_config"), meta.get("model_config")
+            return _frozen_model(state, bev, cfg, npz, "default")
     return load_checkpoint_model(DEFAULT_WEIGHTS, device=device, name="default")
 
 

@@ -6,7 +6,9 @@ load in milliseconds and run on `unet_numpy.FrozenUNet`. The file holds the stat
 dict's arrays under their own names, unchanged (so the model's fingerprint is the
 same as the checkpoint's), and one string array `__disco__`: JSON with the format,
 `bev_config`, `model_config` and the source checkpoint's `command`. It is read with
-`allow_pickle=False`, so an untrusted file cannot run code.
+`allow_pickle=False`, so an untrusted file cannot run code. A conversion also records
+the SHA-256 of the checkpoint it came from (`source_sha256`): `default` loads its
+`.npz` only while that still matches `default.pt`.
 
     python -m disco_cli.model.weights_npz CHECKPOINT.pt OUT.npz
 
@@ -16,6 +18,7 @@ that the two agree).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -37,6 +40,7 @@ def save_npz(
     bev_config: dict[str, Any],
     model_config: dict[str, Any],
     command: str = "",
+    source_sha256: str = "",
 ) -> None:
     """Write weights atomically (arrays, or torch tensors converted as they are)."""
     from disco_cli.model.disco import to_numpy
@@ -47,6 +51,7 @@ def save_npz(
         "bev_config": dict(bev_config),
         "model_config": dict(model_config),
         "command": str(command),
+        "source_sha256": str(source_sha256),
     }
     arrays = {key: to_numpy(value) for key, value in state.items()}
     if _META in arrays:
@@ -79,6 +84,14 @@ def read_npz(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     return arrays, meta
 
 
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def convert(src: str | Path, dst: str | Path) -> None:
     """An `.npz` of a `disco-cli/1` checkpoint (needs torch)."""
     from disco_cli.model.checkpoint import FORMAT as CKPT_FORMAT
@@ -93,6 +106,7 @@ def convert(src: str | Path, dst: str | Path) -> None:
         dict(ckpt["bev_config"]),
         dict(ckpt["model_config"]),
         str(ckpt.get("command", "")),
+        file_sha256(src),
     )
 
 
