@@ -24,6 +24,9 @@ from disco_cli.model.yaw_refine import query_in_match_frame, refine_yaw
 
 # Scans per forward pass at inference: large enough to amortize, small enough for memory.
 _BATCH = 64
+# The NumPy U-Net's activations of 4 scans stay in cache: 4.8 ms per scan against 9.6
+# in batches of 64 (and a sixteenth of the memory), minimum of 12 batches at load 11.
+_FROZEN_BATCH = 4
 # Nearest signatures re-ranked by the aligned correlation of their features (verify.py).
 RERANK_CANDIDATES = 10
 # Where even the best of those re-ranks worse than RERANK_WIDER_ABOVE, the place may have
@@ -155,7 +158,12 @@ class DiscoModel:
         """Features of one batch of BEVs [B, H, R, S]."""
         if self.frozen:
             with one_blas_thread():
-                u = self.net.correction(x)
+                u = np.concatenate(
+                    [
+                        self.net.correction(x[i : i + _FROZEN_BATCH])
+                        for i in range(0, len(x), _FROZEN_BATCH)
+                    ]
+                )
             if self.two_channel:
                 return np.stack([u + x.sum(axis=1), u], axis=1)
             return u
