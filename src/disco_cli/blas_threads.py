@@ -1,9 +1,12 @@
-"""One BLAS thread for a block of code (`one_blas_thread()`), without extra packages.
+"""How many threads NumPy's BLAS uses for a block of code (`blas_threads(n)`), without
+extra packages.
 
 NumPy's OpenBLAS splits even small matrix products over every core, and its threads
-spin while they wait: on a busy 2-core machine the U-Net's small products then take
-tens of milliseconds instead of two or three. The queries of this project run one
-thread each, so the products they make run on the calling thread alone.
+spin while they wait: on a busy 2-core machine the U-Net's small products then took
+tens of milliseconds instead of two or three. The NumPy U-Net runs its products on
+`disco_cli.get_threads()` threads (1 unless `--threads` says otherwise) whatever the
+OpenBLAS was loaded with (`threads.set_threads` can only set its variable before it
+loads).
 
 The OpenBLAS that NumPy loaded is found in /proc/self/maps and asked through ctypes
 (`openblas_set_num_threads_local`, which only touches the calling thread, where the
@@ -69,11 +72,12 @@ def _functions() -> list[tuple[Any, Any, Any]]:
 
 
 def one_blas_thread_for_process() -> bool:
-    """NumPy's matrix products run on the calling thread from now on, in every thread.
-    The `disco` command calls this: a product split over two threads once leaves
-    OpenBLAS's workers spinning for a while after it, taking a core from whatever the
-    process does next (a one-thread U-Net next to them ran 2-4x slower). True where an
-    OpenBLAS took it."""
+    """NumPy's matrix products run on the calling thread from now on, in every thread,
+    in a process that loaded NumPy before `threads.set_threads` could set its variable
+    (benchmarks/bench_query.py does this to run as `disco` does). A product split over
+    two threads once leaves OpenBLAS's workers spinning for a while after it, taking a
+    core from whatever the process does next (a one-thread U-Net next to them ran 2-4x
+    slower). True where an OpenBLAS took it."""
     done = False
     for _, _, put in _functions():
         if put is not None:
@@ -83,15 +87,17 @@ def one_blas_thread_for_process() -> bool:
 
 
 @contextmanager
-def one_blas_thread() -> Iterator[None]:
-    """Within the block, NumPy's matrix products run on the calling thread only."""
+def blas_threads(n: int = 1) -> Iterator[None]:
+    """Within the block, NumPy's matrix products run on `n` threads (1: the calling
+    thread only)."""
+    n = max(1, int(n))
     restore = []
     for local, get, put in _functions():
         if local is not None:
-            restore.append((local, local(1)))
+            restore.append((local, local(n)))
         else:
             restore.append((put, get()))
-            put(1)
+            put(n)
     try:
         yield
     finally:

@@ -40,10 +40,6 @@ __all__ = [
 _EPS32 = float(np.finfo(np.float32).eps)
 # Cap on the [rows, queries] float32 distance block, in elements (64 MiB).
 _BLOCK_ELEMS = 16 * 1024 * 1024
-# Below this many rows the int8 scan runs on the calling thread: it takes about a
-# millisecond, and starting a second thread and waiting for it cost more than that on
-# a busy machine (10,000 rows: 1.05 ms on one thread, 4.3 ms on two at load 11).
-_THREADED_ROWS = 65536
 
 
 def brute_force_topk(
@@ -182,8 +178,7 @@ class SignatureIndex:
         self, q: np.ndarray, lim: int, k: int, exclude: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray]:
         assert self._codes is not None
-        threads = self.threads if lim >= _THREADED_ROWS else 1
-        cand = self._codes.candidates(q, k, lim, exclude, threads)
+        cand = self._codes.candidates(q, k, lim, exclude, self.threads)
         if len(cand) == 0:
             return np.empty(0, np.int64), np.empty(0)
         if len(cand) > max(4096, lim // 8):

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.blas_threads import one_blas_thread
+from disco_cli.blas_threads import blas_threads
 from disco_cli.errors import ModelError
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet_numpy import FrozenUNet
@@ -157,7 +157,9 @@ class DiscoModel:
     def _forward(self, x: np.ndarray) -> np.ndarray:
         """Features of one batch of BEVs [B, H, R, S]."""
         if self.frozen:
-            with one_blas_thread():
+            from disco_cli.threads import get_threads
+
+            with blas_threads(get_threads()):
                 u = np.concatenate(
                     [
                         self.net.correction(x[i : i + _FROZEN_BATCH])
