@@ -40,3 +40,72 @@ def samples_spectral_db(samples: Path, tmp_path_factory: pytest.TempPathFactory)
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     return out
+
+
+def _format1(db: Path, rel_paths: bool = True) -> None:
+    """Rewrite the map at `db` in place as disco's format 1 (before checksums), as that
+    version wrote it: one `scans` table with float32 signatures and raw float16 features
+    beside them, `side_views` with float32 signatures, and no row checksums. Written
+    here with sqlite3 and NumPy alone, not by disco's code."""
+    import json
+    import os
+    import sqlite3
+    import zlib
+
+    import numpy as np
+
+    src = sqlite3.connect(db)
+    meta = dict(src.execute("SELECT key, value FROM meta"))
+    scans = src.execute(
+        "SELECT s.id, s.path, s.rel_path, s.time, s.x, s.y, s.z, s.yaw, s.signature, "
+        "s.signature_scale, f.scale, f.data FROM scans s JOIN features f ON f.id = s.id "
+        "ORDER BY s.id"
+    ).fetchall()
+    offsets = json.loads(meta.get("side_views_m", "[]"))
+    views = (
+        src.execute(
+            "SELECT scan_id, offset_m, signature, signature_scale FROM side_views"
+        ).fetchall()
+        if offsets
+        else []
+    )
+    src.close()
+    for suffix in ("", "-wal", "-shm"):
+        Path(f"{db}{suffix}").unlink(missing_ok=True)
+    meta = {k: v for k, v in meta.items() if k not in ("generation", "signature_dtype")}
+    meta.pop("feature_codec", None)
+    meta["format_version"] = "1"
+
+    def f32(sig: bytes, scale: float) -> bytes:
+        return (np.frombuffer(sig, "<f2").astype(np.float32) * np.float32(scale)).tobytes()
+
+    conn = sqlite3.connect(db)
+    with conn:
+        conn.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+        rel = ", rel_path TEXT" if rel_paths else ""
+        conn.execute(
+            "CREATE TABLE scans (id INTEGER PRIMARY KEY, path TEXT NOT NULL UNIQUE, time REAL, "
+            "x REAL, y REAL, z REAL, yaw REAL, signature BLOB NOT NULL, features BLOB NOT NULL, "
+            f"feature_scale REAL NOT NULL{rel})"
+        )
+        if offsets:
+            conn.execute(
+                "CREATE TABLE side_views (scan_id INTEGER NOT NULL, offset_m REAL NOT NULL, "
+                "signature BLOB NOT NULL, PRIMARY KEY (scan_id, offset_m))"
+            )
+        conn.executemany("INSERT INTO meta VALUES (?, ?)", sorted(meta.items()))
+        for rid, path, relp, t, x, y, z, yaw, sig, ss, fs, data in scans:
+            row = [rid, path, t, x, y, z, yaw, f32(sig, ss), zlib.decompress(data, -15), fs]
+            marks = ",".join("?" * (len(row) + rel_paths))
+            conn.execute(f"INSERT INTO scans VALUES ({marks})", row + ([relp] if rel_paths else []))
+        for rid, off, sig, ss in views:
+            conn.execute("INSERT INTO side_views VALUES (?, ?, ?)", (rid, off, f32(sig, ss)))
+    conn.execute("PRAGMA journal_mode=WAL")
+    conn.close()
+    assert not os.path.exists(f"{db}-wal") or os.path.getsize(f"{db}-wal") == 0
+
+
+@pytest.fixture
+def to_format1():
+    """`to_format1(db, rel_paths=True)`: the map rewritten in place as format 1."""
+    return _format1

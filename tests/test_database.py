@@ -40,7 +40,10 @@ def test_round_trip(tmp_path: Path) -> None:
     assert db.paths() == a.paths + b.paths
     ids, sigs = db.signatures()
     np.testing.assert_array_equal(ids, np.arange(1, 9))
-    np.testing.assert_array_equal(sigs, np.concatenate([a.signatures, b.signatures]))
+    # float16 signatures: each value within 2^-11 of its row's largest magnitude.
+    want_sigs = np.concatenate([a.signatures, b.signatures])
+    row_max = np.abs(want_sigs).max(1, keepdims=True)
+    assert np.all(np.abs(sigs - want_sigs) <= row_max * 2.0**-11)
     poses, times = db.poses()
     np.testing.assert_array_equal(poses, np.concatenate([a.poses, b.poses]))
     np.testing.assert_allclose(times, np.concatenate([a.times, b.times]))
@@ -55,10 +58,18 @@ def test_round_trip(tmp_path: Path) -> None:
     assert db.existing(["scans/000003.bin", "nope.bin"]) == {"scans/000003.bin"}
 
 
-def test_features_are_float16_on_disk(tmp_path: Path) -> None:
-    db = Database.create(tmp_path / "m.db", INFO, _batch(0, 2, np.random.default_rng(1)))
-    blob = db._conn.execute("SELECT features FROM scans LIMIT 1").fetchone()[0]
-    assert len(blob) == 4 * 8 * 2
+def test_features_are_deflated_float16_on_disk(tmp_path: Path) -> None:
+    import zlib
+
+    batch = _batch(0, 2, np.random.default_rng(1))
+    db = Database.create(tmp_path / "m.db", INFO, batch)
+    blob, scale = db._conn.execute("SELECT data, scale FROM features WHERE id = 1").fetchone()
+    raw = np.frombuffer(zlib.decompress(blob, -15), "<f2")
+    assert raw.size == 4 * 8
+    # The float16 of features / their largest magnitude, as NumPy computes it.
+    want = batch.features[0] / np.abs(batch.features[0]).max()
+    np.testing.assert_array_equal(raw, want.astype("<f2").reshape(-1))
+    assert scale == pytest.approx(np.abs(batch.features[0]).max(), rel=1e-7)
 
 
 def test_create_refuses_existing(tmp_path: Path) -> None:
@@ -94,7 +105,7 @@ def test_reader_sees_only_committed_batches(tmp_path: Path) -> None:
     reader = Database.open(tmp_path / "m.db")
     writer._conn.execute("BEGIN")
     writer._conn.execute(
-        "INSERT INTO scans (path, signature, features, feature_scale) VALUES ('x', x'00', x'00', 1)"
+        "INSERT INTO scans (path, signature, signature_scale, crc) VALUES ('x', x'00', 1, 0)"
     )
     assert len(reader) == 2  # the open transaction is invisible
     writer._conn.rollback()
@@ -160,17 +171,35 @@ def test_empty_database_refused_for_search(tmp_path: Path) -> None:
         Database.open(path).signatures()
 
 
+def _set_scan(path: Path, rid: int, **values: object) -> None:
+    """Change columns of one scan row and give it the checksum of its new values: a row
+    that passes its checksum, so that only the value checks can find it."""
+    from disco_cli.database import _SCAN_ROW, _scan_crc
+
+    with sqlite3.connect(path) as conn:
+        for col, v in values.items():
+            conn.execute(f"UPDATE scans SET {col} = ? WHERE id = ?", (v, rid))
+        row = conn.execute(f"SELECT {_SCAN_ROW} FROM scans WHERE id = ?", (rid,)).fetchone()
+        conn.execute("UPDATE scans SET crc = ? WHERE id = ?", (_scan_crc(*row[:10]), rid))
+
+
 def test_check_finds_bad_blobs(tmp_path: Path) -> None:
     path = tmp_path / "m.db"
-    Database.create(path, INFO, _batch(0, 3, np.random.default_rng(0))).close()
+    Database.create(path, INFO, _batch(0, 4, np.random.default_rng(0))).close()
+    nan = np.full(16, np.nan, "<f2").tobytes()
     with sqlite3.connect(path) as conn:
         conn.execute("UPDATE scans SET signature = x'0000' WHERE id = 2")
-        nan = np.full(16, np.nan, np.float32).tobytes()
-        conn.execute("UPDATE scans SET signature = ? WHERE id = 3", (nan,))
-    problems = Database.open(path).check()
-    assert len(problems) == 2
+        blob = bytearray(conn.execute("SELECT data FROM features WHERE id = 4").fetchone()[0])
+        blob[len(blob) // 2] ^= 0x01  # one flipped bit inside the deflated features
+        conn.execute("UPDATE features SET data = ? WHERE id = 4", (bytes(blob),))
+    _set_scan(path, 3, signature=nan)
+    db = Database.open(path)
+    problems = db.check()
+    assert len(problems) == 3
     assert "scan 2" in problems[0] and "bytes" in problems[0]
     assert "scan 3" in problems[1] and "finite" in problems[1]
+    assert "scan 4" in problems[2] and "checksum" in problems[2]
+    assert sorted(db.damaged) == [2, 3, 4]
 
 
 def test_meta_holds_configs_as_json(tmp_path: Path) -> None:
@@ -199,6 +228,7 @@ def test_a_cut_file_is_named_as_cut(tmp_path: Path) -> None:
     path = _made(tmp_path)
     data = path.read_bytes()
     page = int.from_bytes(data[16:18], "big")
+    page = 65536 if page == 1 else page  # SQLite writes 65536 as 1
     assert len(data) % page == 0 and len(data) > 4 * page
     cuts = {
         len(data) - 100: "not a whole number of",  # the issue's `head -c -100`
@@ -221,6 +251,7 @@ def test_damage_anywhere_is_found_on_opening_and_writing_leaves_it_alone(tmp_pat
     path = _made(tmp_path)
     data = bytearray(path.read_bytes())
     page = int.from_bytes(data[16:18], "big")
+    page = 65536 if page == 1 else page  # SQLite writes 65536 as 1
     with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as conn:
         root = conn.execute("SELECT rootpage FROM sqlite_master WHERE name='scans'").fetchone()[0]
     data[(root - 1) * page] = 0xFF  # no b-tree page has this type
@@ -251,12 +282,17 @@ def test_a_stray_sqlite_error_is_one_line() -> None:
     assert exit_.value.exit_code == 1
 
 
-@pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
-def test_a_damaged_signature_stops_the_search_with_its_scan(tmp_path: Path, value: float) -> None:
+@pytest.mark.parametrize("scale", [0.0, np.inf, 1e30])
+def test_a_signature_out_of_range_is_skipped_by_search_and_listed_by_check(
+    tmp_path: Path, scale: float
+) -> None:
+    # A row whose checksum holds but whose signature would derail the search (1e30 is
+    # finite, but its square overflows float32): the search's check and check() agree.
     path = _made(tmp_path, n=5)
-    sig = np.ones(512, np.float32)
-    sig[7] = value  # 1e30 is finite, but its square overflows float32
-    with sqlite3.connect(path) as conn:
-        conn.execute("UPDATE scans SET signature = ? WHERE id = 4", (sig.tobytes(),))
-    with Database.open(path) as db, pytest.raises(DatabaseError, match="scan 4: signature"):
-        db.signatures()
+    _set_scan(path, 4, signature_scale=scale)
+    with Database.open(path) as db:
+        ids, _ = db.signatures()
+        assert list(ids) == [1, 2, 3, 5]
+        assert list(db.damaged) == [4]
+        problems = db.check()
+    assert len(problems) == 1 and problems[0].startswith("scan 4 ")

@@ -1,21 +1,31 @@
 """The map database: one SQLite file (WAL journal) of scan signatures, features and poses.
 
-Layout (format version 1):
+Layout (format version 2; docs/database.md has the tables and the figures):
 
 - `meta(key, value)`: `format_version`, `disco_version`, `model_name`, `fingerprint`,
   `model_config` and `bev_config` (JSON), `signature_dim`, `feature_shape` (JSON),
-  `feature_dtype`.
-- `scans(id, path, time, x, y, z, yaw, signature, features, feature_scale, rel_path)`:
-  one row per scan, `id` in insertion order (1, 2, ...), `path` absolute (unique; a
-  database written before disco stored absolute paths holds them as the user gave
-  them), `rel_path` the same scan relative to the database's folder (NULL when there
-  is no such path, and absent from databases written before it existed),
-  time and pose NULL when unknown, `signature` float32 little-endian, `features`
-  float16 little-endian divided by `feature_scale` (the largest magnitude, so that
-  float16 neither overflows nor loses small features).
-- `side_views(scan_id, offset_m, signature)`: only in a map built with side views
-  (meta `side_views_m`, a JSON list of offsets in metres): the signatures of each scan
-  re-centred `offset_m` to its side (`side_views.py`), searched beside the scans'.
+  `feature_dtype`, `feature_codec`, `generation` (bumped by every write).
+- `scans(id, path, rel_path, time, x, y, z, yaw, signature, signature_scale, crc)`: one
+  row per scan, `id` in insertion order (1, 2, ...), `path` absolute and unique,
+  `rel_path` relative to the database's folder (NULL where there is none), time and
+  pose NULL when unknown, `signature` float16 little-endian divided by
+  `signature_scale` (its largest magnitude).
+- `features(id, scale, data, crc)`: the scan's feature images as float16 divided by
+  `scale`, deflated (zlib, raw stream): read only for the rows a query re-ranks.
+- `side_views(scan_id, offset_m, signature, signature_scale, crc)`: only in a map built
+  with side views (meta `side_views_m`): each scan's signatures re-centred `offset_m`
+  to its side (`side_views.py`), searched beside the scans'.
+
+Every row carries `crc`, the CRC-32 of its payload (its id and every other column, in a
+fixed byte layout: `_scan_crc`, `_feature_crc`, `_view_crc`), written with the row and
+checked whenever the row is read. A row whose checksum or values fail is *damaged*:
+reads skip it and record it in `Database.damaged`; `rows()` raises `DamagedRows`, so
+that nothing uses it silently; `check()` lists every one (`disco info --check`), and
+`rewrite()` replaces them (`disco build-db --repair`).
+
+Format 1 (before checksums: float32 signatures and raw float16 features in `scans`)
+is read as it is, unverified; opening one for writing first migrates it to format 2
+(`migrate`), writing a new file and renaming it into place.
 
 Every append is one transaction, so a crash or Ctrl-C leaves every finished batch and
 nothing half-written; readers opened meanwhile see a consistent state (WAL). A new
@@ -35,6 +45,8 @@ import functools
 import json
 import os
 import sqlite3
+import struct
+import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,30 +56,62 @@ import numpy as np
 
 from disco_cli.errors import DatabaseError
 
-__all__ = ["FORMAT_VERSION", "Database", "ModelInfo", "ScanBatch", "MatchRows", "stored_paths"]
+__all__ = [
+    "FORMAT_VERSION",
+    "Database",
+    "DamagedRows",
+    "ModelInfo",
+    "ScanBatch",
+    "MatchRows",
+    "stored_paths",
+]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _HEADER_SIZE = 100
 # At most this many problems of the integrity check are named in the error line.
 _PROBLEMS_SHOWN = 3
-_SIG_DTYPE = np.dtype("<f4")
+_SIG_DTYPE = np.dtype("<f2")
+_SIG_DTYPE_V1 = np.dtype("<f4")
 _FEAT_DTYPE = np.dtype("<f2")
+# Large pages keep a row's blobs in its b-tree leaf: no half-empty overflow page per
+# row (about 2 KiB of a 4 KiB page's worth); ~7 feature rows and ~30 scan rows a page.
+_PAGE_SIZE = 65536
+# zlib level 6: 44 % of the float16 bytes on the samples; deflating is only at writing.
+_DEFLATE_LEVEL = 6
+# How many damaged scans a warning names before "and N more".
+_NAMED = 5
 
 _SCHEMA = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE scans (
     id INTEGER PRIMARY KEY,
     path TEXT NOT NULL UNIQUE,
+    rel_path TEXT,
     time REAL,
     x REAL, y REAL, z REAL, yaw REAL,
     signature BLOB NOT NULL,
-    features BLOB NOT NULL,
-    feature_scale REAL NOT NULL,
-    rel_path TEXT
+    signature_scale REAL NOT NULL,
+    crc INTEGER NOT NULL
+);
+CREATE TABLE features (
+    id INTEGER PRIMARY KEY,
+    scale REAL NOT NULL,
+    data BLOB NOT NULL,
+    crc INTEGER NOT NULL
 );
 """
 _SIDE_SCHEMA = """
+CREATE TABLE side_views (
+    scan_id INTEGER NOT NULL,
+    offset_m REAL NOT NULL,
+    signature BLOB NOT NULL,
+    signature_scale REAL NOT NULL,
+    crc INTEGER NOT NULL,
+    PRIMARY KEY (scan_id, offset_m)
+)
+"""
+_SIDE_SCHEMA_V1 = """
 CREATE TABLE side_views (
     scan_id INTEGER NOT NULL,
     offset_m REAL NOT NULL,
@@ -76,17 +120,45 @@ CREATE TABLE side_views (
 )
 """
 _SCAN_COLUMNS = {
-    "id",
-    "path",
-    "time",
-    "x",
-    "y",
-    "z",
-    "yaw",
-    "signature",
-    "features",
-    "feature_scale",
+    1: {"id", "path", "time", "x", "y", "z", "yaw", "signature", "features", "feature_scale"},
+    2: {"id", "path", "rel_path", "time", "x", "y", "z", "yaw", "signature", "signature_scale"},
 }
+# One scan row as stored and checksummed: id, path, rel_path, time, x, y, z, yaw,
+# signature, signature_scale, crc.
+_SCAN_ROW = "id, path, rel_path, time, x, y, z, yaw, signature, signature_scale, crc"
+
+
+def _f64(v: Any) -> float:
+    return np.nan if v is None else float(v)
+
+
+def _scan_crc(
+    rid: int,
+    path: str,
+    rel: str | None,
+    time: Any,
+    x: Any,
+    y: Any,
+    z: Any,
+    yaw: Any,
+    sig: bytes,
+    sig_scale: Any,
+) -> int:
+    """CRC-32 of a scan row's payload. NULL reals count as NaN, a NULL rel_path as one
+    0xFF byte (no UTF-8 text is that), so every stored value changes the checksum."""
+    head = struct.pack("<q6d", rid, *(_f64(v) for v in (time, x, y, z, yaw, sig_scale)))
+    text = path.encode("utf-8", "surrogateescape") + b"\x00"
+    text += b"\xff" if rel is None else rel.encode("utf-8", "surrogateescape")
+    return zlib.crc32(sig, zlib.crc32(text, zlib.crc32(head)))
+
+
+def _feature_crc(rid: int, scale: Any, data: bytes) -> int:
+    return zlib.crc32(data, zlib.crc32(struct.pack("<qd", rid, _f64(scale))))
+
+
+def _view_crc(rid: int, offset: Any, sig: bytes, sig_scale: Any) -> int:
+    head = struct.pack("<q2d", rid, _f64(offset), _f64(sig_scale))
+    return zlib.crc32(sig, zlib.crc32(head))
 
 
 @dataclass(frozen=True)
@@ -183,13 +255,40 @@ def _none_if_nan(v: float) -> float | None:
     return None if not np.isfinite(v) else float(v)
 
 
-def _encode_features(f: np.ndarray) -> tuple[bytes, float]:
-    scale = float(np.max(np.abs(f))) if f.size else 0.0
+def _scaled(v: np.ndarray, dtype: np.dtype) -> tuple[bytes, float]:
+    """`v` divided by its largest magnitude (1 if all zero), as `dtype` bytes: float16
+    then neither overflows (65504) nor flushes small values to zero."""
+    scale = float(np.max(np.abs(v))) if v.size else 0.0
     if not np.isfinite(scale):
-        raise ValueError("features are not finite")
+        raise ValueError("values are not finite")
     if scale == 0.0:
         scale = 1.0
-    return (f / scale).astype(_FEAT_DTYPE).tobytes(), scale
+    return (v / scale).astype(dtype).tobytes(), scale
+
+
+def _encode_features(f: np.ndarray) -> tuple[bytes, float]:
+    raw, scale = _scaled(f, _FEAT_DTYPE)
+    packer = zlib.compressobj(_DEFLATE_LEVEL, zlib.DEFLATED, -15)  # raw: the crc is ours
+    return packer.compress(raw) + packer.flush(), scale
+
+
+class DamagedRows(DatabaseError):
+    """Rows asked for by `Database.rows` that fail their checksum or values: `ids`."""
+
+    def __init__(self, path: Path, damaged: dict[int, str]):
+        self.ids = sorted(damaged)
+        super().__init__(path, damaged_line(damaged, path))
+
+
+def damaged_line(damaged: dict[int, str], path: Any) -> str:
+    """One line naming damaged scans (`{id: what}`) and the way out."""
+    named = ", ".join(f"scan {i} ({damaged[i]})" for i in sorted(damaged)[:_NAMED])
+    more = f" and {len(damaged) - _NAMED} more" if len(damaged) > _NAMED else ""
+    rows = "row" if len(damaged) == 1 else "rows"
+    return (
+        f"{len(damaged)} damaged {rows} skipped: {named}{more}; `disco info --check` "
+        "lists them, `disco build-db SCANS -o MAP --repair` rewrites them"
+    )
 
 
 _F = TypeVar("_F", bound=Callable[..., Any])
@@ -210,7 +309,11 @@ def _sql_errors(func: _F) -> _F:
 
 
 class Database:
-    """An open map database. Use `Database.open(path)` or `Database.create(path, ...)`."""
+    """An open map database. Use `Database.open(path)` or `Database.create(path, ...)`.
+
+    `damaged` maps the id of every scan whose row (or one of its rows: features, a side
+    view) was found damaged by a read so far to what names it (its stored path); `check()`
+    fills it for the whole file."""
 
     def __init__(self, path: Path, conn: sqlite3.Connection, meta: dict[str, str]):
         self.path = path
@@ -225,6 +328,9 @@ class Database:
         )
         self.signature_dim = int(meta["signature_dim"])
         self.feature_shape = tuple(int(v) for v in json.loads(meta["feature_shape"]))
+        self.damaged: dict[int, str] = {}
+        # (bytes before, bytes after) when opening for writing migrated a format-1 file.
+        self.migrated: tuple[int, int] | None = None
         try:
             columns = {r[1] for r in conn.execute("PRAGMA table_info(scans)")}
         except sqlite3.DatabaseError as exc:
@@ -236,13 +342,28 @@ class Database:
             self.side_offsets: tuple[float, ...] = tuple(float(o) for o in offsets)
         except (ValueError, TypeError):
             raise DatabaseError(path, "corrupt database: unreadable side_views_m") from None
-        if self.side_offsets:
-            try:
-                tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
-            except sqlite3.DatabaseError as exc:
-                raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
-            if "side_views" not in tables:
-                raise DatabaseError(path, "corrupt database: side views named but not stored")
+        try:
+            tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
+        except sqlite3.DatabaseError as exc:
+            raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
+        if self.side_offsets and "side_views" not in tables:
+            raise DatabaseError(path, "corrupt database: side views named but not stored")
+        if self.checksummed and "features" not in tables:
+            raise DatabaseError(path, "corrupt database: no features table")
+
+    @property
+    def checksummed(self) -> bool:
+        """Whether rows carry checksums (format 2); a format-1 map's rows are unverified."""
+        return self.format_version >= 2
+
+    @property
+    def _nsig(self) -> int:
+        dtype = _SIG_DTYPE if self.checksummed else _SIG_DTYPE_V1
+        return self.signature_dim * dtype.itemsize
+
+    @property
+    def _nfeat(self) -> int:
+        return int(np.prod(self.feature_shape)) * _FEAT_DTYPE.itemsize
 
     # -- opening --------------------------------------------------------------
 
@@ -253,9 +374,20 @@ class Database:
         `verify` (the default, and always for writing) runs SQLite's integrity check over
         the whole file first, so that a damaged file is refused before it is read or
         written; it reads every page once (about 0.5 s per 20,000 scans from the page
-        cache). A refused file is not modified.
+        cache). A refused file is not modified. Opening a format-1 file for writing
+        migrates it to format 2 first (`migrated` says so).
         """
         path = Path(path)
+        db = cls._open(path, writable, verify)
+        if writable and db.format_version < FORMAT_VERSION:
+            db.close()
+            before, after = _migrate(path)
+            db = cls._open(path, writable, verify)
+            db.migrated = (before, after)
+        return db
+
+    @classmethod
+    def _open(cls, path: Path, writable: bool, verify: bool) -> Database:
         if not path.exists():
             raise DatabaseError(path, "no such database")
         if not path.is_file():
@@ -266,16 +398,16 @@ class Database:
             if verify or writable:
                 _check_integrity(path, conn)
             meta = _read_meta(path, conn)
-            _check_scans_table(path, conn)
-            if writable:
+            _check_scans_table(path, conn, int(meta["format_version"]))
+            if writable and int(meta["format_version"]) >= 2:
                 conn.execute("PRAGMA journal_mode=WAL")
+            return cls(path, conn, meta)
         except sqlite3.DatabaseError as exc:
             conn.close()
             raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
         except BaseException:
             conn.close()
             raise
-        return cls(path, conn, meta)
 
     @classmethod
     def create(
@@ -300,7 +432,6 @@ class Database:
             from disco_cli import __version__ as disco_version
         tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
         meta = {
-            "format_version": str(FORMAT_VERSION),
             "disco_version": disco_version,
             "model_name": model.name,
             "fingerprint": model.fingerprint,
@@ -308,23 +439,15 @@ class Database:
             "bev_config": json.dumps(model.bev_config, sort_keys=True),
             "signature_dim": str(first.signatures.shape[1]),
             "feature_shape": json.dumps(list(first.features.shape[1:])),
-            "feature_dtype": "float16",
             **(extra_meta or {}),
         }
         if first.side_offsets:
             meta["side_views_m"] = json.dumps(list(first.side_offsets))
         try:
             tmp.unlink(missing_ok=True)
-            conn = sqlite3.connect(tmp)
+            conn = _new_file(tmp, meta, bool(first.side_offsets))
             try:
-                with conn:
-                    for stmt in _SCHEMA.strip().split(";"):
-                        if stmt.strip():
-                            conn.execute(stmt)
-                    if first.side_offsets:
-                        conn.execute(_SIDE_SCHEMA)
-                    conn.executemany("INSERT INTO meta VALUES (?, ?)", sorted(meta.items()))
-                cls(path, conn, meta).append(first)
+                cls(path, conn, _read_meta(tmp, conn)).append(first)
             finally:
                 conn.close()
             # Another build may have created the target meanwhile: never overwrite it.
@@ -408,54 +531,102 @@ class Database:
     # -- writing ----------------------------------------------------------------
 
     @_sql_errors
-    def append(self, batch: ScanBatch) -> None:
-        """Append one batch of scans in one transaction (all or nothing)."""
+    def append(self, batch: ScanBatch) -> list[int]:
+        """Append one batch of scans in one transaction (all or nothing); their ids.
+
+        Nothing here grows with the map: the next id is the rowid b-tree's last key, and
+        the only index is the one on `path` (a b-tree insert)."""
         if not batch.paths:
-            return
+            return []
+        self._check_writable_format()
         self.check_batch_shapes(batch)
-        rows = []
-        for i, p in enumerate(batch.paths):
-            feats, scale = _encode_features(batch.features[i])
-            x, y, z, yaw = (_none_if_nan(v) for v in batch.poses[i])
-            row = (
-                str(p),
-                _none_if_nan(batch.times[i]),
-                x,
-                y,
-                z,
-                yaw,
-                batch.signatures[i].astype(_SIG_DTYPE).tobytes(),
-                feats,
-                scale,
-            )
-            rel = batch.rel_paths[i]  # type: ignore[index]
-            rows.append(row + (rel,) if self._has_rel else row)
-        columns = "path, time, x, y, z, yaw, signature, features, feature_scale"
-        if self._has_rel:
-            columns += ", rel_path"
-        marks = ", ".join("?" * len(rows[0]))
+        encoded = _encode_batch(batch)
         try:
-            with self._conn:
-                if not batch.side_offsets:
-                    self._conn.executemany(f"INSERT INTO scans ({columns}) VALUES ({marks})", rows)
-                    return
-                views = []
-                for i, row in enumerate(rows):
-                    cur = self._conn.execute(f"INSERT INTO scans ({columns}) VALUES ({marks})", row)
-                    for k, offset in enumerate(batch.side_offsets):
-                        sig = batch.side_signatures[i, k].astype(_SIG_DTYPE).tobytes()  # type: ignore[index]
-                        views.append((cur.lastrowid, offset, sig))
-                self._conn.executemany("INSERT INTO side_views VALUES (?, ?, ?)", views)
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                last = self._conn.execute("SELECT MAX(id) FROM scans").fetchone()[0] or 0
+                ids = list(range(last + 1, last + 1 + len(batch.paths)))
+                _insert_rows(self._conn, ids, batch, encoded)
+                self._bump_generation()
+                self._conn.commit()
+            except BaseException:
+                self._conn.rollback()
+                raise
         except sqlite3.IntegrityError as exc:
             raise DatabaseError(self.path, f"cannot append: {exc}") from None
         except sqlite3.Error as exc:
             raise DatabaseError(self.path, f"cannot write: {exc}") from None
+        return ids
+
+    @_sql_errors
+    def rewrite(self, ids: Sequence[int], batch: ScanBatch) -> None:
+        """Replace the stored rows of the scans `ids` (features and side views included)
+        with `batch`, in one transaction: `disco build-db --repair`'s write."""
+        ids = [int(i) for i in ids]
+        if len(ids) != len(batch.paths):
+            raise ValueError(f"{len(ids)} ids for {len(batch.paths)} scans")
+        if not ids:
+            return
+        self._check_writable_format()
+        self.check_batch_shapes(batch)
+        encoded = _encode_batch(batch)
+        marks = ",".join("?" * len(ids))
+        try:
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                for table, key in (("scans", "id"), ("features", "id"), ("side_views", "scan_id")):
+                    if table != "side_views" or self.side_offsets:
+                        self._conn.execute(f"DELETE FROM {table} WHERE {key} IN ({marks})", ids)
+                _insert_rows(self._conn, ids, batch, encoded)
+                self._bump_generation()
+                self._conn.commit()
+            except BaseException:
+                self._conn.rollback()
+                raise
+        except sqlite3.IntegrityError as exc:
+            raise DatabaseError(self.path, f"cannot rewrite: {exc}") from None
+        except sqlite3.Error as exc:
+            raise DatabaseError(self.path, f"cannot write: {exc}") from None
+        for i in ids:
+            self.damaged.pop(i, None)
+
+    def _check_writable_format(self) -> None:
+        if not self.checksummed:
+            raise DatabaseError(
+                self.path, "format 1 map opened read-only; open it for writing to migrate it"
+            )
+
+    def _bump_generation(self) -> None:
+        self._conn.execute(
+            "UPDATE meta SET value = CAST(CAST(value AS INTEGER) + 1 AS TEXT) "
+            "WHERE key = 'generation'"
+        )
 
     # -- reading ----------------------------------------------------------------
+
+    @property
+    @_sql_errors
+    def generation(self) -> int:
+        """A number that changes with every write (append, repair, migration): a cheap
+        key for anything derived from the map (an index file beside it) to know it is
+        stale. Read from the file each time, so another process's appends count. A
+        format-1 map (append-only, no counter) answers its largest id."""
+        if self.checksummed:
+            row = self._conn.execute("SELECT value FROM meta WHERE key = 'generation'").fetchone()
+            try:
+                return int(row[0])
+            except (TypeError, ValueError):
+                raise DatabaseError(self.path, "corrupt database: bad generation") from None
+        return int(self._conn.execute("SELECT MAX(id) FROM scans").fetchone()[0] or 0)
 
     @_sql_errors
     def __len__(self) -> int:
         return int(self._conn.execute("SELECT COUNT(*) FROM scans").fetchone()[0])
+
+    @_sql_errors
+    def next_id(self) -> int:
+        """The id the next appended scan gets (ids are never reused)."""
+        return int(self._conn.execute("SELECT MAX(id) FROM scans").fetchone()[0] or 0) + 1
 
     @_sql_errors
     def paths(self) -> list[str]:
@@ -493,114 +664,242 @@ class Database:
         return out
 
     @_sql_errors
+    def ids(self) -> np.ndarray:
+        """Every stored id, in order (the rows of `paths()`, `poses()`, `locations()`)."""
+        rows = self._conn.execute("SELECT id FROM scans ORDER BY id").fetchall()
+        return np.array([r[0] for r in rows], dtype=np.int64)
+
+    @_sql_errors
+    def stored_names(self, ids: Iterable[int]) -> dict[int, tuple[str, str | None]]:
+        """`{id: (path, rel_path)}` as stored, unverified (what a damaged row says it is)."""
+        column = "rel_path" if self._has_rel else "NULL"
+        out = {}
+        for i in ids:
+            row = self._conn.execute(
+                f"SELECT path, {column} FROM scans WHERE id = ?", (int(i),)
+            ).fetchone()
+            if row is not None:
+                out[int(i)] = (row[0], row[1])
+        return out
+
+    @_sql_errors
     def has_poses(self) -> bool:
         row = self._conn.execute("SELECT 1 FROM scans WHERE x IS NOT NULL LIMIT 1").fetchone()
         return row is not None
 
+    def _scan_query(self) -> str:
+        """The scan rows' columns that their checksum covers (format 1: what there is)."""
+        if self.checksummed:
+            return f"SELECT {_SCAN_ROW} FROM scans"
+        rel = "rel_path" if self._has_rel else "NULL"
+        return f"SELECT id, path, {rel}, time, x, y, z, yaw, signature, 1.0, NULL FROM scans"
+
+    def _sound_scans(self, rows: list[tuple]) -> tuple[list[tuple], np.ndarray, dict[int, str]]:
+        """Of scan rows (`_scan_query`), the sound ones, their signatures `[K, D]` float32,
+        and `{id: problem}` of the others: the checks every read and `check()` share."""
+        sound, blobs, scales, bad = [], [], [], {}
+        for row in rows:
+            problem = self._scan_problem(row)
+            if problem:
+                bad[row[0]] = problem
+            else:
+                sound.append(row)
+                blobs.append(row[8])
+                scales.append(row[9])
+        dtype = _SIG_DTYPE if self.checksummed else _SIG_DTYPE_V1
+        sigs = np.frombuffer(b"".join(blobs), dtype=dtype).reshape(len(sound), self.signature_dim)
+        sigs = sigs.astype(np.float32)
+        if self.checksummed:
+            sigs *= np.asarray(scales, dtype=np.float32)[:, None]
+        out_of_range = _bad_signatures(sigs)
+        if out_of_range.any():
+            for k in np.flatnonzero(out_of_range):
+                bad[sound[k][0]] = "signature is not finite or out of range"
+            keep = ~out_of_range
+            sound = [r for r, k in zip(sound, keep) if k]
+            sigs = sigs[keep]
+        return sound, sigs, bad
+
+    def _scan_problem(self, row: tuple) -> str | None:
+        rid, path, rel, t, x, y, z, yaw, sig, sig_scale, crc = row
+        if not isinstance(sig, bytes) or len(sig) != self._nsig:
+            return f"signature is not {self._nsig} bytes"
+        if not isinstance(path, str) or not (rel is None or isinstance(rel, str)):
+            return "path is not text"
+        reals = (t, x, y, z, yaw, sig_scale)
+        if not all(v is None or isinstance(v, (int, float)) for v in reals):
+            return "time or pose is not a number"
+        if not self.checksummed:
+            return None
+        if crc != _scan_crc(rid, path, rel, t, x, y, z, yaw, sig, sig_scale):
+            return "checksum mismatch (signature, pose, time or path changed)"
+        if not (sig_scale is not None and np.isfinite(sig_scale) and sig_scale > 0):
+            return f"bad signature scale {sig_scale!r}"
+        return None
+
+    def _note_damaged(self, bad: dict[int, str], names: dict[int, str]) -> None:
+        for rid in bad:
+            self.damaged[int(rid)] = names.get(rid, "?")
+
     @_sql_errors
     def signatures(self) -> tuple[np.ndarray, np.ndarray]:
-        """`(ids [N] int64, signatures [N, D] float32)`, in id order, read into one matrix."""
+        """`(ids [N] int64, signatures [N, D] float32)` of the sound scans, in id order.
+
+        Every row is verified (checksum, size, values that would derail the search: NaN,
+        or so large that the squared norm overflows float32); a damaged one is left out
+        and recorded in `damaged`. An empty map, or one with no sound scan, is refused."""
         n = len(self)
         if n == 0:
             raise DatabaseError(self.path, "the database is empty")
         ids = np.empty(n, dtype=np.int64)
         sigs = np.empty((n, self.signature_dim), dtype=np.float32)
-        nbytes = self.signature_dim * _SIG_DTYPE.itemsize
-        cur = self._conn.execute("SELECT id, signature FROM scans ORDER BY id")
+        cur = self._conn.execute(self._scan_query() + " ORDER BY id")
         i = 0
         while rows := cur.fetchmany(4096):
-            for rid, blob in rows:
-                if i >= n:
-                    break
-                if len(blob) != nbytes:
-                    raise DatabaseError(self.path, f"scan {rid}: signature has a wrong size")
-                ids[i] = rid
-                sigs[i] = np.frombuffer(blob, dtype=_SIG_DTYPE)
-                i += 1
-        ids, sigs = ids[:i], sigs[:i]
-        # SQLite keeps no checksum of a blob: a damaged signature (NaN, or so large that
-        # its squared norm overflows float32) would derail the search, so it stops here.
-        rid = _first_damaged(ids, sigs)
-        if rid is not None:
+            rows = rows[: n - i]  # rows appended since the count: not in this snapshot
+            sound, part, bad = self._sound_scans(rows)
+            self._note_damaged(bad, {r[0]: r[1] for r in rows})
+            ids[i : i + len(sound)] = [r[0] for r in sound]
+            sigs[i : i + len(sound)] = part
+            i += len(sound)
+            if len(rows) < 4096:
+                break
+        if i == 0:
             raise DatabaseError(
-                self.path,
-                f"scan {rid}: signature is not finite or out of range (damaged?); "
-                "disco info --check lists every problem",
+                self.path, "no sound scan: " + damaged_line(self.damaged, self.path)
             )
-        return ids, sigs
+        return ids[:i], sigs[:i]
 
     @_sql_errors
     def side_signatures(self) -> tuple[np.ndarray, np.ndarray]:
-        """`(scan ids [M], signatures [M, D])` of the stored side views (none: empty)."""
+        """`(scan ids [M], signatures [M, D])` of the sound stored side views (none: empty);
+        a damaged view is left out and its scan recorded in `damaged`."""
         if not self.side_offsets:
             return np.empty(0, np.int64), np.empty((0, self.signature_dim), np.float32)
-        rows = self._conn.execute(
-            "SELECT scan_id, signature FROM side_views ORDER BY scan_id, offset_m"
-        ).fetchall()
-        nbytes = self.signature_dim * _SIG_DTYPE.itemsize
-        ids = np.empty(len(rows), dtype=np.int64)
-        sigs = np.empty((len(rows), self.signature_dim), dtype=np.float32)
-        for i, (rid, blob) in enumerate(rows):
-            if not isinstance(blob, bytes) or len(blob) != nbytes:
-                raise DatabaseError(self.path, f"scan {rid}: a side view has a wrong size")
-            ids[i] = rid
-            sigs[i] = np.frombuffer(blob, dtype=_SIG_DTYPE)
-        rid = _first_damaged(ids, sigs)
-        if rid is not None:
-            raise DatabaseError(self.path, f"scan {rid}: a side view is not finite (damaged?)")
+        ids, sigs, bad = self._sound_views(self._views())
+        self._note_damaged(bad, {i: "a side view" for i in bad})
         return ids, sigs
+
+    def _views(self) -> list[tuple]:
+        if self.checksummed:
+            query = "SELECT scan_id, offset_m, signature, signature_scale, crc FROM side_views"
+        else:
+            query = "SELECT scan_id, offset_m, signature, 1.0, NULL FROM side_views"
+        return self._conn.execute(query + " ORDER BY scan_id, offset_m").fetchall()
+
+    def _sound_views(self, rows: list[tuple]) -> tuple[np.ndarray, np.ndarray, dict[int, str]]:
+        sound, bad = [], {}
+        for row in rows:
+            rid, offset, sig, sig_scale, crc = row
+            if not isinstance(sig, bytes) or len(sig) != self._nsig:
+                bad[rid] = f"a side view is not {self._nsig} bytes"
+            elif self.checksummed and crc != _view_crc(rid, offset, sig, sig_scale):
+                bad[rid] = "a side view fails its checksum"
+            elif not isinstance(sig_scale, float) or not sig_scale > 0:
+                bad[rid] = f"a side view has a bad scale {sig_scale!r}"
+            else:
+                sound.append(row)
+        dtype = _SIG_DTYPE if self.checksummed else _SIG_DTYPE_V1
+        blob = b"".join(r[2] for r in sound)
+        sigs = np.frombuffer(blob, dtype=dtype).reshape(len(sound), self.signature_dim)
+        sigs = sigs.astype(np.float32) * np.asarray([r[3] for r in sound], np.float32)[:, None]
+        ids = np.asarray([r[0] for r in sound], dtype=np.int64)
+        out_of_range = _bad_signatures(sigs)
+        for k in np.flatnonzero(out_of_range):
+            bad[int(ids[k])] = "a side view is not finite or out of range"
+        return ids[~out_of_range], sigs[~out_of_range], bad
 
     @_sql_errors
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """`(poses [N, 4] x, y, z, yaw rad, times [N])` in id order, NaN where unknown."""
-        rows = self._conn.execute("SELECT x, y, z, yaw, time FROM scans ORDER BY id").fetchall()
-        arr = np.array(rows, dtype=np.float64).reshape(-1, 5)  # None -> nan
-        return arr[:, :4], arr[:, 4]
+        """`(poses [N, 4] x, y, z, yaw rad, times [N])` of every scan in id order, NaN where
+        unknown, and where the row is damaged (recorded in `damaged`)."""
+        rows = self._conn.execute(self._scan_query() + " ORDER BY id").fetchall()
+        arr = np.array([r[3:8] for r in rows], dtype=np.float64).reshape(-1, 5)  # None -> nan
+        _, _, bad = self._sound_scans(rows)
+        if bad:
+            self._note_damaged(bad, {r[0]: r[1] for r in rows})
+            ids = np.array([r[0] for r in rows], dtype=np.int64)
+            arr[np.isin(ids, list(bad))] = np.nan
+        return arr[:, 1:5], arr[:, 0]
 
     @_sql_errors
     def rows(self, ids: Sequence[int] | np.ndarray) -> MatchRows:
-        """Paths, poses and features of the scans `ids`, in that order (only those rows)."""
+        """Paths, poses and features of the scans `ids`, in that order (only those rows).
+
+        Every row read is verified (its scan row and its features); damaged ones raise
+        `DamagedRows` naming them (and are recorded in `damaged`): a caller that can go
+        on without them leaves them out and asks again (`Map` does)."""
         ids = [int(i) for i in np.asarray(ids).reshape(-1)]
         found: dict[int, tuple] = {}
+        if self.checksummed:
+            query = (
+                f"SELECT {', '.join('s.' + c.strip() for c in _SCAN_ROW.split(','))}, "
+                "f.scale, f.data, f.crc FROM scans s LEFT JOIN features f ON f.id = s.id "
+                "WHERE s.id IN ({})"
+            )
+        else:
+            rel = "rel_path" if self._has_rel else "NULL"
+            query = (
+                f"SELECT id, path, {rel}, time, x, y, z, yaw, signature, 1.0, NULL, "
+                "feature_scale, features, NULL FROM scans WHERE id IN ({})"
+            )
         for chunk in range(0, len(ids), 500):
             part = sorted(set(ids[chunk : chunk + 500]))
-            marks = ",".join("?" * len(part))
-            for row in self._conn.execute(
-                f"SELECT id, path, x, y, z, yaw, features, feature_scale FROM scans "
-                f"WHERE id IN ({marks})",
-                part,
-            ):
+            for row in self._conn.execute(query.format(",".join("?" * len(part))), part):
                 found[row[0]] = row
         missing = [i for i in ids if i not in found]
         if missing:
             raise DatabaseError(self.path, f"no scan with id {missing[0]}")
-        nfeat = int(np.prod(self.feature_shape))
+        rows = [found[i] for i in dict.fromkeys(ids)]
+        sound, _, bad = self._sound_scans([r[:11] for r in rows])
+        feats_of: dict[int, np.ndarray] = {}
+        for row in rows:
+            if row[0] in bad:
+                continue
+            feats, problem = self._decoded_features(*row[:1], *row[11:])
+            if problem:
+                bad[row[0]] = problem
+            else:
+                feats_of[row[0]] = feats
+        if bad:
+            self._note_damaged(bad, {r[0]: r[1] for r in rows})
+            raise DamagedRows(self.path, {i: self.damaged[i] for i in bad})
+        feats = np.empty((len(ids), *self.feature_shape), dtype=np.float32)
         poses = np.full((len(ids), 4), np.nan)
         scales = np.empty(len(ids), dtype=np.float32)
         paths, blobs = [], []
         for k, i in enumerate(ids):
-            _, path, x, y, z, yaw, blob, scale = found[i]
-            if len(blob) != nfeat * _FEAT_DTYPE.itemsize:
-                raise DatabaseError(self.path, f"scan {i}: features have a wrong size")
-            if not (isinstance(scale, float) and np.isfinite(scale) and scale > 0):
-                raise DatabaseError(self.path, f"scan {i}: bad feature scale {scale!r}")
-            blobs.append(blob)
-            scales[k] = scale
-            poses[k] = [np.nan if v is None else v for v in (x, y, z, yaw)]
-            paths.append(path)
-        # All rows decoded at once and scaled in float32: a float16 product per row was
-        # most of a query's time (NumPy's mixed float16 loops are slow), rounded to
-        # float16, and overflowed past 65504.
-        stored = np.frombuffer(b"".join(blobs), dtype=_FEAT_DTYPE).reshape(len(ids), nfeat)
-        feats = stored.astype(np.float32)
-        with np.errstate(over="ignore", invalid="ignore"):
-            feats *= scales[:, None]
-        bad = ~np.isfinite(feats).all(axis=1)
-        if bad.any():
-            i = ids[int(np.argmax(bad))]
-            raise DatabaseError(self.path, f"scan {i}: features are not finite (damaged?)")
-        feats = feats.reshape(len(ids), *self.feature_shape)
+            row = found[i]
+            feats[k] = feats_of[i]
+            poses[k] = [np.nan if v is None else v for v in row[4:8]]
+            paths.append(row[1])
         return MatchRows(np.asarray(ids, dtype=np.int64), paths, poses, feats)
+
+    def _decoded_features(
+        self, rid: int, scale: Any, data: Any, crc: Any
+    ) -> tuple[np.ndarray | None, str | None]:
+        """One scan's features `[...]` float32, or the problem that makes them unusable."""
+        if data is None:
+            return None, "features are missing"
+        if not isinstance(data, bytes):
+            return None, "features are not a blob"
+        if self.checksummed:
+            if crc != _feature_crc(rid, scale, data):
+                return None, "features fail their checksum"
+            try:
+                data = zlib.decompress(data, -15, self._nfeat)
+            except zlib.error:
+                return None, "features do not decompress"
+        if len(data) != self._nfeat:
+            return None, f"features are not {self._nfeat} bytes"
+        if not (isinstance(scale, float) and np.isfinite(scale) and scale > 0):
+            return None, f"bad feature scale {scale!r}"
+        stored = np.frombuffer(data, dtype=_FEAT_DTYPE).reshape(self.feature_shape)
+        with np.errstate(over="ignore", invalid="ignore"):
+            feats = stored.astype(np.float32) * np.float32(scale)
+        if not np.isfinite(feats).all():
+            return None, "features are not finite"
+        return feats, None
 
     @_sql_errors
     def existing(self, paths: Iterable[str]) -> set[str]:
@@ -618,46 +917,200 @@ class Database:
 
     @_sql_errors
     def check(self) -> list[str]:
-        """`PRAGMA integrity_check` plus the size and finiteness of every blob; problems found."""
+        """Every problem of the file: `PRAGMA integrity_check`, then every row through the
+        same checks as the reads a query makes (checksums, sizes, values), features and
+        side views included. Fills `damaged` with every damaged scan."""
         problems = [r[0] for r in self._conn.execute("PRAGMA integrity_check") if r[0] != "ok"]
-        nsig = self.signature_dim * _SIG_DTYPE.itemsize
-        nfeat = int(np.prod(self.feature_shape)) * _FEAT_DTYPE.itemsize
-        cur = self._conn.execute(
-            "SELECT id, path, signature, features, feature_scale FROM scans ORDER BY id"
-        )
-        for rid, path, sig, feat, scale in cur:
-            if not isinstance(sig, bytes) or len(sig) != nsig:
-                problems.append(f"scan {rid} ({path}): signature is not {nsig} bytes")
-            elif not np.isfinite(np.frombuffer(sig, dtype=_SIG_DTYPE)).all():
-                problems.append(f"scan {rid} ({path}): signature is not finite")
-            if not isinstance(feat, bytes) or len(feat) != nfeat:
-                problems.append(f"scan {rid} ({path}): features are not {nfeat} bytes")
-            elif not np.isfinite(np.frombuffer(feat, dtype=_FEAT_DTYPE)).all():
-                problems.append(f"scan {rid} ({path}): features are not finite")
-            if not (isinstance(scale, float) and np.isfinite(scale) and scale > 0):
-                problems.append(f"scan {rid} ({path}): bad feature scale {scale!r}")
+        self.damaged = {}
+        names: dict[int, str] = {}
+        bad: dict[int, str] = {}
+        cur = self._conn.execute(self._scan_query() + " ORDER BY id")
+        while rows := cur.fetchmany(4096):
+            names.update((r[0], r[1]) for r in rows)
+            bad.update(self._sound_scans(rows)[2])
+        if self.checksummed:
+            query = "SELECT id, scale, data, crc FROM features ORDER BY id"
+        else:
+            query = "SELECT id, feature_scale, features, NULL FROM scans ORDER BY id"
+        with_features = set()
+        for rid, scale, data, crc in self._conn.execute(query):
+            with_features.add(rid)
+            problem = self._decoded_features(rid, scale, data, crc)[1]
+            if problem and rid not in bad:
+                bad[rid] = problem
+        for rid in set(names) - with_features:
+            bad.setdefault(rid, "features are missing")
+        for rid in with_features - set(names):
+            problems.append(f"features of scan {rid}, which is not stored")
         if self.side_offsets:
-            counts = dict(
-                self._conn.execute("SELECT scan_id, COUNT(*) FROM side_views GROUP BY scan_id")
-            )
-            for rid, sig in self._conn.execute("SELECT scan_id, signature FROM side_views"):
-                if not isinstance(sig, bytes) or len(sig) != nsig:
-                    problems.append(f"scan {rid}: a side view is not {nsig} bytes")
-                elif not np.isfinite(np.frombuffer(sig, dtype=_SIG_DTYPE)).all():
-                    problems.append(f"scan {rid}: a side view is not finite")
-            lacking = len(self) - sum(1 for c in counts.values() if c == len(self.side_offsets))
-            if lacking:
-                problems.append(f"{lacking} scans lack some of their side views")
+            views = self._views()
+            view_bad = self._sound_views(views)[2]
+            for rid, problem in view_bad.items():
+                bad.setdefault(rid, problem)
+            counts: dict[int, int] = {}
+            for v in views:
+                counts[v[0]] = counts.get(v[0], 0) + 1
+            lacking = [i for i in names if counts.get(i, 0) != len(self.side_offsets)]
+            for rid in lacking:
+                bad.setdefault(rid, "lacks some of its side views")
+        for rid in sorted(bad):
+            problems.append(f"scan {rid} ({names.get(rid, '?')}): {bad[rid]}")
+        self._note_damaged(bad, names)
         return problems
 
 
-def _first_damaged(ids: np.ndarray, sigs: np.ndarray) -> int | None:
-    """The id of the first signature that would derail the search (NaN, or so large that
-    its squared norm overflows float32), or None."""
+def _bad_signatures(sigs: np.ndarray) -> np.ndarray:
+    """Which signatures would derail the search (NaN, or so large that the squared norm
+    overflows float32): the check every signature read and `check()` share."""
     with np.errstate(over="ignore", invalid="ignore"):
         norms = np.einsum("ij,ij->i", sigs, sigs, dtype=np.float64)
-    bad = ~(np.isfinite(norms) & (norms < np.finfo(np.float32).max))
-    return int(ids[np.argmax(bad)]) if bad.any() else None
+    return ~(np.isfinite(norms) & (norms < np.finfo(np.float32).max))
+
+
+def _encode_batch(batch: ScanBatch) -> list[tuple]:
+    """Each scan's stored blobs: (signature, its scale, features, their scale, views)."""
+    out = []
+    for i in range(len(batch.paths)):
+        sig, sig_scale = _scaled(batch.signatures[i], _SIG_DTYPE)
+        feats, scale = _encode_features(batch.features[i])
+        views = [
+            (float(o), *_scaled(batch.side_signatures[i, k], _SIG_DTYPE))  # type: ignore[index]
+            for k, o in enumerate(batch.side_offsets)
+        ]
+        out.append((sig, sig_scale, feats, scale, views))
+    return out
+
+
+def _insert_rows(
+    conn: sqlite3.Connection, ids: list[int], batch: ScanBatch, encoded: list[tuple]
+) -> None:
+    """Insert a batch's rows under `ids`, each with its checksum (inside the caller's
+    transaction)."""
+    scans, feats, views = [], [], []
+    for k, rid in enumerate(ids):
+        sig, sig_scale, data, scale, side = encoded[k]
+        path, rel = str(batch.paths[k]), batch.rel_paths[k]  # type: ignore[index]
+        t = _none_if_nan(batch.times[k])
+        x, y, z, yaw = (_none_if_nan(v) for v in batch.poses[k])
+        crc = _scan_crc(rid, path, rel, t, x, y, z, yaw, sig, sig_scale)
+        scans.append((rid, path, rel, t, x, y, z, yaw, sig, sig_scale, crc))
+        feats.append((rid, scale, data, _feature_crc(rid, scale, data)))
+        for offset, vsig, vscale in side:
+            views.append((rid, offset, vsig, vscale, _view_crc(rid, offset, vsig, vscale)))
+    conn.executemany(f"INSERT INTO scans ({_SCAN_ROW}) VALUES ({', '.join('?' * 11)})", scans)
+    conn.executemany("INSERT INTO features (id, scale, data, crc) VALUES (?, ?, ?, ?)", feats)
+    if views:
+        conn.executemany("INSERT INTO side_views VALUES (?, ?, ?, ?, ?)", views)
+
+
+def _new_file(path: Path, meta: dict[str, str], side_views: bool) -> sqlite3.Connection:
+    """A new, empty format-2 file at `path` with `meta` (plus the format's own keys)."""
+    conn = sqlite3.connect(path)
+    try:
+        # Before any table: the page size of a file is fixed by its first write.
+        conn.execute(f"PRAGMA page_size={_PAGE_SIZE}")
+        meta = {
+            **meta,
+            "format_version": str(FORMAT_VERSION),
+            "generation": "0",
+            "signature_dtype": "float16",
+            "feature_dtype": "float16",
+            "feature_codec": "deflate",
+        }
+        with conn:
+            for stmt in _SCHEMA.strip().split(";"):
+                if stmt.strip():
+                    conn.execute(stmt)
+            if side_views:
+                conn.execute(_SIDE_SCHEMA)
+            conn.executemany("INSERT INTO meta VALUES (?, ?)", sorted(meta.items()))
+    except BaseException:
+        conn.close()
+        raise
+    return conn
+
+
+def _migrate(path: Path) -> tuple[int, int]:
+    """Rewrite the format-1 map at `path` as format 2 (same ids, values and meta; rows
+    checksummed as they are now) and rename it into place: (bytes before, after). A
+    format-1 map with damaged rows is refused: it cannot be told what they were."""
+    # Fold its WAL into the file first, so that the file alone is the whole map and no
+    # WAL of the old file is left beside the new one.
+    conn = _connect(path, writable=True)
+    try:
+        conn.execute("PRAGMA journal_mode=DELETE")
+    except sqlite3.Error as exc:
+        raise DatabaseError(path, f"cannot migrate ({exc})") from None
+    finally:
+        conn.close()
+    before = path.stat().st_size
+    tmp = path.with_name(f".{path.name}.migrate-{os.getpid()}")
+    old = Database._open(path, writable=False, verify=False)
+    try:
+        problems = old.check()
+        if problems:
+            raise DatabaseError(
+                path,
+                f"format 1 map with {len(problems)} problems ({problems[0]}); it cannot be "
+                "migrated: rebuild it with disco build-db",
+            )
+        meta = {
+            k: v
+            for k, v in old.meta.items()
+            if k not in ("format_version", "feature_dtype", "generation")
+        }
+        tmp.unlink(missing_ok=True)
+        new = _new_file(tmp, meta, bool(old.side_offsets))
+        try:
+            views: dict[int, dict[float, np.ndarray]] = {}
+            for rid, offset, sig, *_ in old._views() if old.side_offsets else []:
+                views.setdefault(rid, {})[offset] = np.frombuffer(sig, _SIG_DTYPE_V1)
+            ids = [r[0] for r in old._conn.execute("SELECT id FROM scans ORDER BY id")]
+            for start in range(0, len(ids), 1000):
+                part = old.rows(ids[start : start + 1000])
+                rel = "rel_path" if old._has_rel else "NULL"
+                marks = ",".join("?" * len(part.ids))
+                extra = dict(
+                    (r[0], r[1:])
+                    for r in old._conn.execute(
+                        f"SELECT id, {rel}, time, signature FROM scans WHERE id IN ({marks})",
+                        [int(i) for i in part.ids],
+                    )
+                )
+                got = [extra[int(i)] for i in part.ids]
+                batch = ScanBatch(
+                    paths=part.paths,
+                    rel_paths=[g[0] for g in got],
+                    signatures=np.stack([np.frombuffer(g[2], _SIG_DTYPE_V1) for g in got]),
+                    features=part.features,
+                    poses=part.poses,
+                    times=np.array([np.nan if g[1] is None else g[1] for g in got]),
+                    side_offsets=old.side_offsets,
+                    side_signatures=(
+                        np.stack([[views[int(i)][o] for o in old.side_offsets] for i in part.ids])
+                        if old.side_offsets
+                        else None
+                    ),
+                )
+                with new:
+                    _insert_rows(new, [int(i) for i in part.ids], batch, _encode_batch(batch))
+            # Past what the format-1 map answered (its largest id): anything derived from
+            # it is stale, since the signatures are now stored as float16.
+            with new:
+                gen = str((ids[-1] if ids else 0) + 1)
+                new.execute("UPDATE meta SET value = ? WHERE key = 'generation'", (gen,))
+        finally:
+            new.close()
+    except sqlite3.Error as exc:
+        tmp.unlink(missing_ok=True)
+        raise DatabaseError(path, f"cannot migrate ({exc})") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        old.close()
+    os.replace(tmp, path)
+    return before, path.stat().st_size
 
 
 def _locate(
@@ -767,6 +1220,8 @@ def _connect(path: Path, writable: bool) -> sqlite3.Connection:
     mode = "rw" if writable or os.access(path, os.W_OK) else "ro"
     try:
         conn = sqlite3.connect(f"file:{path}?mode={mode}", uri=True, timeout=30.0)
+        # Damaged text reads as text (its checksum then fails) instead of raising.
+        conn.text_factory = lambda b: b.decode("utf-8", "surrogateescape")
         conn.execute("PRAGMA busy_timeout=30000")
     except sqlite3.Error as exc:
         raise DatabaseError(path, f"cannot open ({exc})") from None
@@ -815,12 +1270,12 @@ def _read_meta(path: Path, conn: sqlite3.Connection) -> dict[str, str]:
     return meta
 
 
-def _check_scans_table(path: Path, conn: sqlite3.Connection) -> None:
+def _check_scans_table(path: Path, conn: sqlite3.Connection, version: int) -> None:
     try:
         cols = {r[1] for r in conn.execute("PRAGMA table_info(scans)")}
     except sqlite3.DatabaseError as exc:
         raise DatabaseError(path, f"corrupt database ({exc})") from None
-    missing = _SCAN_COLUMNS - cols
+    missing = _SCAN_COLUMNS[min(max(version, 1), FORMAT_VERSION)] - cols
     if missing:
         lacks = ", ".join(sorted(missing))
         raise DatabaseError(path, f"not a disco database (scans lacks {lacks})")

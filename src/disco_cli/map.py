@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.database import Database, ModelInfo, ScanBatch
+from disco_cli.database import DamagedRows, Database, ModelInfo, ScanBatch, damaged_line
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.localize import Match, PointCache, as_match, refine_matches
 from disco_cli.side_views import side_offsets, side_views_m
@@ -31,6 +31,7 @@ __all__ = [
     "Map",
     "AddResult",
     "Interrupted",
+    "RepairResult",
     "QueryResult",
     "model_for_database",
     "open_for_adding",
@@ -117,6 +118,8 @@ def stored_embeddings(
     """`Map.stored(names)` of the map at `path`, which `model` must have built (for
     `LoopDetector.add_files`'s `stored`); `warn` hears when it holds none of them."""
     with Map.open(path, model=model, scan_root=scan_root) as m:
+        if warn is not None:
+            m.on_damaged = warn
         found = m.stored(names)
     if not found[0].any():
         (warn or warnings.warn)(f"{path}: holds none of these scans; embedding them all")
@@ -157,6 +160,16 @@ class AddResult:
         rate = self.written / max(seconds, 1e-9)
         text = f"wrote {self.written} scans in {seconds:.1f} s ({rate:.1f} scans/s)"
         return text + (f", {self.already} were in it already" if self.already else "")
+
+
+@dataclass
+class RepairResult:
+    """What `Map.repair` did: the damaged scans rewritten, those it could not place
+    among the scans given (`{id: stored path}`), and the file's other problems."""
+
+    repaired: list[int]
+    unplaced: dict[int, str]
+    problems: list[str]
 
 
 @dataclass
@@ -225,6 +238,9 @@ class Map:
         self.on_index_note: Callable[[str], None] = lambda msg: warnings.warn(msg, stacklevel=4)
         # Told once per stored scan that cannot be found or read (default: a warning).
         self.on_missing_scan: Callable[[str], None] = lambda msg: warnings.warn(msg, stacklevel=4)
+        # Told once per read that finds damaged rows, which are then left out (one line).
+        self.on_damaged: Callable[[str], None] = lambda msg: warnings.warn(msg, stacklevel=4)
+        self._skipped: set[int] = set()  # damaged scans told of and left out
 
     # -- opening and closing --------------------------------------------------
 
@@ -348,15 +364,32 @@ class Map:
             xy = xy[:2, 3]
         ids, _ = self._index()
         if self._xy is None or len(self._xy) != len(ids):
-            self._xy = self._db.poses()[0][: len(ids), :2]
+            self._xy = self._db.poses()[0][self._snapshot_rows(), :2]
+            self._tell_damaged()
         stored = self._xy
         d = np.hypot(stored[:, 0] - xy[0], stored[:, 1] - xy[1])
         near = d <= radius  # unknown poses give NaN: never near
         if path is not None:
             if self._real is None or len(self._real) != len(ids):
-                self._real = np.array([os.path.realpath(p) for p in self.names()[: len(ids)]])
+                names = self.names()
+                self._real = np.array([os.path.realpath(names[r]) for r in self._snapshot_rows()])
             near |= self._real == os.path.realpath(path)
         return ids[near]
+
+    def _snapshot_rows(self) -> np.ndarray:
+        """Where the snapshot's scans are among every stored row (`Database.ids`): the
+        snapshot leaves out damaged scans and those appended since it was taken."""
+        ids, _ = self._index()
+        return np.searchsorted(self._db.ids(), ids)  # type: ignore[union-attr]
+
+    def _tell_damaged(self) -> None:
+        """One warning line naming the damaged scans found since the last one."""
+        if self._db is None:
+            return
+        new = {i: p for i, p in self._db.damaged.items() if i not in self._skipped}
+        if new:
+            self._skipped |= set(new)
+            self.on_damaged(f"{self.path}: {damaged_line(new, self.path)}")
 
     def stored(self, names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """`(found [N] bool, signatures [N, D], features [N, ...])` of the scan files
@@ -369,14 +402,24 @@ class Map:
         ids, index = self._index()
         # By where the stored scans are now, so that it works from any directory and for
         # a map that moved (Database.locate).
-        where = {p: k for k, p in enumerate(self._db.locations(self.scan_root)[: len(ids)])}
+        locations = self._db.locations(self.scan_root)
+        where = {locations[r]: k for k, r in enumerate(self._snapshot_rows())}
         rows = np.array([where.get(os.path.abspath(p), -1) for p in names], dtype=np.int64)
-        found = rows >= 0
+        while True:
+            found = (rows >= 0) & ~np.isin(ids[np.maximum(rows, 0)], list(self._skipped))
+            try:
+                stored = self._db.rows(ids[rows[found]]) if found.any() else None
+                break
+            except DamagedRows as exc:  # embedded again by the caller, like a scan not stored
+                if set(exc.ids) <= self._skipped:
+                    raise
+                self._tell_damaged()
+        self._tell_damaged()
         sigs = np.zeros((n, index.dim), np.float32)
         feats = np.zeros((n, *self._db.feature_shape), np.float32)
-        if found.any():
+        if stored is not None:
             sigs[found] = index.matrix[rows[found]]
-            feats[found] = self._db.rows(ids[rows[found]]).features
+            feats[found] = stored.features
         return found, sigs, feats
 
     # -- adding -----------------------------------------------------------------
@@ -396,9 +439,10 @@ class Map:
         self._check_writable()
         ids: list[int] = []
         part: list[tuple] = []
+        next_id = 1 if self._db is None else self._db.next_id()
         for item in items:
             points, name, pose, time = (*item, None, None)[:4] if len(item) < 4 else item
-            label = name or f"scan-{len(self) + len(part) + 1}"
+            label = name or f"scan-{next_id + len(ids) + len(part)}"
             pts = array_points(points, label)
             bev = scan_bev(pts, self._model.bev_config, label)
             sides = (
@@ -491,6 +535,98 @@ class Map:
             raise Interrupted(None if now is None else now - (before or 0)) from None
         return result
 
+    def repair(
+        self,
+        paths: list[str],
+        *,
+        poses: np.ndarray | None = None,
+        times: np.ndarray | None = None,
+        batch: int = 32,
+        workers: int = 1,
+        scan_format: str | None = None,
+        on_progress: Callable[[int, int], None] | None = None,
+    ) -> RepairResult:
+        """Re-embed the map's damaged scans (`Database.check`) from the scan files
+        `paths`, with their `poses` and `times` as `add_files` takes them, and rewrite
+        their rows. A damaged row is matched to a given file by its stored path, else its
+        path relative to the map (a damaged path still leaves the other); the file must
+        not be stored in a sound row. What cannot be placed is reported, not guessed."""
+        from disco_cli.database import stored_paths
+        from disco_cli.pipeline import embedded
+
+        self._check_writable()
+        db = self._db
+        if db is None:
+            return RepairResult([], {}, [])
+        problems = db.check()
+        damaged = dict(db.damaged)
+        others = [p for p in problems if not any(p.startswith(f"scan {i} (") for i in damaged)]
+        if not damaged:
+            return RepairResult([], {}, others)
+        n = len(paths)
+        poses = np.full((n, 4), np.nan) if poses is None else np.asarray(poses, np.float64)
+        times = np.full(n, np.nan) if times is None else np.asarray(times, np.float64)
+        absolute, rel_paths = stored_paths(paths, self.path)
+        given: dict[str, int] = {}
+        for i, p in enumerate(absolute):
+            given.setdefault(p, i)
+        raw = db.stored_names(damaged)
+        sound = {os.path.abspath(p) for i, p in zip(db.ids(), db.paths()) if i not in damaged}
+        folder = Path(os.path.abspath(self.path)).parent
+        placed: dict[int, int] = {}  # damaged id -> index into paths
+        unplaced: dict[int, str] = {}
+        for rid in sorted(damaged):
+            path, rel = raw.get(rid, ("", None))
+            candidates = [os.path.abspath(path)] if isinstance(path, str) and path else []
+            if isinstance(rel, str) and rel:
+                candidates.append(os.path.normpath(folder / rel))
+            pick = next(
+                (
+                    given[c]
+                    for c in candidates
+                    if c in given and c not in sound and given[c] not in placed.values()
+                ),
+                None,
+            )
+            if pick is None:
+                unplaced[rid] = damaged[rid]
+            else:
+                placed[rid] = pick
+        order = sorted(placed, key=placed.get)  # type: ignore[arg-type]
+        repaired: list[int] = []
+        with embedded(
+            (paths[placed[r]] for r in order),
+            self._model,
+            batch,
+            workers,
+            scan_format,
+            side_offsets=self.side_offsets,
+        ) as chunks:
+            for chunk in chunks:
+                for item in chunk.errors:
+                    raise item.error  # type: ignore[misc]
+                rids = [order[it.index] for it in chunk.items]
+                rows = [placed[r] for r in rids]
+                db.rewrite(
+                    rids,
+                    ScanBatch(
+                        paths=[absolute[r] for r in rows],
+                        rel_paths=[rel_paths[r] for r in rows],
+                        signatures=chunk.signatures,
+                        features=chunk.features,
+                        poses=poses[rows],
+                        times=times[rows],
+                        side_offsets=self.side_offsets,
+                        side_signatures=chunk.side_signatures,
+                    ),
+                )
+                repaired += rids
+                if on_progress is not None:
+                    on_progress(len(repaired), len(repaired))
+        self._snapshot = None
+        self._skipped -= set(repaired)
+        return RepairResult(repaired, unplaced, others)
+
     def _count(self) -> int | None:
         """Scans in the file now; None when there is no file (also when a new map's file
         appeared but was not opened yet, it is counted)."""
@@ -522,7 +658,6 @@ class Map:
                     raise DiscoError(f"{label}: pose must be a finite 4 x 4 matrix, got {T.shape}")
                 rows[k] = pose_rows(T[None])[0]
         times = [np.nan if p[3] is None else float(p[3]) for p in part]
-        first = 0 if self._db is None else len(self._db)
         batch = ScanBatch(
             [p[0] for p in part],
             sigs,
@@ -532,10 +667,10 @@ class Map:
             side_offsets=self.side_offsets,
             side_signatures=sides,
         )
-        self._append(batch)
-        return list(range(first + 1, first + 1 + len(part)))
+        return self._append(batch)
 
-    def _append(self, part: ScanBatch) -> None:
+    def _append(self, part: ScanBatch) -> list[int]:
+        """Write `part` (creating the file with it for a new map); the ids it got."""
         from disco_cli import __version__
 
         if self._db is None:
@@ -549,9 +684,11 @@ class Map:
                 disco_version=__version__,
                 extra_meta={"model_source": self._source},
             )
+            ids = list(range(1, len(part.paths) + 1))
         else:
-            self._db.append(part)
+            ids = self._db.append(part)
         self._snapshot = None
+        return ids
 
     # -- localizing ---------------------------------------------------------------
 
@@ -569,6 +706,8 @@ class Map:
             raise DatabaseError(self.path, "the database is empty")
         if self._snapshot is None:
             self._snapshot = index_for_database(self._db, self.index_kind, self.on_index_note)
+            self._xy = self._real = None
+            self._tell_damaged()
         return self._snapshot
 
     def _exclude_rows(self, exclude: Any) -> np.ndarray | None:
@@ -630,20 +769,30 @@ class Map:
         from disco_cli.search import match_queries
 
         ids, index = self._index()
-        return match_queries(
-            index,
-            ids,
-            self._db,
-            self._model,
-            signature[None],
-            features[None],
-            topk,
-            exclude=self._exclude_rows(exclude),
-            max_distance=max_distance,
-            rerank=rerank,
-            refine_yaw=refine_yaw,
-            snap_radius=snap_radius,
-        )[0]
+        mask = self._exclude_rows(exclude)
+        while True:  # each pass leaves out the damaged rows the last one met
+            if self._skipped:
+                skip = np.isin(ids, list(self._skipped))
+                mask = skip if mask is None else mask | skip
+            try:
+                return match_queries(
+                    index,
+                    ids,
+                    self._db,
+                    self._model,
+                    signature[None],
+                    features[None],
+                    topk,
+                    exclude=mask,
+                    max_distance=max_distance,
+                    rerank=rerank,
+                    refine_yaw=refine_yaw,
+                    snap_radius=snap_radius,
+                )[0]
+            except DamagedRows as exc:
+                if set(exc.ids) <= self._skipped:
+                    raise
+                self._tell_damaged()
 
     def query(
         self,

@@ -26,8 +26,8 @@ def info(
         bool,
         typer.Option(
             "--check",
-            help="Also run SQLite's integrity check and check the size "
-            "and values of every stored signature and feature block.",
+            help="Also run SQLite's integrity check and verify every row (its checksum, "
+            "sizes and values: every check a query makes); lists the damaged scans.",
         ),
     ] = False,
     fmt: OutputFormatOpt = None,
@@ -56,8 +56,11 @@ def info(
             ("bev_config", json.dumps(db.model.bev_config, sort_keys=True)),
         ]
         problems = db.check() if check else []
+        damaged = sorted(db.damaged)
         if check:
             rows.append(("check", "ok" if not problems else f"{len(problems)} problems"))
+            rows.append(("damaged_scans", len(damaged)))
+        unverified = check and not db.checksummed
     if resolve_format(fmt) is OutputFormat.jsonl:
         # One object: the fields as keys, the configurations as objects rather than text.
         record = {k: json.loads(v) if k.endswith("_config") else v for k, v in rows}
@@ -70,5 +73,19 @@ def info(
         stderr.print(f"[bold red]problem:[/] {db_path}: {p}", soft_wrap=True)
     if len(problems) > 20:
         stderr.print(f"... and {len(problems) - 20} more")
+    if damaged:
+        # Every damaged scan on one line, whatever their number, and the way out.
+        stderr.print(f"damaged scans: {' '.join(map(str, damaged))}", soft_wrap=True)
+        stderr.print(
+            f"repair them: disco build-db SCANS -o {db_path} --repair "
+            "(the inputs the map was built from)",
+            soft_wrap=True,
+        )
+    if unverified:
+        stderr.print(
+            f"note: {db_path} is format 1: its rows carry no checksums, so damage inside "
+            "a value goes unseen; writing to it (build-db --append or --repair) migrates it",
+            soft_wrap=True,
+        )
     if problems:
         raise typer.Exit(1)

@@ -113,6 +113,7 @@ def query(
     with Map.open(db_path, model=model, device=device, scan_root=scan_root, index=index) as m:
         m.on_missing_scan = warn
         m.on_index_note = note
+        m.on_damaged = warn
         apply_rerank(m.model, rerank, rerank_wider)
         apply_refine_yaw(m.model, refine_yaw)
         apply_snap(m.model, snap_radius)

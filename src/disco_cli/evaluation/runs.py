@@ -108,11 +108,20 @@ def multi_session(
 
     if len(query_poses) != len(paths):
         raise PoseFileError(f"{source}: {len(query_poses)} poses for {len(paths)} query scans")
+    from disco_cli.database import damaged_line
+
+    def refuse_damaged() -> None:  # scores count map rows by position: no holes allowed
+        if db.damaged:
+            line = damaged_line(db.damaged, db.path).replace("skipped", "found")
+            raise DatabaseError(db.path, line)
+
     db_poses, _ = db.poses()
+    refuse_damaged()
     if not np.isfinite(db_poses[:, :2]).all():
         raise DatabaseError(db.path, "some scans have no pose; build it with --poses")
     check_retrieval_queries(query_poses, db_poses, radius)  # before the work
     ids, searched = index_for_database(db, index, note)
+    refuse_damaged()
     sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
     depth = max(topk, one_percent_n(len(ids)))
     matches = match_queries(searched, ids, db, model, sigs, feats, depth)
