@@ -80,7 +80,7 @@ _PAGE_SIZE = 65536
 # zlib level 6: 44 % of the float16 bytes on the samples; deflating is only at writing.
 _DEFLATE_LEVEL = 6
 # How many damaged scans a warning names before "and N more".
-_NAMED = 5
+_NAMED = 20
 
 _SCHEMA = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);

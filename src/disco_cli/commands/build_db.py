@@ -157,7 +157,8 @@ def _tell_migrated(output: Path, m) -> None:
         before, after = db.migrated
         stderr.print(
             f"{output}: migrated from format 1 to format 2 (checksummed rows): "
-            f"{before} -> {after} bytes"
+            f"{before} -> {after} bytes",
+            soft_wrap=True,
         )
 
 
@@ -179,7 +180,7 @@ def _repair(output: Path, scans, model: str, fmt, batch: int, workers: int, devi
             workers=workers,
             scan_format=fmt,
         )
-    stderr.print(f"{output}: repaired {len(result.repaired)} damaged scans")
+    stderr.print(f"{output}: repaired {len(result.repaired)} damaged scans", soft_wrap=True)
     for rid, name in result.unplaced.items():
         error(f"{output}: scan {rid} ({name}) is damaged and none of the given scans is it")
     for problem in result.problems:
