@@ -79,6 +79,7 @@ _FEAT_DTYPE = np.dtype("<f2")
 _PAGE_SIZE = 65536
 # zlib level 6: 44 % of the float16 bytes on the samples; deflating is only at writing.
 _DEFLATE_LEVEL = 6
+_NOT_FINITE = "features are not finite"
 # How many damaged scans a warning names before "and N more".
 _NAMED = 20
 
@@ -146,7 +147,17 @@ def _scan_crc(
 ) -> int:
     """CRC-32 of a scan row's payload. NULL reals count as NaN, a NULL rel_path as one
     0xFF byte (no UTF-8 text is that), so every stored value changes the checksum."""
-    head = struct.pack("<q6d", rid, *(_f64(v) for v in (time, x, y, z, yaw, sig_scale)))
+    nan = np.nan
+    head = struct.pack(
+        "<q6d",
+        rid,
+        nan if time is None else time,
+        nan if x is None else x,
+        nan if y is None else y,
+        nan if z is None else z,
+        nan if yaw is None else yaw,
+        nan if sig_scale is None else sig_scale,
+    )
     text = path.encode("utf-8", "surrogateescape") + b"\x00"
     text += b"\xff" if rel is None else rel.encode("utf-8", "surrogateescape")
     return zlib.crc32(sig, zlib.crc32(text, zlib.crc32(head)))
@@ -329,6 +340,10 @@ class Database:
         self.signature_dim = int(meta["signature_dim"])
         self.feature_shape = tuple(int(v) for v in json.loads(meta["feature_shape"]))
         self.damaged: dict[int, str] = {}
+        # Stored sizes of one signature and one (decompressed) feature block.
+        sig_dtype = _SIG_DTYPE if self.format_version >= 2 else _SIG_DTYPE_V1
+        self._nsig = self.signature_dim * sig_dtype.itemsize
+        self._nfeat = int(np.prod(self.feature_shape)) * _FEAT_DTYPE.itemsize
         # (bytes before, bytes after) when opening for writing migrated a format-1 file.
         self.migrated: tuple[int, int] | None = None
         try:
@@ -355,15 +370,6 @@ class Database:
     def checksummed(self) -> bool:
         """Whether rows carry checksums (format 2); a format-1 map's rows are unverified."""
         return self.format_version >= 2
-
-    @property
-    def _nsig(self) -> int:
-        dtype = _SIG_DTYPE if self.checksummed else _SIG_DTYPE_V1
-        return self.signature_dim * dtype.itemsize
-
-    @property
-    def _nfeat(self) -> int:
-        return int(np.prod(self.feature_shape)) * _FEAT_DTYPE.itemsize
 
     # -- opening --------------------------------------------------------------
 
@@ -726,9 +732,9 @@ class Database:
             return f"signature is not {self._nsig} bytes"
         if not isinstance(path, str) or not (rel is None or isinstance(rel, str)):
             return "path is not text"
-        reals = (t, x, y, z, yaw, sig_scale)
-        if not all(v is None or isinstance(v, (int, float)) for v in reals):
-            return "time or pose is not a number"
+        for v in (t, x, y, z, yaw, sig_scale):
+            if v is not None and type(v) is not float and type(v) is not int:
+                return "time or pose is not a number"
         if not self.checksummed:
             return None
         if crc != _scan_crc(rid, path, rel, t, x, y, z, yaw, sig, sig_scale):
@@ -850,35 +856,59 @@ class Database:
         missing = [i for i in ids if i not in found]
         if missing:
             raise DatabaseError(self.path, f"no scan with id {missing[0]}")
-        rows = [found[i] for i in dict.fromkeys(ids)]
-        sound, _, bad = self._sound_scans([r[:11] for r in rows])
-        feats_of: dict[int, np.ndarray] = {}
-        for row in rows:
-            if row[0] in bad:
-                continue
-            feats, problem = self._decoded_features(*row[:1], *row[11:])
-            if problem:
-                bad[row[0]] = problem
+        # Each distinct row once: its scan row's checksum (the signature is not decoded:
+        # it is not used here), then its features' bytes; decoded together below.
+        bad: dict[int, str] = {}
+        raw: dict[int, tuple[bytes, float]] = {}
+        for rid in dict.fromkeys(ids):
+            row = found[rid]
+            problem = self._scan_problem(row[:11])
+            data = None
+            if problem is None:
+                data, problem = self._feature_bytes(rid, *row[11:])
+            if problem is not None:
+                bad[rid] = problem
             else:
-                feats_of[row[0]] = feats
+                raw[rid] = (data, row[11])  # type: ignore[assignment]
+        order = list(raw)
+        stored = np.frombuffer(b"".join(raw[i][0] for i in order), dtype=_FEAT_DTYPE)
+        stored = stored.reshape(len(order), *self.feature_shape)
+        scales = np.asarray([raw[i][1] for i in order], dtype=np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):
+            decoded = stored.astype(np.float32)
+            decoded *= scales.reshape(-1, *([1] * len(self.feature_shape)))
+        finite = np.isfinite(decoded.reshape(len(order), -1)).all(axis=1)
+        for k in np.flatnonzero(~finite):
+            bad[order[k]] = _NOT_FINITE
         if bad:
-            self._note_damaged(bad, {r[0]: r[1] for r in rows})
+            self._note_damaged(bad, {i: found[i][1] for i in bad})
             raise DamagedRows(self.path, {i: self.damaged[i] for i in bad})
-        feats = np.empty((len(ids), *self.feature_shape), dtype=np.float32)
-        poses = np.full((len(ids), 4), np.nan)
-        scales = np.empty(len(ids), dtype=np.float32)
-        paths, blobs = [], []
-        for k, i in enumerate(ids):
-            row = found[i]
-            feats[k] = feats_of[i]
-            poses[k] = [np.nan if v is None else v for v in row[4:8]]
-            paths.append(row[1])
+        where = {rid: k for k, rid in enumerate(order)}
+        feats = decoded[[where[i] for i in ids]]
+        poses = np.array([found[i][4:8] for i in ids], dtype=np.float64).reshape(-1, 4)
+        paths = [found[i][1] for i in ids]
         return MatchRows(np.asarray(ids, dtype=np.int64), paths, poses, feats)
 
     def _decoded_features(
         self, rid: int, scale: Any, data: Any, crc: Any
     ) -> tuple[np.ndarray | None, str | None]:
-        """One scan's features `[...]` float32, or the problem that makes them unusable."""
+        """One scan's features `[...]` float32, or the problem that makes them unusable:
+        `_feature_bytes`, then finite values (what `rows()` checks, there batched)."""
+        raw, problem = self._feature_bytes(rid, scale, data, crc)
+        if raw is None:
+            return None, problem
+        stored = np.frombuffer(raw, dtype=_FEAT_DTYPE).reshape(self.feature_shape)
+        with np.errstate(over="ignore", invalid="ignore"):
+            feats = stored.astype(np.float32) * np.float32(scale)
+        if not np.isfinite(feats).all():
+            return None, _NOT_FINITE
+        return feats, None
+
+    def _feature_bytes(
+        self, rid: int, scale: Any, data: Any, crc: Any
+    ) -> tuple[bytes | None, str | None]:
+        """One scan's stored float16 feature bytes (checksum verified, inflated, sized,
+        with a usable scale), or the problem."""
         if data is None:
             return None, "features are missing"
         if not isinstance(data, bytes):
@@ -894,12 +924,7 @@ class Database:
             return None, f"features are not {self._nfeat} bytes"
         if not (isinstance(scale, float) and np.isfinite(scale) and scale > 0):
             return None, f"bad feature scale {scale!r}"
-        stored = np.frombuffer(data, dtype=_FEAT_DTYPE).reshape(self.feature_shape)
-        with np.errstate(over="ignore", invalid="ignore"):
-            feats = stored.astype(np.float32) * np.float32(scale)
-        if not np.isfinite(feats).all():
-            return None, "features are not finite"
-        return feats, None
+        return data, None
 
     @_sql_errors
     def existing(self, paths: Iterable[str]) -> set[str]:
