@@ -84,6 +84,7 @@ def serve(
     options = ServeOptions(topk=topk, max_request_bytes=int(max_request_mb * 1024 * 1024))
     with Map.open(db_path, model=model) as m:
         m.on_missing_scan = warn
+        m.on_damaged = warn
         service = QueryService(m, options)
         server = make_server(service, socket_path=socket_path, host=host, port=port)
         where = str(socket_path) if socket_path is not None else f"{host}:{port}"
