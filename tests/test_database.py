@@ -296,3 +296,16 @@ def test_a_signature_out_of_range_is_skipped_by_search_and_listed_by_check(
         assert list(db.damaged) == [4]
         problems = db.check()
     assert len(problems) == 1 and problems[0].startswith("scan 4 ")
+
+
+def test_a_pose_changed_to_text_is_a_damaged_row_not_an_error(tmp_path: Path) -> None:
+    path = _made(tmp_path, n=5)
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE scans SET x = 'abc' WHERE id = 2")
+    with Database.open(path) as db:
+        poses, _ = db.poses()
+        assert np.isnan(poses[1]).all() and np.isfinite(poses[2, :3]).all()
+        assert list(db.signatures()[0]) == [1, 3, 4, 5]
+        assert list(db.damaged) == [2]
+        with pytest.raises(DatabaseError, match="1 damaged row skipped: scan 2"):
+            db.rows([1, 2])

@@ -760,9 +760,10 @@ class Database:
         ids = np.empty(n, dtype=np.int64)
         sigs = np.empty((n, self.signature_dim), dtype=np.float32)
         cur = self._conn.execute(self._scan_query() + " ORDER BY id")
-        i = 0
+        i = seen = 0
         while rows := cur.fetchmany(4096):
-            rows = rows[: n - i]  # rows appended since the count: not in this snapshot
+            rows = rows[: n - seen]  # rows appended since the count: not in this snapshot
+            seen += len(rows)
             sound, part, bad = self._sound_scans(rows)
             self._note_damaged(bad, {r[0]: r[1] for r in rows})
             ids[i : i + len(sound)] = [r[0] for r in sound]
@@ -820,12 +821,12 @@ class Database:
         """`(poses [N, 4] x, y, z, yaw rad, times [N])` of every scan in id order, NaN where
         unknown, and where the row is damaged (recorded in `damaged`)."""
         rows = self._conn.execute(self._scan_query() + " ORDER BY id").fetchall()
-        arr = np.array([r[3:8] for r in rows], dtype=np.float64).reshape(-1, 5)  # None -> nan
         _, _, bad = self._sound_scans(rows)
-        if bad:
-            self._note_damaged(bad, {r[0]: r[1] for r in rows})
-            ids = np.array([r[0] for r in rows], dtype=np.int64)
-            arr[np.isin(ids, list(bad))] = np.nan
+        self._note_damaged(bad, {r[0]: r[1] for r in rows})
+        unknown = (None,) * 5
+        arr = np.array(
+            [unknown if r[0] in bad else r[3:8] for r in rows], dtype=np.float64
+        ).reshape(-1, 5)  # None -> nan
         return arr[:, 1:5], arr[:, 0]
 
     @_sql_errors
