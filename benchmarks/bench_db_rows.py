@@ -16,7 +16,9 @@ the overall wall-clock rate is printed too. Printed:
    that grows badly) slows down towards the end;
 2. bytes per row of the file at N;
 3. at N: `Database.open` + `signatures()` (the load a query makes once), `rows()` of 40
-   random ids (what re-ranking reads per query at its widest), and decoding 40 stored
+   random ids (what re-ranking reads per query at its widest), of 40 ids that slide by
+   one per query (a stream of queries along the map, whose rows `rows()` keeps
+   decoded), and decoding 40 stored
    feature pairs against the same pairs stored raw (float16, no deflate), interleaved in
    this process: what the compression costs a query.
 """
@@ -129,6 +131,14 @@ def main() -> None:
                 t = time.thread_time()
                 db.rows(p)
                 read.append(time.thread_time() - t)
+            # A streaming query's re-ranked neighbours: 40 ids sliding by one per query,
+            # most of them read (and kept decoded) by the query before.
+            start = int(rng.integers(0, done - 200))
+            slide = []
+            for q in range(100):
+                t = time.thread_time()
+                db.rows(ids[start + q : start + q + 40])
+                slide.append(time.thread_time() - t)
             blobs = [
                 r[0]
                 for r in db._conn.execute("SELECT data FROM features WHERE id <= 40").fetchall()
@@ -145,6 +155,10 @@ def main() -> None:
                 np.frombuffer(b, "<f2").astype(np.float32)
             plain.append(time.thread_time() - t)
         print(f"open + signatures() of {done} rows: {load:.2f} s")
+        print(
+            f"rows() of 40 ids sliding by one per query (a stream): "
+            f"{np.median(slide) * 1e3:.2f} ms (median of 100)"
+        )
         print(
             f"rows() of 40 random ids: {np.median(read) * 1e3:.2f} ms (median of 100); "
             f"decoding 40 feature pairs: {np.median(inflate) * 1e3:.2f} ms deflated vs "

@@ -315,3 +315,16 @@ def test_a_pose_changed_to_text_is_a_damaged_row_not_an_error(tmp_path: Path) ->
         assert list(db.damaged) == [2]
         with pytest.raises(DatabaseError, match="1 damaged row skipped: scan 2"):
             db.rows([1, 2])
+
+
+def test_rows_read_again_after_a_rewrite_give_the_new_row(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    db = Database.create(tmp_path / "m.db", INFO, _batch(0, 4, rng))
+    first = db.rows([2, 3]).features
+    np.testing.assert_array_equal(db.rows([3, 2]).features, first[::-1])  # kept decoded
+    new = _batch(1, 1, rng)
+    db.rewrite([2], new)
+    got = db.rows([2]).features[0]
+    want = new.features[0]
+    assert np.all(np.abs(got - want) <= np.abs(want) * 2.0**-8 + np.abs(want).max() * 2.0**-22)
+    assert db.rows([2]).paths == new.paths

@@ -47,6 +47,7 @@ import os
 import sqlite3
 import struct
 import zlib
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,6 +84,8 @@ _DEFLATE_LEVEL = 6
 # <= 2^-9); docs/database.md has what that costs in yaw and matches.
 _FEATURE_DROP_BITS = 2
 _NOT_FINITE = "features are not finite"
+# Decoded feature rows `Database.rows` keeps (about 38 KB each for the default model).
+_CACHED_ROWS = 256
 # How many damaged scans a warning names before "and N more".
 _NAMED = 20
 
@@ -349,6 +352,10 @@ class Database:
         self.signature_dim = int(meta["signature_dim"])
         self.feature_shape = tuple(int(v) for v in json.loads(meta["feature_shape"]))
         self.damaged: dict[int, str] = {}
+        # rows(): the last rows read, decoded (id -> path, pose, features), valid while
+        # the file's generation is the one they were read at.
+        self._cache: OrderedDict[int, tuple] = OrderedDict()
+        self._cache_generation: int | None = None
         # Stored sizes of one signature and one (decompressed) feature block.
         sig_dtype = _SIG_DTYPE if self.format_version >= 2 else _SIG_DTYPE_V1
         self._nsig = self.signature_dim * sig_dtype.itemsize
@@ -842,10 +849,35 @@ class Database:
     def rows(self, ids: Sequence[int] | np.ndarray) -> MatchRows:
         """Paths, poses and features of the scans `ids`, in that order (only those rows).
 
-        Every row read is verified (its scan row and its features); damaged ones raise
-        `DamagedRows` naming them (and are recorded in `damaged`): a caller that can go
-        on without them leaves them out and asks again (`Map` does)."""
+        Every row read from the file is verified (its scan row and its features);
+        damaged ones raise `DamagedRows` naming them (and are recorded in `damaged`): a
+        caller that can go on without them leaves them out and asks again (`Map` does).
+        The last `_CACHED_ROWS` rows read are kept decoded, while the file's
+        `generation` stays the same: consecutive queries re-rank mostly the same
+        neighbours, and inflating their features is most of a read's cost."""
         ids = [int(i) for i in np.asarray(ids).reshape(-1)]
+        generation = self.generation
+        if generation != self._cache_generation:
+            self._cache.clear()
+            self._cache_generation = generation
+        todo = [i for i in dict.fromkeys(ids) if i not in self._cache]
+        if todo:
+            self._read_rows(todo)
+        cache = self._cache
+        for i in dict.fromkeys(ids):
+            cache.move_to_end(i)
+        entries = [cache[i] for i in ids]
+        while len(cache) > max(_CACHED_ROWS, len(set(ids))):
+            cache.popitem(last=False)
+        feats = np.stack([e[2] for e in entries]) if entries else None
+        if feats is None:
+            feats = np.empty((0, *self.feature_shape), dtype=np.float32)
+        poses = np.array([e[1] for e in entries], dtype=np.float64).reshape(-1, 4)
+        return MatchRows(np.asarray(ids, dtype=np.int64), [e[0] for e in entries], poses, feats)
+
+    def _read_rows(self, ids: list[int]) -> None:
+        """Read, verify and decode the distinct rows `ids` into the cache, or raise
+        `DamagedRows` for those that fail (nothing of this call is cached then)."""
         found: dict[int, tuple] = {}
         if self.checksummed:
             query = (
@@ -860,17 +892,17 @@ class Database:
                 "feature_scale, features, NULL FROM scans WHERE id IN ({})"
             )
         for chunk in range(0, len(ids), 500):
-            part = sorted(set(ids[chunk : chunk + 500]))
+            part = sorted(ids[chunk : chunk + 500])
             for row in self._conn.execute(query.format(",".join("?" * len(part))), part):
                 found[row[0]] = row
         missing = [i for i in ids if i not in found]
         if missing:
             raise DatabaseError(self.path, f"no scan with id {missing[0]}")
-        # Each distinct row once: its scan row's checksum (the signature is not decoded:
-        # it is not used here), then its features' bytes; decoded together below.
+        # Each row: its scan row's checksum (the signature is not decoded: it is not used
+        # here), then its features' bytes; decoded together below.
         bad: dict[int, str] = {}
         raw: dict[int, tuple[bytes, float]] = {}
-        for rid in dict.fromkeys(ids):
+        for rid in ids:
             row = found[rid]
             problem = self._scan_problem(row[:11])
             data = None
@@ -893,11 +925,10 @@ class Database:
         if bad:
             self._note_damaged(bad, {i: found[i][1] for i in bad})
             raise DamagedRows(self.path, {i: self.damaged[i] for i in bad})
-        where = {rid: k for k, rid in enumerate(order)}
-        feats = decoded[[where[i] for i in ids]]
-        poses = np.array([found[i][4:8] for i in ids], dtype=np.float64).reshape(-1, 4)
-        paths = [found[i][1] for i in ids]
-        return MatchRows(np.asarray(ids, dtype=np.int64), paths, poses, feats)
+        for k, rid in enumerate(order):
+            row = found[rid]
+            pose = tuple(np.nan if v is None else float(v) for v in row[4:8])
+            self._cache[rid] = (row[1], pose, decoded[k])
 
     def _decoded_features(
         self, rid: int, scale: Any, data: Any, crc: Any
