@@ -328,3 +328,14 @@ def test_rows_read_again_after_a_rewrite_give_the_new_row(tmp_path: Path) -> Non
     want = new.features[0]
     assert np.all(np.abs(got - want) <= np.abs(want) * 2.0**-8 + np.abs(want).max() * 2.0**-22)
     assert db.rows([2]).paths == new.paths
+
+
+def test_rows_all_damaged_raise_damaged_rows(tmp_path: Path) -> None:
+    from disco_cli.database import DamagedRows
+
+    path = _made(tmp_path, n=3)
+    with sqlite3.connect(path) as conn:
+        conn.execute("UPDATE features SET crc = crc + 1")
+    with Database.open(path) as db, pytest.raises(DamagedRows) as err:
+        db.rows([1, 2])
+    assert err.value.ids == [1, 2]

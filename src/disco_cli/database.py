@@ -919,7 +919,8 @@ class Database:
         with np.errstate(over="ignore", invalid="ignore"):
             decoded = stored.astype(np.float32)
             decoded *= scales.reshape(-1, *([1] * len(self.feature_shape)))
-        finite = np.isfinite(decoded.reshape(len(order), -1)).all(axis=1)
+        size = int(np.prod(self.feature_shape))
+        finite = np.isfinite(decoded.reshape(len(order), size)).all(axis=1)
         for k in np.flatnonzero(~finite):
             bad[order[k]] = _NOT_FINITE
         if bad:
