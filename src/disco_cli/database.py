@@ -493,6 +493,16 @@ class Database:
             raise
         return cls.open(path, writable=True)
 
+    def migrated_line(self) -> str:
+        """What opening this map migrated, as one line ('' if nothing)."""
+        if self.migrated is None:
+            return ""
+        before, after = self.migrated
+        return (
+            f"{self.path}: migrated from format 1 to format 2 (checksummed rows): "
+            f"{before} -> {after} bytes"
+        )
+
     def close(self) -> None:
         self._conn.close()
 

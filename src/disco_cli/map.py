@@ -32,6 +32,7 @@ __all__ = [
     "AddResult",
     "Interrupted",
     "RepairResult",
+    "repair_files",
     "QueryResult",
     "model_for_database",
     "open_for_adding",
@@ -110,6 +111,44 @@ def open_for_adding(
             "exists and holds other scans; pass --append to add to it, or choose another --output",
         )
     return m, len(given), len(stored & given)
+
+
+def repair_files(
+    path: Path,
+    scans: Any,
+    model: Any,
+    scan_format: str | None,
+    batch: int,
+    threads: int | None,
+    device: str = "cpu",
+) -> str:
+    """`disco build-db --repair`: `Map.repair` of the map at `path` from `scans` (a
+    `collect_scans` result: paths, poses, times). The line that says what was done;
+    one `DatabaseError` line when something could not be repaired."""
+    if not Path(path).exists():
+        raise DatabaseError(path, "no such database to repair")
+    # The map's own model unless another was named (build-db's default names "default").
+    named = None if model == "default" else model
+    with Map.open(path, writable=True, model=named, device=device) as m:
+        migrated = m.database.migrated_line()  # type: ignore[union-attr]
+        result = m.repair(
+            scans.paths,
+            poses=scans.poses,
+            times=scans.times,
+            batch=batch,
+            threads=threads,
+            scan_format=scan_format,
+        )
+    done = f"{path}: repaired {len(result.repaired)} damaged scans"
+    errors = [
+        f"scan {rid} ({name}) is damaged and none of the given scans is it"
+        for rid, name in result.unplaced.items()
+    ] + result.problems
+    if errors:
+        raise DatabaseError(
+            path, f"{done}; not repaired: {'; '.join(errors)}; rebuild it with disco build-db"
+        )
+    return f"{migrated}\n{done}" if migrated else done
 
 
 def stored_embeddings(
@@ -542,7 +581,7 @@ class Map:
         poses: np.ndarray | None = None,
         times: np.ndarray | None = None,
         batch: int = 32,
-        workers: int = 1,
+        threads: int | None = None,
         scan_format: str | None = None,
         on_progress: Callable[[int, int], None] | None = None,
     ) -> RepairResult:
@@ -598,7 +637,7 @@ class Map:
             (paths[placed[r]] for r in order),
             self._model,
             batch,
-            workers,
+            threads,
             scan_format,
             side_offsets=self.side_offsets,
         ) as chunks:

@@ -25,6 +25,7 @@ from disco_cli.commands.options import (
     PosesFormatOpt,
     PoseTopicOpt,
     QuietOpt,
+    RepairOpt,
     ScanFormatOpt,
     SideViewsOpt,
     ThreadsOpt,
@@ -37,7 +38,7 @@ from disco_cli.commands.options import (
     poses_option,
     times_option,
 )
-from disco_cli.console import error, fail, handle_errors, rate_bar, stderr, warn
+from disco_cli.console import fail, handle_errors, rate_bar, stderr, warn
 
 
 @handle_errors
@@ -71,15 +72,7 @@ def build_db(
             help="Add these scans to an existing database built from other scans (same model).",
         ),
     ] = False,
-    repair: Annotated[
-        bool,
-        opt(
-            "--repair",
-            panel=PANEL_IN,
-            help="Re-embed the map's damaged scans (disco info --check lists them) from "
-            "these inputs, with their poses and times, and rewrite their rows.",
-        ),
-    ] = False,
+    repair: RepairOpt = False,
     side_views: SideViewsOpt = None,
     batch: Annotated[int, batch_option("Scans per network batch and per transaction.")] = 32,
     threads: ThreadsOpt = None,
@@ -112,12 +105,16 @@ def build_db(
     scans = collect_scans(inputs, poses, times, calib, fmt, pose_opts, warn, topic, pose_topic)
     if not scans.paths:
         raise fail("no scans given")
-    if repair:
-        return _repair(output, scans, model, fmt, batch, workers, device)
+    if repair:  # rewrite the damaged rows only (docs/database.md)
+        from disco_cli.map import repair_files
+
+        done = repair_files(output, scans, model, fmt, batch, threads, device)
+        return stderr.print(done, soft_wrap=True)
     m, given, held = open_for_adding(
         output, scans.paths, model, append=append, device=device, side_views=side_views
     )
-    _tell_migrated(output, m)
+    if m.database is not None and m.database.migrated is not None:
+        stderr.print(m.database.migrated_line(), soft_wrap=True)
     if held == given:
         m.close()
         stderr.print(f"{output}: all {given} scans are in it already")
@@ -149,41 +146,3 @@ def build_db(
         warn(f"{len(result.bad)} unreadable scans skipped")
     if result.written == 0 and not created:
         raise fail(f"{output}: no readable scans; nothing written")
-
-
-def _tell_migrated(output: Path, m) -> None:
-    db = m.database
-    if db is not None and db.migrated is not None:
-        before, after = db.migrated
-        stderr.print(
-            f"{output}: migrated from format 1 to format 2 (checksummed rows): "
-            f"{before} -> {after} bytes",
-            soft_wrap=True,
-        )
-
-
-def _repair(output: Path, scans, model: str, fmt, batch: int, workers: int, device: str) -> None:
-    """`build-db --repair`: rewrite the damaged rows of an existing map from the inputs."""
-    from disco_cli.map import Map
-
-    if not output.exists():
-        raise fail(f"{output}: no such database to repair")
-    # The map's own model unless another was named (build-db's default names "default").
-    named = None if model == "default" else model
-    with Map.open(output, writable=True, model=named, device=device) as m:
-        _tell_migrated(output, m)
-        result = m.repair(
-            scans.paths,
-            poses=scans.poses,
-            times=scans.times,
-            batch=batch,
-            workers=workers,
-            scan_format=fmt,
-        )
-    stderr.print(f"{output}: repaired {len(result.repaired)} damaged scans", soft_wrap=True)
-    for rid, name in result.unplaced.items():
-        error(f"{output}: scan {rid} ({name}) is damaged and none of the given scans is it")
-    for problem in result.problems:
-        error(f"{output}: {problem}")
-    if result.unplaced or result.problems:
-        raise fail(f"{output}: not repaired; rebuild it with disco build-db", 1)

@@ -248,6 +248,15 @@ def apply_refine_yaw(model: Any, n: int | None) -> Any:
     return model
 
 
+RepairOpt = Annotated[
+    bool,
+    typer.Option(
+        "--repair",
+        help="Re-embed the map's damaged scans (disco info --check lists them) from these "
+        "inputs, with their poses and times, and rewrite their rows.",
+        rich_help_panel=PANEL_IN,
+    ),
+]
 SideViewsOpt = Annotated[
     Optional[float],
     typer.Option(

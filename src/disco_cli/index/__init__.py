@@ -76,13 +76,15 @@ def choose_kind(kind: str, rows: int, note: Any = None) -> str:
 
 def map_key(db: Any) -> dict[str, Any]:
     """What says whether a sidecar index still describes the map `db`: the number of
-    scans, the largest scan id (ids only grow: an append changes both) and the model.
-    The one place to change when the map keeps a generation counter of its own."""
+    scans, the largest scan id (ids only grow: an append changes both), the map's
+    `generation` (every write raises it: a repair rewrites rows without changing the
+    other two) and the model."""
     n = len(db)
     max_id = db._conn.execute("SELECT MAX(id) FROM scans").fetchone()[0]
     return {
         "rows": int(n),
         "max_id": -1 if max_id is None else int(max_id),
+        "generation": int(db.generation),
         "fingerprint": db.model.fingerprint,
         "side_views_m": list(db.side_offsets),
     }
