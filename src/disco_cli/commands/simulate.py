@@ -24,6 +24,7 @@ class Style(str, Enum):
     park = "park"
     parking = "parking"
     terrace = "terrace"
+    boulevard = "boulevard"
 
 
 class Terrain(str, Enum):
@@ -107,7 +108,8 @@ def simulate(
         typer.Option(
             "--style",
             help="Town style: grid (mixed streets, the default), suburban, industrial, "
-            "park, parking or terrace (rows of alike houses).",
+            "park, parking, terrace (rows of alike houses) or boulevard (a street alike "
+            "on both sides).",
             rich_help_panel="World",
         ),
     ] = None,
@@ -159,6 +161,27 @@ def simulate(
             rich_help_panel="Later sessions' robots",
         ),
     ] = None,
+    robot_jitter: Annotated[
+        float,
+        typer.Option(
+            "--robot-jitter",
+            min=0.0,
+            max=5.0,
+            help="Later sessions: each scan moved by up to +-M m along and across its "
+            "driving line (uniform, per scan).",
+            rich_help_panel="Later sessions' robots",
+        ),
+    ] = 0.0,
+    robot_side: Annotated[
+        Optional[str],
+        typer.Option(
+            "--robot-side",
+            metavar="LO,HI",
+            help="Later sessions: drive LO..HI m to the side of session 00's line "
+            "(instead of --robot-offset; the road must be that wide).",
+            rich_help_panel="Later sessions' robots",
+        ),
+    ] = None,
     robot_sensor: Annotated[
         Optional[str],
         typer.Option(
@@ -199,12 +222,21 @@ def simulate(
             base = params.change or ChangeParams()
             params = replace(params, change=replace(base, fraction=float(change)))
     robot = None
-    if robot_height or robot_tilt or robot_offset is not None or robot_sensor:
+    if (
+        robot_height
+        or robot_tilt
+        or robot_offset is not None
+        or robot_sensor
+        or robot_jitter
+        or robot_side
+    ):
         robot = RobotParams(
             height_m=_range(robot_height) if robot_height else None,
             tilt_deg=float(robot_tilt),
             offset_m=robot_offset,
             sensor=robot_sensor,
+            jitter_m=float(robot_jitter),
+            side_m=_range(robot_side) if robot_side else None,
         )
     total = sessions * (frames if frames is not None else int((length_m or 400.0) / step_m))
     with progress() as bar:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from disco_cli.errors import DiscoError
 
-STYLES = ("grid", "suburban", "industrial", "park", "parking", "terrace")
+STYLES = ("grid", "suburban", "industrial", "park", "parking", "terrace", "boulevard")
 TERRAINS = ("flat", "varied")
 # The object classes of the change model, as named in ChangeParams and world.json.
 CHANGE_CLASSES = ("cars", "trees", "hedges", "fences", "furniture", "buildings")
@@ -87,7 +87,7 @@ class TownParams:
     traffic_per_km: float = 8.0  # moving cars per km of street, each way
     pedestrians_per_km: float = 10.0  # people walking per km of sidewalk, each side
     foliage: tuple[float, float] = (0.6, 1.15)  # per-session factor on crowns' hit chance
-    style: str = "grid"  # what the town is: grid, suburban, industrial, park, parking, terrace
+    style: str = "grid"  # grid, suburban, industrial, park, parking, terrace, boulevard
     terrain: str = "flat"  # flat, or varied: crowned roads, high kerbs, hills
     change: ChangeParams | None = None  # the change model; None: the classic draw
 

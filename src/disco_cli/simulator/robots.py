@@ -22,6 +22,11 @@ class RobotParams:
     tilt_deg: float = 0.0  # the mount's roll and pitch, each within +-tilt_deg
     offset_m: float | None = None  # sideways from session 00's driving line, up to this
     sensor: str | None = None  # a sensor name, uniform-N, hdl64like-N, or "random"
+    # Each scan moved by up to this along and across its driving line (uniform, per scan).
+    jitter_m: float = 0.0
+    # Drive LO..HI m to either side of session 00's line (replaces offset_m; the road
+    # must be wide enough: nothing keeps the line on it).
+    side_m: tuple[float, float] | None = None
 
     def check(self) -> None:
         if self.height_m is not None:
@@ -32,6 +37,14 @@ class RobotParams:
             raise DiscoError("--robot-tilt must be within 0..10 degrees")
         if self.offset_m is not None and not 0.0 <= self.offset_m <= MAX_OFFSET_M + 1.5:
             raise DiscoError(f"--robot-offset must be within 0..{MAX_OFFSET_M + 1.5:g} m")
+        if not 0.0 <= self.jitter_m <= MAX_JITTER_M:
+            raise DiscoError(f"--robot-jitter must be within 0..{MAX_JITTER_M:g} m")
+        if self.side_m is not None:
+            lo, hi = self.side_m
+            if not 0.0 <= lo <= hi <= MAX_SIDE_M:
+                raise DiscoError(f"--robot-side must be a range within 0..{MAX_SIDE_M:g} m")
+            if self.offset_m is not None:
+                raise DiscoError("give --robot-offset or --robot-side, not both")
         if self.sensor not in (None, "random"):
             get_sensor(self.sensor)
 
@@ -43,10 +56,16 @@ class RobotParams:
             out["offset_m"] = self.offset_m
         if self.sensor is not None:
             out["sensor"] = self.sensor
+        if self.jitter_m:
+            out["jitter_m"] = self.jitter_m
+        if self.side_m is not None:
+            out["side_m"] = list(self.side_m)
         return out
 
 
 MAX_OFFSET_M = 2.5  # how far right (or left) of the centre line a robot may drive
+MAX_JITTER_M = 5.0
+MAX_SIDE_M = 12.0
 RANDOM_BEAMS = (16, 32, 64, 128)
 
 
@@ -73,4 +92,24 @@ def draw_robot(
         fits = [o for o in options if abs(o) <= MAX_OFFSET_M]
         offset = fits[int(rng.integers(len(fits)))] if fits else min(options, key=abs)
         offset = float(np.clip(offset, -MAX_OFFSET_M, MAX_OFFSET_M))
+    if robot.side_m is not None:
+        # Its own generator: the draws above stay what they were without --robot-side.
+        srng = np.random.default_rng([seed, 32, k])
+        d = float(srng.uniform(*robot.side_m))
+        centre = -offset0 if reverse else offset0
+        # The side nearer the centre line, so that the wider the road the more room.
+        offset = centre - d if centre > 0 else centre + d
     return sensor, height, roll, pitch, offset
+
+
+def jitter_stations(
+    robot: RobotParams | None, seed: int, k: int, stations: np.ndarray, lateral: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Session k's stations (along its line, m) and lateral offsets (right of it, m),
+    each moved by up to `robot.jitter_m`, uniform and independent per scan."""
+    if robot is None or not robot.jitter_m:
+        return stations, lateral
+    rng = np.random.default_rng([seed, 31, k])
+    j = float(robot.jitter_m)
+    n = len(stations)
+    return stations + rng.uniform(-j, j, n), lateral + rng.uniform(-j, j, n)

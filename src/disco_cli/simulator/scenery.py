@@ -96,6 +96,10 @@ class Scenery(Layout):
             street_height = extra.uniform(hmin, hmax)
             parking = extra.uniform(0.75, 0.95) if s.half_width >= 4.0 else 0.0
         sidewalk_refl = rng.uniform(0.3, 0.45)
+        if style == "boulevard":  # both sides of the street draw one character
+            street_height, setback, frontage, tree_gap, light_gap, parking = _boulevard(
+                np.random.default_rng([self.seed, 29, k]), s.half_width
+            )
 
         b = self._builder()
         mid = s.a + s.dir * (t0 + t1) / 2 + s.left * side * (kerb + s.sidewalk / 2)
@@ -124,6 +128,11 @@ class Scenery(Layout):
                     turn, house = 0.0, width - 0.3
                     off = back + setback + depth / 2
                     centre = s.a + s.dir * (t + width / 2) + s.left * side * off
+                if style == "boulevard":  # a plain box in line with the street
+                    height = street_height + extra.uniform(-1.0, 1.0)
+                    self._plain_building(b, centre, width - 2.0, depth, yaw, height)
+                    t += width
+                    continue
                 if style == "suburban":  # a detached house, with garden on either side
                     house = width * extra.uniform(0.45, 0.65)
                     centre = centre + s.dir * extra.uniform(-0.5, 0.5) * (width - house - 2.0)
@@ -134,7 +143,7 @@ class Scenery(Layout):
                     self._containers(extra, b, centre, depth, yaw, s.left * side, width)
             # Yard and verge plants: bushes in front, trees where no house stands.
             yard = max(setback, 0.0) + (0.0 if self._last_built else 12.0)
-            if style != "downtown" and yard > 1.5:
+            if style not in ("downtown", "boulevard") and yard > 1.5:
                 plants = rng.integers(0, 4)
                 if style in ("suburban", "parkroad"):  # gardens
                     plants += extra.integers(1, 4)
@@ -194,7 +203,7 @@ class Scenery(Layout):
             b.box(head, 0.25, arm, yaw, pole_h - 0.25, pole_h, Material(0.55))
             t += light_gap
         # Bins, benches, bollards, small signs: changeable.
-        furniture = rng.poisson((t1 - t0) / 25)
+        furniture = rng.poisson((t1 - t0) / 25) if style != "boulevard" else 0
         if style == "parkroad":  # benches and bins along the park
             furniture += extra.poisson((t1 - t0) / 25)
         for _ in range(furniture):
@@ -248,6 +257,8 @@ class Scenery(Layout):
                 b.box(c, run, thick, s.yaw, 0.0, h, mat, see)
                 if kind != "wall":
                     b.tag(m, kind + "s")
+                elif self.params.style == "boulevard":  # its walls change as fences do
+                    b.tag(m, "fences")
             t += run + rng.uniform(2.5, 5)
 
     def _parking_lot(
@@ -300,6 +311,25 @@ class Scenery(Layout):
                 mat = Material(rng.uniform(0.15, 0.7))
                 b.box(c, 6.06, 2.44, turn, 2.6 * level, 2.6 * (level + 1), mat)
             b.tag(m, "buildings")
+
+    def _plain_building(
+        self,
+        b: Builder,
+        centre: np.ndarray,
+        width: float,
+        depth: float,
+        yaw: float,
+        height: float,
+    ) -> None:
+        """One box, no wing, roof box or canopy: nothing that tells one building from
+        the next (the boulevard's)."""
+        if not self._site_free(centre, width / 2, depth / 2, yaw):
+            return
+        self._occupied.mark(centre, width / 2, depth / 2, yaw)
+        self._last_built = True
+        m = b.mark()
+        b.box(centre, width, depth, yaw, 0.0, height, Material(0.35, 0.08))
+        b.tag(m, "buildings")
 
     def _building(
         self,
@@ -476,3 +506,15 @@ class Scenery(Layout):
                 half = s.half_width * (1.0 - step / (CROWN_STEPS + 1))
                 rise = CROWN * s.half_width * step / CROWN_STEPS
                 b.box(mid, length, 2 * half, s.yaw, 0.0, rise, Material(0.2))
+
+
+def _boulevard(rng: np.random.Generator, half_width: float) -> tuple:
+    """One boulevard street's character, for both its sides: (building height, setback,
+    frontage, tree spacing, light spacing, share of parking spots taken)."""
+    height = rng.uniform(8.0, 16.0)
+    setback = rng.uniform(4.5, 15.5)
+    frontage = str(rng.choice(["wall", "hedge"]))
+    tree_gap = rng.uniform(6.0, 10.0)
+    light_gap = rng.uniform(20.0, 35.0)
+    parking = rng.uniform(0.7, 0.95) if half_width >= 4.0 else 0.0
+    return height, setback, frontage, tree_gap, light_gap, parking

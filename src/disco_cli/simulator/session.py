@@ -23,7 +23,7 @@ import numpy as np
 
 from disco_cli.errors import DiscoError
 from disco_cli.simulator.params import ChangeParams
-from disco_cli.simulator.robots import RobotParams, draw_robot
+from disco_cli.simulator.robots import RobotParams, draw_robot, jitter_stations
 from disco_cli.simulator.routes import (
     RoadGraph,
     lane_path,
@@ -217,6 +217,7 @@ def plan_sessions(
             line, s = lane_path(town.nodes, route, offset, closed)
             phase = float(srng.uniform(0.2, 0.8)) * step_m + 10.0
             stations, lateral = open_stations(srng, frames, step_m, phase)
+            stations, lateral = jitter_stations(robot, seed, k, stations, lateral)
         poses = sensor_poses(town, line, s, closed, stations, lateral, height, srng)
         if roll or pitch:  # the mount's tilt, in the car's frame
             from scipy.spatial.transform import Rotation
@@ -395,6 +396,10 @@ def _command(
             cmd += f" --robot-offset {robot.offset_m:g}"
         if robot.sensor is not None:
             cmd += f" --robot-sensor {robot.sensor}"
+        if robot.jitter_m:
+            cmd += f" --robot-jitter {robot.jitter_m:g}"
+        if robot.side_m is not None:
+            cmd += f" --robot-side {robot.side_m[0]:g},{robot.side_m[1]:g}"
     return cmd + (" --motion-distortion" if motion_distortion else "")
 
 

@@ -3,9 +3,13 @@
 A grid town mixes five characters of street side; the other styles are each made
 of their own. `terrace` is the repetitive one: rows of houses of one height, 0.3 m
 apart, front gardens, a tree row and cars parked along both kerbs, street after
-street. A side style sets building heights (m), density (share of lots built),
-setback (m), frontage shares (none / wall / fence / hedge), the chance of a tree
-row, lot width and building depth (m).
+street. `boulevard` is the street that looks alike both ways: long and straight
+(with the suite's town), both sides of a street drawing one character (building
+height, setback, wall or hedge, tree spacing, parking), plain buildings 11-24 m from
+the driving line, hedges or walls at 6.5-8 m, trees and lights at 4.5-9 m, cars
+parked along both kerbs, and hardly anything else. A side style sets building
+heights (m), density (share of lots built), setback (m), frontage shares (none /
+wall / fence / hedge), the chance of a tree row, lot width and building depth (m).
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ SIDE_STYLES: dict[str, tuple[list[str], list[float]]] = {
     "park": (["parkroad"], [1.0]),
     "parking": (["lot", "mixed"], [0.7, 0.3]),
     "terrace": (["terrace"], [1.0]),
+    "boulevard": (["boulevard"], [1.0]),
 }
 HEIGHTS = {
     "downtown": (12, 40),
@@ -32,6 +37,7 @@ HEIGHTS = {
     "parkroad": (3, 5),
     "lot": (4, 9),
     "terrace": (7, 10),  # one height per street, each house within 0.4 m of it
+    "boulevard": (8, 16),  # one height per street, each building within 1 m of it
 }
 DENSITY = {
     "downtown": 1.0,
@@ -44,6 +50,7 @@ DENSITY = {
     "parkroad": 0.06,
     "lot": 0.5,
     "terrace": 1.0,
+    "boulevard": 0.95,
 }
 SETBACK = {
     "downtown": (0.3, 1.0),
@@ -56,6 +63,7 @@ SETBACK = {
     "parkroad": (10.0, 20.0),
     "lot": (2.0, 4.0),
     "terrace": (2.0, 3.5),
+    "boulevard": (4.5, 15.5),
 }
 _FRONTAGE = [0.3, 0.25, 0.2, 0.25]
 FRONTAGE = {
@@ -69,6 +77,7 @@ FRONTAGE = {
     "parkroad": [0.4, 0.0, 0.1, 0.5],
     "lot": [0.5, 0.0, 0.2, 0.3],
     "terrace": [0.1, 0.3, 0.15, 0.45],
+    "boulevard": [0.0, 0.5, 0.0, 0.5],
 }
 TREE_ROW = {
     "park": 0.95,
@@ -77,9 +86,10 @@ TREE_ROW = {
     "hall": 0.15,
     "parkroad": 1.0,
     "terrace": 0.8,
+    "boulevard": 1.0,
 }
-LOT_WIDTH = {"suburban": (14, 24), "hall": (30, 70), "terrace": (5.0, 7.0)}
-DEPTH = {"suburban": (8, 12), "hall": (20, 45), "terrace": (9, 11)}
+LOT_WIDTH = {"suburban": (14, 24), "hall": (30, 70), "terrace": (5.0, 7.0), "boulevard": (16, 30)}
+DEPTH = {"suburban": (8, 12), "hall": (20, 45), "terrace": (9, 11), "boulevard": (10, 16)}
 # Around and inside the blocks: one thing per so many m2, the shares of trees / bushes / mounds
 # (the rest are sheds or halls) and the size of those (width, depth, height ranges).
 OUTSKIRTS = {
@@ -89,4 +99,33 @@ OUTSKIRTS = {
     "park": (110, (0.75, 0.92, 0.98), ((3, 8), (3, 6), (2.5, 4))),
     "parking": (200, (0.5, 0.65, 0.8), ((8, 30), (8, 20), (3, 8))),
     "terrace": (200, (0.55, 0.8, 0.88), ((4, 10), (4, 8), (2.5, 5))),
+    "boulevard": (500, (0.6, 0.8, 0.9), ((6, 14), (6, 12), (3, 6))),
 }
+
+# The town the validation suite builds its boulevards in (benchmarks/ood_suite.py, also
+# in docs/simulator.md): long straight streets, 9.5-10.5 m kerb to kerb.
+BOULEVARD_TOWN = {
+    "style": "boulevard",
+    "blocks_x": 3,
+    "blocks_y": 2,
+    "block_min_m": 140.0,
+    "block_max_m": 200.0,
+    "node_jitter_m": 0.0,
+    "link_drop": 0.0,
+    "road_width_m": (9.5, 10.5),
+    "sidewalk_m": (1.8, 2.6),
+}
+
+
+# The change the suite's boulevards see at level f: about f x 2 of the parked cars,
+# hedges and walls gone (half of those changed leave) and f of the trees changed; at
+# f = 0.25, half and a quarter.
+def boulevard_change(f: float) -> dict:
+    return {
+        "fraction": f,
+        "cars": min(1.0, 4 * f),
+        "hedges": min(1.0, 4 * f),
+        "fences": min(1.0, 4 * f),
+        "trees": f,
+        "buildings": 0.0,
+    }
