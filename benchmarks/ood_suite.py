@@ -63,6 +63,16 @@ HELD_OUT_STYLES = ("suburban", "industrial", "park", "parking", "terrace")
 # towns of the beams x change grid), to see which model holds on the static town alone.
 STRESS_CHANGE = 1.0
 REAL_SEED = 7301
+# Issue 24's boulevards (`--style boulevard` in the town of styles.BOULEVARD_TOWN, alike
+# on both sides), fixed before any yaw or training work on them: map scans every 4 m,
+# queries moved up to +-1.5 m (32 beams) or +-3 m (16 beams, tilted) along and across
+# the street from session 00's line, and revisits 4-8 m to the side of it on a road
+# twice as wide. Change level f removes about 2 f of the parked cars, hedges and walls
+# and changes f of the trees (styles.boulevard_change). Selection worlds: 5101-5199.
+BOULEVARD_SEEDS = {"grid": 7107, "hard": 7207, "revisit": 7401}
+BOULEVARD_CHANGES = (0.12, 0.25)
+REVISIT_RADIUS = 8.5
+REVISIT_BINS = [(0.0, 4.0), (4.0, 5.0), (5.0, 6.0), (6.0, 7.0), (7.0, 8.0), (8.0, 8.5)]
 
 # `grid`: the generator's own town styles, with settings that no training world used.
 GRID_TOWN = """\
@@ -89,8 +99,66 @@ class World:
     seed: int
     change: float
     length: float
-    group: str  # "grid" (beams x change), "hard" or "stress" (everything changed)
+    group: str  # "grid" (beams x change), "hard", "stress" (everything changed), "boulevard"
     tilt_deg: float = 0.0  # queries tilted by up to this (when the simulator does not)
+    step_m: float = 1.0  # between map scans (and between query scans)
+    jitter_m: float = 0.0  # each query moved by up to this along and across (boulevards)
+    side_m: tuple[float, float] | None = None  # revisits this far to the side
+    radius: float = RADIUS  # a match is true within this
+    robot_tilt: float = 0.0  # the simulator tilts the queries' mount by up to this
+
+
+def boulevard_worlds(quick: bool) -> list[World]:
+    """Issue 24's boulevard worlds (BOULEVARD_SEEDS); `quick`: the 25 % ones only."""
+    q = "-q" if quick else ""
+    length = 600.0
+    changes = BOULEVARD_CHANGES[1:] if quick else BOULEVARD_CHANGES
+    out = []
+    for c in changes:
+        tag = f"c{round(100 * c):02d}"
+        out.append(
+            World(
+                f"blv-32b-{tag}{q}",
+                "boulevard",
+                32,
+                BOULEVARD_SEEDS["grid"],
+                c,
+                length,
+                "boulevard",
+                step_m=4.0,
+                jitter_m=1.5,
+            )
+        )
+    c = BOULEVARD_CHANGES[1]
+    out.append(
+        World(
+            f"hard-blv-16b-c25{q}",
+            "boulevard",
+            16,
+            BOULEVARD_SEEDS["hard"],
+            c,
+            length,
+            "boulevard",
+            step_m=4.0,
+            jitter_m=3.0,
+            robot_tilt=3.0,
+        )
+    )
+    out.append(
+        World(
+            f"revisit-blv-32b-c25{q}",
+            "boulevard",
+            32,
+            BOULEVARD_SEEDS["revisit"],
+            c,
+            length,
+            "boulevard",
+            step_m=4.0,
+            side_m=(4.0, 8.0),
+            radius=REVISIT_RADIUS,
+        )
+    )
+    return out
 
 
 # -- what the simulator can do ---------------------------------------------------------
@@ -142,6 +210,10 @@ def plan_worlds(quick: bool, caps: dict[str, object]) -> tuple[list[World], list
             name = f"hard-{style}-16b-c{round(100 * c):02d}" + ("-q" if quick else "")
             tilt = 0.0 if caps["tilt"] else 3.0
             worlds.append(World(name, style, 16, HARD_SEEDS[style], c, length, "hard", tilt))
+    if "boulevard" in caps["styles"] and caps["change"]:
+        worlds += boulevard_worlds(quick)
+    elif caps["change"]:
+        notes.append("`disco simulate` has no --style boulevard: no boulevard worlds")
     if not quick and caps["change"]:
         for style in grid_styles:
             name = f"stress-{style}-32b-c{round(100 * STRESS_CHANGE)}"
@@ -157,6 +229,8 @@ def simulate(disco: str, out: Path, w: World, caps: dict[str, object]) -> Path:
         return folder
     cmd = [disco, "simulate", str(folder), "--sessions", "2", "--length-m", str(w.length)]
     cmd += ["--sensor", SENSORS[w.beams], "--seed", str(w.seed), "--threads", "2"]
+    if w.group == "boulevard":
+        return _simulate_boulevard(cmd, folder, out, w)
     if caps["change"]:
         cmd += ["--change", f"{w.change:g}"]
     if w.style == "grid":
@@ -172,6 +246,40 @@ def simulate(disco: str, out: Path, w: World, caps: dict[str, object]) -> Path:
         cmd += ["--robot-offset", "3" if w.group == "hard" else "1.5"]
     if w.group == "hard" and caps["tilt"]:
         cmd += ["--robot-tilt", "3"]
+    print("+", " ".join(cmd), file=sys.stderr, flush=True)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return folder
+
+
+def _simulate_boulevard(cmd: list[str], folder: Path, out: Path, w: World) -> Path:
+    """A boulevard world: its town and change in a TOML, its query offsets as options."""
+    from disco_cli.simulator.styles import BOULEVARD_TOWN, boulevard_change
+
+    town = dict(BOULEVARD_TOWN)
+    if w.side_m is not None:  # room for two cars 8 m apart and a kerb
+        town["road_width_m"] = (19.0, 22.0)
+
+    def value(v: object) -> str:
+        if isinstance(v, str):
+            return f'"{v}"'
+        if isinstance(v, tuple):
+            return "[" + ", ".join(f"{x:g}" for x in v) + "]"
+        return f"{v:g}"
+
+    lines = ["[town]"] + [f"{k} = {value(v)}" for k, v in town.items()]
+    lines += ["", "[change]"] + [f"{k} = {v:g}" for k, v in boulevard_change(w.change).items()]
+    toml = out / "towns" / f"{w.name}.toml"
+    toml.parent.mkdir(parents=True, exist_ok=True)
+    toml.write_text("\n".join(lines) + "\n")
+    cmd += ["--town", str(toml), "--step-m", f"{w.step_m:g}"]
+    if w.side_m is not None:
+        cmd += ["--robot-side", f"{w.side_m[0]:g},{w.side_m[1]:g}"]
+    else:
+        cmd += ["--robot-offset", "0"]
+    if w.jitter_m:
+        cmd += ["--robot-jitter", f"{w.jitter_m:g}"]
+    if w.robot_tilt:
+        cmd += ["--robot-tilt", f"{w.robot_tilt:g}"]
     print("+", " ".join(cmd), file=sys.stderr, flush=True)
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     return folder
@@ -320,6 +428,7 @@ def evaluate(
     threads: int,
     side_views: float = 0.0,
     refine_yaw: int = 1,
+    radius: float = RADIUS,
 ) -> list[dict]:
     """One row per query: nearest map scan, hits at 1, 5 and 1 %, yaw error. With
     `side_views`, the map stores side views (`disco build-db --side-views`); the best
@@ -370,7 +479,7 @@ def evaluate(
     for i, matches in enumerate(found):
         d_all = np.hypot(mx - qx[i], my - qy[i])
         near = float(d_all.min())
-        hits = [bool(d_all[m.row] <= RADIUS) for m in matches]
+        hits = [bool(d_all[m.row] <= radius) for m in matches]
         yaw_err = None
         if hits and hits[0]:
             true = wrap_deg(math.degrees(qyaw[i] - myaw[matches[0].row]))
@@ -379,7 +488,7 @@ def evaluate(
             {
                 "query": i,
                 "near_m": round(near, 3),
-                "has": near <= RADIUS,
+                "has": near <= radius,
                 "r1": bool(any(hits[:1])),
                 "r5": bool(any(hits[:5])),
                 "r1p": bool(any(hits[:n1p])),
@@ -510,6 +619,8 @@ def summarize(rows: list[dict]) -> dict[str, float]:
         "r1p": sum(r["r1p"] for r in has) / n if n else nan,
         "yaw_mean": float(errs.mean()) if len(errs) else nan,
         "yaw_median": float(np.median(errs)) if len(errs) else nan,
+        "yaw_over10": int((errs > 10.0).sum()),
+        "hits": len(errs),
     }
 
 
@@ -562,6 +673,47 @@ def distance_table(title: str, worlds, rows, models, changes) -> list[str]:
                 cells.append(f"{f3(s['r1'])} ({s['n']})" if s["n"] else "-")
             if any(c != "-" for c in cells):
                 lines.append(f"| {lo:g}-{hi:g} m | {m} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def boulevard_table(worlds, rows, models) -> list[str]:
+    """Issue 24's boulevard worlds, per world and model: Recall@1 and @5, the yaw error
+    over the correct top-1 matches (mean / median / 90th percentile) and how many of
+    them are off by more than 10 degrees."""
+    lines = [
+        "| world | model | queries | Recall@1 | Recall@5 | yaw err mean / median / p90 (deg) "
+        "| yaw err > 10 deg |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for w in worlds:
+        for m in models:
+            rs = rows[(w.name, m)]
+            s = summarize(rs)
+            errs = [r["yaw_err"] for r in rs if r["has"] and r["r1"] and r["yaw_err"] is not None]
+            p90 = float(np.percentile(errs, 90)) if errs else float("nan")
+            lines.append(
+                f"| {w.name} | {m} | {s['n']} | {f3(s['r1'])} | {f3(s['r5'])} "
+                f"| {f2(s['yaw_mean'])} / {f2(s['yaw_median'])} / {f2(p90)} "
+                f"| {s['yaw_over10']} of {s['hits']} |"
+            )
+    return lines
+
+
+def revisit_table(worlds, rows, models) -> list[str]:
+    """Recall@1 (queries) of the revisit worlds by distance to the nearest map scan."""
+    lines = [
+        "| nearest map scan | " + " | ".join(models) + " |",
+        "| --- |" + " ---: |" * len(models),
+    ]
+    for lo, hi in REVISIT_BINS:
+        cells = []
+        for m in models:
+            sel = [
+                r for w in worlds for r in rows[(w.name, m)] if r["has"] and lo <= r["near_m"] < hi
+            ]
+            s = summarize(sel)
+            cells.append(f"{f3(s['r1'])} ({s['n']})" if s["n"] else "-")
+        lines.append(f"| {lo:g}-{hi:g} m | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -707,8 +859,15 @@ def main(argv: list[str] | None = None) -> int:
                 w.name,
                 model,
                 k,
-                lambda model=model, sv=side[k]: evaluate(
-                    model, map_paths, map_poses, queries, args.threads, sv, args.refine_yaw
+                lambda model=model, sv=side[k], w=w: evaluate(
+                    model,
+                    map_paths,
+                    map_poses,
+                    queries,
+                    args.threads,
+                    sv,
+                    args.refine_yaw,
+                    w.radius,
                 ),
                 args.refine_yaw,
             )
@@ -776,6 +935,24 @@ def main(argv: list[str] | None = None) -> int:
         ]
         lines += distance_table(title, gw, rows, keys, sorted({w.change for w in gw}))
         lines.append("")
+    bw = [w for w in worlds if w.group == "boulevard"]
+    if bw:
+        lines += [
+            "**boulevards (issue 24): alike on both sides, queries moved along and across, "
+            "revisits 4-8 m to the side**",
+            "",
+        ]
+        lines += boulevard_table(bw, rows, keys)
+        lines.append("")
+        rv = [w for w in bw if w.side_m is not None]
+        if rv:
+            lines += [
+                f"**revisits 4-8 m to the side: Recall@1 (queries) by distance to the nearest "
+                f"map scan** (true within {REVISIT_RADIUS:g} m)",
+                "",
+            ]
+            lines += revisit_table(rv, rows, keys)
+            lines.append("")
     if real_rows:
         lines += ["**real KITTI 00 scans** (6 map scans; 6 queries per kind)", ""]
         lines += metric_table(

@@ -127,13 +127,25 @@ def test_query_scans_jitter_along_and_across_as_asked():
 def test_revisits_to_the_side_as_asked():
     params = TownParams(**{**BLV, "road_width_m": (19.0, 22.0)})
     town = Town(4, params)
-    plans = plan_sessions(town, get_sensor("hdl32"), 4, 20, 4.0, 4, RobotParams(side_m=(4.0, 8.0)))
-    off0 = plans[0].offset_m
-    lines = [-p.offset_m if k % 2 else p.offset_m for k, p in enumerate(plans[1:], 1)]
-    gaps = np.abs(np.array(lines) - off0)
-    assert np.all((gaps >= 4.0) & (gaps <= 8.0)), gaps
-    # Inside the road (half width at least 9.5 m).
-    assert all(abs(p.offset_m) < 9.0 for p in plans)
+    sensor = get_sensor("hdl32")
+    on_line = plan_sessions(town, sensor, 4, 150, 4.0, 4, RobotParams(offset_m=0.0))
+    aside = plan_sessions(town, sensor, 4, 150, 4.0, 4, RobotParams(side_m=(4.0, 8.0)))
+    np.testing.assert_array_equal(on_line[0].poses, aside[0].poses)
+    for k in (1, 2, 3):
+        a, b = on_line[k].poses, aside[k].poses
+        # Session k's scans against the same scans driven on session 00's line (along
+        # the street they part after a corner: an offset line is longer or shorter).
+        d = np.einsum("nji,nj->ni", a[:, :3, :3], b[:, :3, 3] - a[:, :3, 3])[:, :2]
+        turn = np.degrees(np.arctan2(b[:, 1, 0], b[:, 0, 0]) - np.arctan2(a[:, 1, 0], a[:, 0, 0]))
+        d = d[np.abs((turn + 180) % 360 - 180) < 0.5]  # straight stretches
+        assert len(d) > 60
+        across = np.abs(d[:, 1])
+        assert np.all((across >= 4.0 - 0.02) & (across <= 8.0 + 0.02)), (k, across.min())
+        assert np.all(np.sign(d[:, 1]) == np.sign(d[0, 1]))  # one side per session
+        # Uniform in 4..8 m: standard deviation 4 / sqrt(12), within 20 %.
+        assert abs(across.std() - 4 / np.sqrt(12)) < 0.2 * 4 / np.sqrt(12)
+        # Inside the road (half width at least 9.5 m).
+        assert np.all(np.abs(aside[k].offset_m) + 4.0 < 9.5)
     with pytest.raises(Exception, match="robot-offset or --robot-side"):
         RobotParams(offset_m=1.0, side_m=(4.0, 8.0)).check()
 

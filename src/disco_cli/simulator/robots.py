@@ -24,8 +24,9 @@ class RobotParams:
     sensor: str | None = None  # a sensor name, uniform-N, hdl64like-N, or "random"
     # Each scan moved by up to this along and across its driving line (uniform, per scan).
     jitter_m: float = 0.0
-    # Drive LO..HI m to either side of session 00's line (replaces offset_m; the road
-    # must be wide enough: nothing keeps the line on it).
+    # Each scan LO..HI m to the side of session 00's line (uniform, per scan; one side
+    # per session; replaces offset_m; the road must be wide enough: nothing keeps the
+    # line on it).
     side_m: tuple[float, float] | None = None
 
     def check(self) -> None:
@@ -93,23 +94,40 @@ def draw_robot(
         offset = fits[int(rng.integers(len(fits)))] if fits else min(options, key=abs)
         offset = float(np.clip(offset, -MAX_OFFSET_M, MAX_OFFSET_M))
     if robot.side_m is not None:
-        # Its own generator: the draws above stay what they were without --robot-side.
-        srng = np.random.default_rng([seed, 32, k])
-        d = float(srng.uniform(*robot.side_m))
+        # LO to the side of session 00's line, towards the centre line (the wider the
+        # road, the more room); each scan then moves up to HI - LO further
+        # (`jitter_stations`).
         centre = -offset0 if reverse else offset0
-        # The side nearer the centre line, so that the wider the road the more room.
-        offset = centre - d if centre > 0 else centre + d
+        offset = centre + _side_sign(centre) * robot.side_m[0]
     return sensor, height, roll, pitch, offset
 
 
+def _side_sign(centre: float) -> float:
+    """Which way (+1: right) a robot with --robot-side moves from session 00's line."""
+    return -1.0 if centre > 0 else 1.0
+
+
 def jitter_stations(
-    robot: RobotParams | None, seed: int, k: int, stations: np.ndarray, lateral: np.ndarray
+    robot: RobotParams | None,
+    seed: int,
+    k: int,
+    stations: np.ndarray,
+    lateral: np.ndarray,
+    centre: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Session k's stations (along its line, m) and lateral offsets (right of it, m),
-    each moved by up to `robot.jitter_m`, uniform and independent per scan."""
-    if robot is None or not robot.jitter_m:
+    each moved by up to `robot.jitter_m` (uniform, per scan) and, with `side_m`, by
+    0..HI - LO further from session 00's line (`centre`: that line, m right of the
+    centre line in this session's direction)."""
+    if robot is None:
         return stations, lateral
-    rng = np.random.default_rng([seed, 31, k])
-    j = float(robot.jitter_m)
     n = len(stations)
-    return stations + rng.uniform(-j, j, n), lateral + rng.uniform(-j, j, n)
+    if robot.side_m is not None:
+        lo, hi = robot.side_m
+        extra = np.random.default_rng([seed, 32, k]).uniform(0.0, hi - lo, n)
+        lateral = lateral + _side_sign(centre) * extra
+    if robot.jitter_m:
+        rng = np.random.default_rng([seed, 31, k])
+        j = float(robot.jitter_m)
+        stations, lateral = stations + rng.uniform(-j, j, n), lateral + rng.uniform(-j, j, n)
+    return stations, lateral

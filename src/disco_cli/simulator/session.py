@@ -217,7 +217,8 @@ def plan_sessions(
             line, s = lane_path(town.nodes, route, offset, closed)
             phase = float(srng.uniform(0.2, 0.8)) * step_m + 10.0
             stations, lateral = open_stations(srng, frames, step_m, phase)
-            stations, lateral = jitter_stations(robot, seed, k, stations, lateral)
+            centre = -offset0 if k % 2 else offset0  # session 00's line, seen from here
+            stations, lateral = jitter_stations(robot, seed, k, stations, lateral, centre)
         poses = sensor_poses(town, line, s, closed, stations, lateral, height, srng)
         if roll or pitch:  # the mount's tilt, in the car's frame
             from scipy.spatial.transform import Rotation
