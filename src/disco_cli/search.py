@@ -35,6 +35,7 @@ __all__ = [
     "check_snap_radius",
     "snap_settings",
     "snap_to_nearest",
+    "snap_to_nearest_conf",
 ]
 
 _EPS32 = float(np.finfo(np.float32).eps)
@@ -291,6 +292,9 @@ class Match:
     distance: float
     yaw_deg: float
     pose: np.ndarray  # x, y, z, yaw (rad) of the match, NaN where unknown
+    # In [0, 1]: 1 - (the best other heading's correlation peak) / (the yaw's own); low
+    # where the place looks alike both ways (model/yaw_refine.py). NaN: the model has none.
+    yaw_conf: float = float("nan")
 
 
 # How many of a query's best matches get the parallax-free yaw (model/yaw_refine.py):
@@ -408,10 +412,23 @@ def query_on_map(
 ) -> tuple[float, np.ndarray]:
     """(parallax-free yaw to the match, x, y [2] of the query sensor on the map), from one
     match whose `pose` is its x, y, z, yaw (rad) on the map (`model.query_position`)."""
-    yaw, t = model.query_position(query_features, match_features)
+    yaw, xy, _ = query_on_map_conf(model, query_features, match_features, pose)
+    return yaw, xy
+
+
+def query_on_map_conf(
+    model: Any, query_features: np.ndarray, match_features: np.ndarray, pose: np.ndarray
+) -> tuple[float, np.ndarray, float]:
+    """`query_on_map` and the yaw's confidence (NaN where the model gives none)."""
+    if hasattr(model, "query_position_conf"):
+        yaw, t, conf = model.query_position_conf(query_features, match_features)
+    else:
+        (yaw, t), conf = model.query_position(query_features, match_features), float("nan")
     c, s = np.cos(pose[3]), np.sin(pose[3])
-    return yaw, np.asarray(pose[:2], np.float64) + np.array(
-        [c * t[0] - s * t[1], s * t[0] + c * t[1]]
+    return (
+        yaw,
+        np.asarray(pose[:2], np.float64) + np.array([c * t[0] - s * t[1], s * t[0] + c * t[1]]),
+        float(conf),
     )
 
 
@@ -434,11 +451,29 @@ def snap_to_nearest(
     neighbours of one street re-rank within a few hundredths of each other, so the
     first of the order is often the scan a metre or two past the query's; the pose
     says which is nearer. Without a pose on the best match, `order` stays."""
+    order, yaw, _ = snap_to_nearest_conf(
+        model, query_features, stored, order, distances, radius, margin
+    )
+    return order, yaw
+
+
+def snap_to_nearest_conf(
+    model: Any,
+    query_features: np.ndarray,
+    stored: Any,
+    order: np.ndarray,
+    distances: np.ndarray,
+    radius: float,
+    margin: float,
+) -> tuple[np.ndarray, float | None, float]:
+    """`snap_to_nearest` and the confidence of the yaw it returns (NaN with none)."""
     best = int(order[0])
     pose = np.asarray(stored.poses, dtype=np.float64)
     if not np.isfinite(pose[best, [0, 1, 3]]).all():
-        return order, None
-    yaw, estimate = query_on_map(model, query_features, stored.features[best], pose[best])
+        return order, None, float("nan")
+    yaw, estimate, conf = query_on_map_conf(
+        model, query_features, stored.features[best], pose[best]
+    )
     xy = pose[order, :2]
     with np.errstate(invalid="ignore"):  # NaN poses compare False: never candidates
         near = np.hypot(*(xy - pose[best, :2]).T) <= radius
@@ -446,8 +481,37 @@ def snap_to_nearest(
     cands = order[near & alike]  # holds best itself
     nearest = int(cands[np.argmin(np.hypot(*(pose[cands, :2] - estimate).T))])
     if nearest == best:
-        return order, yaw
-    return np.r_[nearest, order[order != nearest]], None
+        return order, yaw, conf
+    return np.r_[nearest, order[order != nearest]], None, float("nan")
+
+
+def _refined_yaw(
+    model: Any, query_features: np.ndarray, match_features: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The model's parallax-free yaw [K] and its confidence [K] (NaN: it gives none)."""
+    if hasattr(model, "refine_yaw_conf"):
+        yaw, conf = model.refine_yaw_conf(query_features, match_features)
+        return np.asarray(yaw, np.float64), np.asarray(conf, np.float64)
+    yaw = np.asarray(model.refine_yaw(query_features, match_features), np.float64)
+    return yaw, np.full(len(yaw), np.nan)
+
+
+def _coarse_conf(
+    model: Any,
+    query_features: np.ndarray,
+    match_features: np.ndarray,
+    yaw: np.ndarray,
+    conf: np.ndarray,
+) -> None:
+    """Fills the confidence of the rows whose yaw was not refined (NaN in `conf`) from the
+    model's phase correlation, where the model gives one and it gave the yaw."""
+    todo = np.flatnonzero(np.isnan(conf))
+    if len(todo) == 0 or not hasattr(model, "yaw_conf"):
+        return
+    coarse, c = model.yaw_conf(query_features, match_features[todo])
+    # Only where the row's yaw is that phase correlation's (not another re-ranker's).
+    same = np.abs((np.asarray(coarse, np.float64) - yaw[todo] + 180.0) % 360.0 - 180.0) < 1e-3
+    conf[todo[same]] = np.asarray(c, np.float64)[same]
 
 
 def match_queries(
@@ -497,14 +561,14 @@ def match_queries(
         if len(r_all) == 0:
             out.append([])
             continue
-        first_yaw = None
+        first_yaw, first_conf = None, float("nan")
         if rerank_n > 0:
             r, stored, d_new, yaw = _reranked(
                 model, features[i], db, ids, r_all, first, wider_above
             )
             order = np.lexsort((r, d_new))
             if snap_r > 0:
-                order, first_yaw = snap_to_nearest(
+                order, first_yaw, first_conf = snap_to_nearest_conf(
                     model, features[i], stored, order, d_new, snap_r, snap_margin
                 )
             order = order[:k]
@@ -522,12 +586,15 @@ def match_queries(
                 yaw = yaw[ok]
         if len(r) and yaw is None:
             yaw = np.asarray(model.yaw(features[i], stored.features[sel]), dtype=np.float64)
+        conf = np.full(len(r), np.nan)
         if len(r) and refine_n > 0:
             todo = np.arange(min(refine_n, len(r)))
             if first_yaw is not None and sel[0] == order[0]:  # the snap refined it
-                yaw[0], todo = first_yaw, todo[1:]
+                yaw[0], conf[0], todo = first_yaw, first_conf, todo[1:]
             if len(todo):
-                yaw[todo] = model.refine_yaw(features[i], stored.features[sel[todo]])
+                yaw[todo], conf[todo] = _refined_yaw(model, features[i], stored.features[sel[todo]])
+        if len(r):
+            _coarse_conf(model, features[i], stored.features[sel], yaw, conf)
         out.append(
             [
                 Match(
@@ -538,6 +605,7 @@ def match_queries(
                     distance=float(d[j]),
                     yaw_deg=float(yaw[j]),
                     pose=stored.poses[sel[j]],
+                    yaw_conf=float(conf[j]),
                 )
                 for j in range(len(r))
             ]

@@ -19,8 +19,13 @@ from disco_cli.errors import ModelError
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet_numpy import FrozenUNet
 from disco_cli.model.verify import aligned_correlation
-from disco_cli.model.yaw import estimate_yaw
-from disco_cli.model.yaw_refine import query_in_match_frame, refine_yaw
+from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
+from disco_cli.model.yaw_refine import (
+    query_in_match_frame,
+    query_in_match_frame_conf,
+    refine_yaw,
+    refine_yaw_conf,
+)
 
 # Scans per forward pass at inference: large enough to amortize, small enough for memory.
 _BATCH = 64
@@ -216,6 +221,32 @@ class DiscoModel:
         """(yaw_deg, position [2] of the query sensor in the match's frame, m) of one
         match, parallax-free (`refine_yaw`'s yaw for that match)."""
         return query_in_match_frame(
+            self.refine_image(query_features),
+            self.refine_image(match_features),
+            self.bev_config.max_range,
+        )
+
+    def yaw_conf(
+        self, query_features: np.ndarray, match_features: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(`yaw`, its confidence [K] in [0, 1]: yaw.estimate_yaw_conf)."""
+        return estimate_yaw_conf(self._g(query_features), self._g(match_features))
+
+    def refine_yaw_conf(
+        self, query_features: np.ndarray, match_features: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(`refine_yaw`, its confidence [K] in [0, 1]: yaw_refine.refine_checked)."""
+        return refine_yaw_conf(
+            self.refine_image(query_features),
+            self.refine_image(match_features),
+            self.bev_config.max_range,
+        )
+
+    def query_position_conf(
+        self, query_features: np.ndarray, match_features: np.ndarray
+    ) -> tuple[float, np.ndarray, float]:
+        """`query_position` and the yaw's confidence."""
+        return query_in_match_frame_conf(
             self.refine_image(query_features),
             self.refine_image(match_features),
             self.bev_config.max_range,

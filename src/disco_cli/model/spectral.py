@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from disco_cli.model.signature import DEFAULT_CROP, signatures
-from disco_cli.model.yaw import estimate_yaw
-from disco_cli.model.yaw_refine import refine_yaw
+from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
+from disco_cli.model.yaw_refine import refine_yaw, refine_yaw_conf
 
 
 class SpectralModel:
@@ -58,3 +58,15 @@ class SpectralModel:
     def refine_yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
         """`yaw` with the parallax of the two sensors' offset removed (yaw_refine.py)."""
         return refine_yaw(query_features, match_features, self.bev_config.max_range)
+
+    def yaw_conf(
+        self, query_features: np.ndarray, match_features: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(`yaw`, its confidence [K] in [0, 1]: yaw.estimate_yaw_conf)."""
+        return estimate_yaw_conf(query_features, match_features)
+
+    def refine_yaw_conf(
+        self, query_features: np.ndarray, match_features: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(`refine_yaw`, its confidence [K] in [0, 1])."""
+        return refine_yaw_conf(query_features, match_features, self.bev_config.max_range)

@@ -99,6 +99,50 @@ def estimate_yaw(query: np.ndarray, matches: np.ndarray) -> np.ndarray:
     return np.where(yaw <= -180.0, np.float32(180.0), yaw)
 
 
+# -- yaw confidence --------------------------------------------------------------------
+
+# Peaks of a correlation curve closer than this to its best are the same peak.
+SEPARATION_DEG = 20.0
+
+
+def separation_bins(sectors: int) -> int:
+    return max(1, int(round(SEPARATION_DEG * sectors / 360.0)))
+
+
+def second_peak(curves: np.ndarray, best: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index [K], value [K]) of each curve's highest value more than SEPARATION_DEG from
+    its sector `best` [K]: the strongest other heading (often the opposite one)."""
+    k, s = curves.shape
+    sep = separation_bins(s)
+    d = np.abs((np.arange(s)[None] - np.asarray(best)[:, None] + s // 2) % s - s // 2)
+    masked = np.where(d > sep, curves, -np.inf)
+    idx = np.argmax(masked, axis=1)
+    return idx, masked[np.arange(k), idx]
+
+
+def margin(best: np.ndarray | float, other: np.ndarray | float) -> np.ndarray:
+    """Yaw confidence in [0, 1]: 1 - other / best of two correlation peaks (0 where the
+    other is as high as the best or the best is not positive)."""
+    b = np.asarray(best, np.float64)
+    o = np.maximum(np.asarray(other, np.float64), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        conf = np.where(b > 0, 1.0 - o / np.where(b > 0, b, 1.0), 0.0)
+    return np.clip(conf, 0.0, 1.0)
+
+
+def estimate_yaw_conf(query: np.ndarray, matches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(`estimate_yaw`'s yaw [K], its confidence [K]: the margin between the curve's best
+    peak and its best other heading)."""
+    curves = correlation_curves(query, matches)
+    if len(curves) == 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.float32)
+    yaw = shift_to_yaw(peak_shift(curves), curves.shape[1]).astype(np.float32)
+    best = np.argmax(curves, axis=1)
+    _, other = second_peak(curves, best)
+    conf = margin(curves[np.arange(len(curves)), best], other).astype(np.float32)
+    return np.where(yaw <= -180.0, np.float32(180.0), yaw), conf
+
+
 # -- differentiable version (training) ----------------------------------------
 
 

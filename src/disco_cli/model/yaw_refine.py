@@ -21,11 +21,22 @@ from functools import lru_cache
 import numpy as np
 
 from disco_cli.model import fft
-from disco_cli.model.yaw import curves_of_cross_power, peak_shift, ring_weights, shift_to_yaw
+from disco_cli.model.yaw import (
+    curves_of_cross_power,
+    margin,
+    peak_shift,
+    ring_weights,
+    second_peak,
+    shift_to_yaw,
+)
 
 # Bumped whenever the refined yaw can change for the same weights (cached evaluations
-# key on it: benchmarks/ood_suite.py).
-VERSION = 2
+# key on it: benchmarks/ood_suite.py). 3: the second heading checked (`refine_checked`).
+VERSION = 3
+# Below this yaw confidence the best other heading is searched for too, and the two are
+# told apart by the plain correlation of the images (`refine_checked`). A street alike on
+# both sides gives 0.1-0.55, an asymmetric one 0.8-0.95 (tests/test_yaw_flip.py).
+CHECK_BELOW = 0.6
 
 # Search schedule (m): the first grid's spacing and half width, then the finer steps.
 COARSE_STEP = 3.0
@@ -130,21 +141,104 @@ def refine_one(
             f"query and match must be [R, S] images of one shape: {q.shape}, {m.shape}"
         )
     fm = fft.rfft(m, axis=-1)
-    table = _pairs(q)
+    best_pos, best_val, best_curve = _search(q, fm, _pairs(q), float(max_range))
+    yaw = float(shift_to_yaw(peak_shift(best_curve[None]), q.shape[1])[0])
+    return yaw, np.asarray(best_pos, np.float64), best_val
+
+
+def _search(
+    q: np.ndarray,
+    fm: np.ndarray,
+    table: np.ndarray,
+    max_range: float,
+    window: np.ndarray | None = None,
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """The re-centring search: (position, peak value, curve) of the view whose curve
+    peaks highest; with `window` (sector shifts), the peak is sought among those only."""
     rings, sectors = q.shape
-    positions, sampling = _coarse_sampling(rings, sectors, float(max_range))
+    positions, sampling = _coarse_sampling(rings, sectors, max_range)
     best_pos, best_val, best_curve = positions[0], -np.inf, None
     for step in (None, *FINE_STEPS):
         if step is not None:
             positions = best_pos + _NEIGHBOURS * np.float32(step)
-            sampling = _sampling(rings, sectors, float(max_range), positions)
+            sampling = _sampling(rings, sectors, max_range, positions)
         curves = _curves(_sample(q, sampling, table), fm)
-        peaks = curves.max(axis=1)
+        peaks = (curves if window is None else curves[:, window]).max(axis=1)
         i = int(np.argmax(peaks))
         if peaks[i] > best_val:
             best_pos, best_val, best_curve = positions[i], float(peaks[i]), curves[i]
-    yaw = float(shift_to_yaw(peak_shift(best_curve[None]), q.shape[1])[0])
-    return yaw, np.asarray(best_pos, np.float64), best_val
+    return best_pos, best_val, best_curve
+
+
+def refine_checked(
+    query: np.ndarray, match: np.ndarray, max_range: float
+) -> tuple[float, np.ndarray, float]:
+    """(yaw_deg, position [2] of the match's sensor in the query frame (m), yaw confidence
+    in [0, 1]): `refine_one`, with the opposite heading (or any other strong one) ruled
+    out by evidence that does not share phase correlation's failure.
+
+    On a street alike on both sides, the whitened phase correlation (every frequency
+    weighted alike) can peak as high on theta + 180 degrees as on theta, and the greedy
+    position search may settle near the wrong one. When the best other heading comes
+    within CHECK_BELOW of the best (the confidence, 1 - other / best), the search is run
+    again for that heading alone, and the heading whose re-centred query correlates
+    better with the match, in the plain normalized correlation of the images (the large
+    structures weigh most, as in the training-free floor's occupancy correlation), wins.
+    The confidence is then the margin between the two headings' own best peaks (0 where
+    the correlation overruled the phase correlation)."""
+    q = np.asarray(query, dtype=np.float32)
+    m = np.asarray(match, dtype=np.float32)
+    if q.ndim != 2 or q.shape != m.shape:
+        raise ValueError(
+            f"query and match must be [R, S] images of one shape: {q.shape}, {m.shape}"
+        )
+    sectors = q.shape[1]
+    fm = fft.rfft(m, axis=-1)
+    table = _pairs(q)
+    pos, val, curve = _search(q, fm, table, float(max_range))
+    best = int(np.argmax(curve))
+    idx, peak = second_peak(curve[None], np.array([best]))
+    other, other_val = int(idx[0]), float(peak[0])
+    conf = float(margin(val, other_val))
+    if conf < CHECK_BELOW:
+        window = (other + np.arange(-2, 3)) % sectors
+        pos2, val2, curve2 = _search(q, fm, table, float(max_range), window)
+        # The other heading's own peak, within the window it was sought in.
+        inside = np.full(sectors, curve2[window].min(), curve2.dtype)
+        inside[window] = curve2[window]
+        best2 = int(np.argmax(inside))
+        if _aligned_ncc(q, m, pos2, best2, max_range) > _aligned_ncc(q, m, pos, best, max_range):
+            pos, curve = pos2, inside
+            conf = float(margin(val2, val))
+        else:
+            conf = float(margin(val, max(val2, other_val)))
+    yaw = float(shift_to_yaw(peak_shift(curve[None]), sectors)[0])
+    return yaw, np.asarray(pos, np.float64), conf
+
+
+def _aligned_ncc(
+    q: np.ndarray, m: np.ndarray, position: np.ndarray, shift: int, max_range: float
+) -> float:
+    """Normalized correlation of the query re-centred at `position` and turned by `shift`
+    sectors onto the match, with the match."""
+    view = np.roll(recentre(q, np.asarray(position)[None], max_range)[0], -shift, axis=1)
+    a = view - view.mean()
+    b = m - m.mean()
+    norm = float(np.linalg.norm(a) * np.linalg.norm(b))
+    return float((a * b).sum()) / norm if norm > 0 else 0.0
+
+
+def refine_yaw_conf(
+    query: np.ndarray, matches: np.ndarray, max_range: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(yaw [K] in degrees, (-180, 180], yaw confidence [K] in [0, 1]) of the query
+    [R, S] relative to each match [K, R, S] (`refine_checked`)."""
+    m = np.asarray(matches)
+    if m.ndim == 2:
+        m = m[None]
+    out = [refine_checked(query, mk, max_range) for mk in m]
+    yaw = np.array([o[0] for o in out], np.float32)
+    return _wrapped(yaw), np.array([o[2] for o in out], np.float32)
 
 
 def _wrapped(yaw: np.ndarray) -> np.ndarray:
@@ -157,20 +251,26 @@ def query_in_match_frame(
 ) -> tuple[float, np.ndarray]:
     """(yaw_deg, position [2] of the query sensor in the match's frame (m)): where the
     query was taken, seen from the match, to the accuracy of the search (median 0.26 m
-    on the suite's hits, docs/research/model-history.md); reaches 5 m (3 + 1.5 + 0.5) at most."""
-    yaw, match_in_query, _ = refine_one(query, match, max_range)
+    on the suite's hits, docs/research/model-history.md); reaches 5 m (3 + 1.5 + 0.5)
+    at most."""
+    yaw, position, _ = query_in_match_frame_conf(query, match, max_range)
+    return yaw, position
+
+
+def query_in_match_frame_conf(
+    query: np.ndarray, match: np.ndarray, max_range: float
+) -> tuple[float, np.ndarray, float]:
+    """`query_in_match_frame` and the yaw's confidence (`refine_checked`)."""
+    yaw, match_in_query, conf = refine_checked(query, match, max_range)
     c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
     # The match sensor sits at p in the query frame, so the query sits at -R p in the
     # match frame, R turning query axes into match axes (the yaw).
     px, py = match_in_query
     position = -np.array([c * px - s * py, s * px + c * py])
-    return float(_wrapped(np.float32(yaw))), position
+    return float(_wrapped(np.float32(yaw))), position, conf
 
 
 def refine_yaw(query: np.ndarray, matches: np.ndarray, max_range: float) -> np.ndarray:
     """Yaw [K] in degrees, (-180, 180], of the query [R, S] relative to each match [K, R, S],
     with the parallax of the offset between the two sensors removed."""
-    m = np.asarray(matches)
-    if m.ndim == 2:
-        m = m[None]
-    return _wrapped(np.array([refine_one(query, mk, max_range)[0] for mk in m], np.float32))
+    return refine_yaw_conf(query, matches, max_range)[0]
