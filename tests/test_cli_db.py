@@ -316,7 +316,10 @@ def test_query_finds_the_turned_scene_with_its_yaw(map_db: Path, seq: Path, quer
     assert abs(first[0]["yaw_deg"] - (-TURN_DEG)) <= 3.0
     assert abs(first[1]["yaw_deg"] - 60.0) <= 3.0
     assert all(-180.0 < r["yaw_deg"] <= 180.0 for r in rows)
-    assert set(rows[0]) == {"query", "rank", "match", "match_id", "distance", "yaw_deg"}
+    assert set(rows[0]) == {"query", "rank", "match", "match_id", "distance", "yaw_deg", "yaw_conf"}
+    # Every row rates its yaw (yaw_refine.py): an unambiguous scene here.
+    assert all(0.0 <= r["yaw_conf"] <= 1.0 for r in rows)
+    assert first[0]["yaw_conf"] > 0.5
 
 
 def test_query_equals_numpy_brute_force(map_db: Path, queries: Path) -> None:
@@ -396,7 +399,15 @@ def test_tsv_has_a_header_and_the_same_columns(map_db: Path, queries: Path) -> N
         "query", str(queries / "q3.bin"), "--db", str(map_db), "--topk", "2", "--format", "tsv"
     )
     lines = out.splitlines()
-    assert lines[0].split("\t") == ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
+    assert lines[0].split("\t") == [
+        "query",
+        "rank",
+        "match",
+        "match_id",
+        "distance",
+        "yaw_deg",
+        "yaw_conf",
+    ]
     assert len(lines) == 3 and lines[1].split("\t")[1] == "1"
     code, out, _ = run(
         "query", str(queries / "q3.bin"), "--db", str(map_db), "--topk", "2", "--format", "table"
@@ -579,7 +590,7 @@ def test_closed_pipe_is_quiet(map_db: Path, queries: Path) -> None:
     proc = subprocess.run(
         ["bash", "-o", "pipefail", "-c", shell], capture_output=True, text=True, timeout=120
     )
-    assert proc.stdout.splitlines() == ["query\trank\tmatch\tmatch_id\tdistance\tyaw_deg"]
+    assert proc.stdout.splitlines() == ["query\trank\tmatch\tmatch_id\tdistance\tyaw_deg\tyaw_conf"]
     assert "Traceback" not in proc.stderr and "Error" not in proc.stderr, proc.stderr
 
 
@@ -727,7 +738,7 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     rows = jsonl(out)
     assert rows, "no verified loops in data/samples/00"
     # With a pose, yaw_deg is the refined yaw of T; roll, pitch and the full T come along.
-    base = {"query_index", "query", "match_index", "match", "distance", "yaw_deg"}
+    base = {"query_index", "query", "match_index", "match", "distance", "yaw_deg", "yaw_conf"}
     assert set(rows[0]) == base | {"roll_deg", "pitch_deg", "T"}
     for r in rows:
         T = np.array(r["T"])

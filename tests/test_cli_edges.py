@@ -76,7 +76,8 @@ def test_loops_says_so_when_it_finds_no_loop(samples: Path) -> None:
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     # A distance of 0 is never reached between two different scans: no row, but the header.
-    assert res.stdout.splitlines() == ["query_index\tquery\tmatch_index\tmatch\tdistance\tyaw_deg"]
+    header = "query_index\tquery\tmatch_index\tmatch\tdistance\tyaw_deg\tyaw_conf"
+    assert res.stdout.splitlines() == [header]
     n = len(_scans(samples / "00"))
     assert f"0 loop candidates among {n} scans" in res.stderr
 
@@ -87,8 +88,10 @@ def test_loops_count_line_counts_the_rows(samples: Path) -> None:
     assert res.exit_code == 0, res.output
     rows = [json.loads(line) for line in res.stdout.splitlines()]
     n = len(_scans(samples / "00"))
-    # Top-1 for every scan that has scans 5 frames before it.
+    # Top-1 for every scan that has scans 5 frames before it, each with its yaw's
+    # confidence (spectral's parallax-free yaw gives one).
     assert len(rows) == n - 5
+    assert all(0.0 <= r["yaw_conf"] <= 1.0 for r in rows)
     assert f"{len(rows)} loop candidates among {n} scans" in res.stderr
 
 

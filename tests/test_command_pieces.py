@@ -60,10 +60,17 @@ def test_query_rows_filter_and_report() -> None:
 def test_loop_columns_and_build_summary() -> None:
     columns, keys = loop_columns(pose=False)
     assert (
-        columns == keys == ["query_index", "query", "match_index", "match", "distance", "yaw_deg"]
+        columns
+        == keys
+        == ["query_index", "query", "match_index", "match"]
+        + [
+            "distance",
+            "yaw_deg",
+            "yaw_conf",
+        ]
     )
     columns, keys = loop_columns(pose=True, verbose=True)
-    assert columns[6:] == ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "rmse"] + [
+    assert columns[7:] == ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "rmse"] + [
         "accepted",
         "reason",
     ]

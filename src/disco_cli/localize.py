@@ -10,6 +10,10 @@ Frames and units, for `Match` here and `Loop` in `loop_detector.py`:
   degree resolution); with one it is the yaw of the refined `T`.
 - `roll_deg`, `pitch_deg`, `yaw_deg` with a pose: T's rotation R = Rz(yaw) Ry(pitch)
   Rx(roll) (intrinsic z-y'-x'', the usual vehicle convention), pitch in [-90, 90].
+- `yaw_conf`: how sure the place-recognition yaw is, in [0, 1]: 1 - the best other
+  heading's correlation peak / the yaw's own (`model/yaw_refine.py`). Low where the place
+  looks alike both ways (a street alike on both sides); None for a model without one.
+  With a pose it still rates the place-recognition yaw that seeded it.
 - `distance`: 1 - the aligned correlation of the feature images after re-ranking, or
   the signature distance for models that do not re-rank; smaller is closer. The first
   match may re-rank a little worse than the second where it lies nearer the query
@@ -50,12 +54,14 @@ class Match:
     reason: str = ""  # why rejected, or why no pose could be estimated
     roll_deg: float | None = None
     pitch_deg: float | None = None
+    yaw_conf: float | None = None  # in [0, 1]; None: the model gives none
 
     def as_dict(self) -> dict[str, Any]:
         """The match as the columns of `disco query`, plus the pose columns and `T` (as
         nested lists) when it has a pose."""
         row = {"rank": self.rank, "match": self.name, "match_id": self.match_id}
-        return {**row, "distance": self.distance, "yaw_deg": self.yaw_deg, **pose_columns(self)}
+        row.update(distance=self.distance, yaw_deg=self.yaw_deg, yaw_conf=self.yaw_conf)
+        return {**row, **pose_columns(self)}
 
     @property
     def translation(self) -> np.ndarray | None:
@@ -133,6 +139,7 @@ def refine_matches(
             "name": m.path,
             "distance": m.distance,
             "yaw_deg": m.yaw_deg,
+            "yaw_conf": conf_or_none(m),
         }
         try:
             points = match_points(m.path)
@@ -155,7 +162,13 @@ def refine_matches(
 
 def as_match(m: Any) -> Match:
     """A search result as a `Match` without a pose."""
-    return Match(m.rank, m.match_id, m.path, m.distance, m.yaw_deg)
+    return Match(m.rank, m.match_id, m.path, m.distance, m.yaw_deg, yaw_conf=conf_or_none(m))
+
+
+def conf_or_none(m: Any) -> float | None:
+    """A search match's `yaw_conf`, None where it has none (NaN)."""
+    conf = getattr(m, "yaw_conf", float("nan"))
+    return float(conf) if math.isfinite(conf) else None
 
 
 def pose_columns(x: Any) -> dict[str, Any]:

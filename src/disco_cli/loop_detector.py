@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError
-from disco_cli.localize import PointCache, pose_fields
+from disco_cli.localize import PointCache, conf_or_none, pose_fields
 
 __all__ = ["Loop", "LoopDetector", "loop_columns"]
 
@@ -55,6 +55,7 @@ class Loop:
     match: str = ""
     query_time: float = math.nan  # seconds, NaN when unknown
     match_time: float = math.nan
+    yaw_conf: float | None = None  # in [0, 1] (localize.py); None: the model gives none
 
     def as_dict(self) -> dict[str, Any]:
         """The loop as the columns of `disco loops`, plus the pose columns and `T` (as
@@ -63,14 +64,14 @@ class Loop:
 
         row = {"query_index": self.query_index, "query": self.query}
         row.update(match_index=self.match_index, match=self.match, distance=self.distance)
-        return {**row, "yaw_deg": self.yaw_deg, **pose_columns(self)}
+        return {**row, "yaw_deg": self.yaw_deg, "yaw_conf": self.yaw_conf, **pose_columns(self)}
 
 
 def loop_columns(pose: bool, verbose: bool = False) -> tuple[list[str], list[str]]:
     """The columns of `disco loops` (with a `pose`, yaw_deg is the refined yaw and roll
     and pitch are added; `verbose` adds the rest of the pose and its scores), and the
     keys of its rows (JSON lines also carry `T`)."""
-    columns = ["query_index", "query", "match_index", "match", "distance", "yaw_deg"]
+    columns = ["query_index", "query", "match_index", "match", "distance", "yaw_deg", "yaw_conf"]
     columns += ["roll_deg", "pitch_deg"] if pose else []
     columns += ["dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"] if verbose else []
     return columns, columns + (["T"] if pose else [])
@@ -391,6 +392,7 @@ class LoopDetector:
             "match": m.path,
             "query_time": t,
             "match_time": float(self._times[m.match_id]),
+            "yaw_conf": conf_or_none(m),
         }
         if not self.estimate_pose:
             return Loop(**base)

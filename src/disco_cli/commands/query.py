@@ -46,7 +46,7 @@ from disco_cli.commands.options import (
 )
 from disco_cli.console import error, fail, handle_errors, note, warn
 
-COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
+COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg", "yaw_conf"]
 POSE_COLUMNS = ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "accepted"]
 
 

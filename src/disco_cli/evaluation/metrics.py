@@ -271,6 +271,8 @@ def retrieval_evaluation(
         "num_database": int(db_size),
         "num_correct_top1": int((top1_ok & has_true).sum()),
         "num_yaw_errors": int(yaw_err.size),
+        # Gross yaw failures (a turned-around street): issue 24 asks for none.
+        "num_yaw_errors_over_10deg": int((yaw_err > 10.0).sum()),
         "topk": int(correct.shape[1]),
         "one_percent_n": int(n1),
     }
@@ -307,5 +309,7 @@ def loop_evaluation(
         "num_queries_without_match": int((~has_true).sum()),
         "num_correct_top1": int((ok & has_true).sum()),
         "num_yaw_errors": int(yaw_err.size),
+        # Gross yaw failures (a turned-around street): issue 24 asks for none.
+        "num_yaw_errors_over_10deg": int((yaw_err > 10.0).sum()),
     }
     return Evaluation(metrics, pr, None, np.array([]), yaw_err)

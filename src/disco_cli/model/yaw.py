@@ -125,8 +125,7 @@ def margin(best: np.ndarray | float, other: np.ndarray | float) -> np.ndarray:
     other is as high as the best or the best is not positive)."""
     b = np.asarray(best, np.float64)
     o = np.maximum(np.asarray(other, np.float64), 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        conf = np.where(b > 0, 1.0 - o / np.where(b > 0, b, 1.0), 0.0)
+    conf = np.where(b > 0, 1.0 - o / np.where(b > 0, b, 1.0), 0.0)
     return np.clip(conf, 0.0, 1.0)
 
 
