@@ -31,12 +31,14 @@ from disco_cli.model.yaw import (
 )
 
 # Bumped whenever the refined yaw can change for the same weights (cached evaluations
-# key on it: benchmarks/ood_suite.py). 3: the second heading checked (`refine_checked`).
-VERSION = 3
+# key on it: benchmarks/ood_suite.py). 4: the second heading checked (`refine_checked`).
+VERSION = 4
 # Below this yaw confidence the best other heading is searched for too, and the two are
 # told apart by the plain correlation of the images (`refine_checked`). A street alike on
 # both sides gives 0.1-0.55, an asymmetric one 0.8-0.95 (tests/test_yaw_flip.py).
 CHECK_BELOW = 0.6
+# The first grid's half width (m) of the check's searches: 6 + 1.5 + 0.5 = 8 m reached.
+CHECK_REACH = 6.0
 
 # Search schedule (m): the first grid's spacing and half width, then the finer steps.
 COARSE_STEP = 3.0
@@ -92,9 +94,11 @@ def _sampling(rings: int, sectors: int, max_range: float, positions: np.ndarray)
 
 
 @lru_cache(maxsize=8)
-def _coarse_sampling(rings: int, sectors: int, max_range: float) -> tuple[np.ndarray, tuple]:
+def _coarse_sampling(
+    rings: int, sectors: int, max_range: float, reach: float = COARSE_REACH
+) -> tuple[np.ndarray, tuple]:
     """The first search grid's positions [M, 2] and their `_sampling`, computed once."""
-    k = np.arange(-COARSE_REACH, COARSE_REACH + 1e-6, COARSE_STEP, dtype=np.float32)
+    k = np.arange(-reach, reach + 1e-6, COARSE_STEP, dtype=np.float32)
     positions = np.stack(np.meshgrid(k, k, indexing="ij"), -1).reshape(-1, 2)
     return positions, _sampling(rings, sectors, max_range, positions)
 
@@ -152,11 +156,13 @@ def _search(
     table: np.ndarray,
     max_range: float,
     window: np.ndarray | None = None,
+    reach: float = COARSE_REACH,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """The re-centring search: (position, peak value, curve) of the view whose curve
-    peaks highest; with `window` (sector shifts), the peak is sought among those only."""
+    peaks highest; with `window` (sector shifts), the peak is sought among those only;
+    `reach`: the first grid's half width (m)."""
     rings, sectors = q.shape
-    positions, sampling = _coarse_sampling(rings, sectors, max_range)
+    positions, sampling = _coarse_sampling(rings, sectors, max_range, reach)
     best_pos, best_val, best_curve = positions[0], -np.inf, None
     for step in (None, *FINE_STEPS):
         if step is not None:
@@ -180,12 +186,14 @@ def refine_checked(
     On a street alike on both sides, the whitened phase correlation (every frequency
     weighted alike) can peak as high on theta + 180 degrees as on theta, and the greedy
     position search may settle near the wrong one. When the best other heading comes
-    within CHECK_BELOW of the best (the confidence, 1 - other / best), the search is run
-    again for that heading alone, and the heading whose re-centred query correlates
-    better with the match, in the plain normalized correlation of the images (the large
-    structures weigh most, as in the training-free floor's occupancy correlation), wins.
-    The confidence is then the margin between the two headings' own best peaks (0 where
-    the correlation overruled the phase correlation)."""
+    within CHECK_BELOW of the best (the confidence, 1 - other / best), each of the two
+    headings gets searches of its own, one as wide as the first and one reaching
+    CHECK_REACH + 2 m (revisits 4-8 m aside lie beyond the first search's 5 m); the
+    other heading wins only where both its own phase-correlation peak is the higher and
+    its re-centred query correlates better with the match in the plain normalized
+    correlation of the images (large structures weigh most there, as in the
+    training-free floor's occupancy correlation). The confidence is then the margin
+    between the two headings' own peaks."""
     q = np.asarray(query, dtype=np.float32)
     m = np.asarray(match, dtype=np.float32)
     if q.ndim != 2 or q.shape != m.shape:
@@ -201,19 +209,34 @@ def refine_checked(
     other, other_val = int(idx[0]), float(peak[0])
     conf = float(margin(val, other_val))
     if conf < CHECK_BELOW:
-        window = (other + np.arange(-2, 3)) % sectors
-        pos2, val2, curve2 = _search(q, fm, table, float(max_range), window)
-        # The other heading's own peak, within the window it was sought in.
-        inside = np.full(sectors, curve2[window].min(), curve2.dtype)
-        inside[window] = curve2[window]
-        best2 = int(np.argmax(inside))
-        if _aligned_ncc(q, m, pos2, best2, max_range) > _aligned_ncc(q, m, pos, best, max_range):
-            pos, curve = pos2, inside
-            conf = float(margin(val2, val))
+        v1, ncc1, _, _ = _heading(q, m, fm, table, float(max_range), best)
+        v2, ncc2, pos2, curve2 = _heading(q, m, fm, table, float(max_range), other)
+        v1 = max(v1, val)
+        if v2 > v1 and ncc2 > ncc1:
+            pos, curve, conf = pos2, curve2, float(margin(v2, v1))
         else:
-            conf = float(margin(val, max(val2, other_val)))
+            conf = float(margin(v1, max(v2, other_val)))
     yaw = float(shift_to_yaw(peak_shift(curve[None]), sectors)[0])
     return yaw, np.asarray(pos, np.float64), conf
+
+
+def _heading(
+    q: np.ndarray, m: np.ndarray, fm: np.ndarray, table: np.ndarray, max_range: float, centre: int
+) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """The evidence for one heading (sector `centre`, +-2 sectors): (its highest phase-
+    correlation peak over the two searches, the higher plain correlation of their
+    re-centred views, the position and curve, peak kept in the window, of the first)."""
+    sectors = q.shape[1]
+    window = (centre + np.arange(-2, 3)) % sectors
+    best_val, best_ncc, best_pos, best_curve = -np.inf, -np.inf, None, None
+    for reach in (COARSE_REACH, CHECK_REACH):
+        p, v, c = _search(q, fm, table, max_range, window, reach)
+        inside = np.full(sectors, c[window].min(), c.dtype)  # the peak stays in the window
+        inside[window] = c[window]
+        best_ncc = max(best_ncc, _aligned_ncc(q, m, p, int(np.argmax(inside)), max_range))
+        if v > best_val:
+            best_val, best_pos, best_curve = v, p, inside
+    return best_val, best_ncc, best_pos, best_curve
 
 
 def _aligned_ncc(
