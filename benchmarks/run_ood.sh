@@ -10,6 +10,7 @@
 #   benchmarks/run_ood.sh                               # every world (85; hdl64 costs most)
 #   benchmarks/run_ood.sh --quick --models default spectral run/candidate.pt
 #   benchmarks/run_ood.sh --update-docs                 # tables into docs/results.md
+#   benchmarks/run_ood.sh --only blv --no-real          # issue 24's boulevard worlds only
 #
 # Its seeds (7101-7301) are used by nothing else (docs/research/model-history.md#seeds). Runs at low priority
 # on 2 threads; worlds and per-query rows are cached under $OUT (default out/ood).
