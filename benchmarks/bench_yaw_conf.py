@@ -80,7 +80,7 @@ def main() -> None:
     print(
         f"  best match's parallax-free yaw: {ms['plain']:.2f} ms without the check, "
         f"{ms['checked']:.2f} ms with it ({ms['checked'] / ms['plain']:.2f}x; {checked} of "
-        f"{len(pairs)} matches below {below} were checked), {ms['forced']:.2f} ms with every "
+        f"{len(pairs)} with a confidence below {below}), {ms['forced']:.2f} ms with every "
         f"match checked ({ms['forced'] / ms['plain']:.2f}x)"
     )
     print(

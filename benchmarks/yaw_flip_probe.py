@@ -62,8 +62,8 @@ def main() -> None:
             e = np.array(e)
             parts.append(f"{key}: {int((e > 10).sum())} over 10 deg, mean {e.mean():.2f} deg")
         print(
-            f"{world.name} ({args.model}, {len(errs['before'])} queries, {low} checked): "
-            + "; ".join(parts)
+            f"{world.name} ({args.model}, {len(errs['before'])} queries, {low} with a "
+            f"confidence below {below}): " + "; ".join(parts)
         )
 
 
