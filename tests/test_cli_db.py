@@ -632,10 +632,14 @@ def test_loops_finds_the_revisit(tmp_path: Path) -> None:
     db = tmp_path / "loop.db"
     assert run("build-db", str(seq), "-o", str(db), "--model", "spectral")[0] == 0
     code, out2, _ = run(*args, "--db", str(db))
-    # The map stores float16 signatures: the same loops, distances within their rounding.
+    # The map stores float16 signatures and features: the same loops, distances within
+    # their rounding, and the yaw's confidence (a ratio of two correlation peaks) within
+    # a few thousandths.
     got = jsonl(out2)
-    assert [{**r, "distance": 0} for r in got] == [{**r, "distance": 0} for r in rows]
+    same = [{**r, "distance": 0, "yaw_conf": 0} for r in got]
+    assert same == [{**r, "distance": 0, "yaw_conf": 0} for r in rows]
     assert all(abs(g["distance"] - r["distance"]) < 1e-4 for g, r in zip(got, rows))
+    assert all(abs(g["yaw_conf"] - r["yaw_conf"]) < 0.01 for g, r in zip(got, rows))
 
 
 def test_info_and_check(map_db: Path, tmp_path: Path) -> None:
