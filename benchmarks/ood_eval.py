@@ -3,12 +3,13 @@ tilted or shifted in z: how model selection and the tilt measurement of
 docs/research/model-history.md ran.
 
     .venv/bin/python benchmarks/ood_eval.py WORLD... --models default ft.pt [--tilt 3] [--z 0.5]
-        [--rerank-wider 0] [--snap-radius 0]
+        [--rerank-wider 0] [--snap-radius 0] [--rerank 0] [--radius 8.5]
 
 `NAME+svM` is NAME with a map of side views M m to each side, `spectral+snap` the floor
 searched with the network's snap to the nearest map scan (as in ood_suite.py).
 
-Each WORLD holds sessions 00 (the map) and 01 (the queries); a match is true within 5 m.
+Each WORLD holds sessions 00 (the map) and 01 (the queries); a match is true within 5 m
+(`--radius`: 8.5 for revisits 4-8 m to the side, then also Recall@1 by distance).
 Prints one line per model: Recall@1 / Recall@5 / mean yaw error (deg) and the misses of
 Recall@1 per world. `--rerank-wider 0 --snap-radius 0` gives the network's search as it
 was before those two steps.
@@ -53,6 +54,13 @@ def main() -> int:
         "--rerank-wider", type=int, help="the network's wider pass depth (0: none; as the CLI)"
     )
     ap.add_argument("--snap-radius", type=float, help="the network's snap radius (0: none)")
+    ap.add_argument("--rerank", type=int, help="candidates re-ranked (0: none; as the CLI)")
+    ap.add_argument(
+        "--radius",
+        type=float,
+        default=S.RADIUS,
+        help="a match is true within this (m); above 5, Recall@1 by distance too (revisits)",
+    )
     args = ap.parse_args()
 
     import torch
@@ -65,19 +73,26 @@ def main() -> int:
             model.rerank_wider = args.rerank_wider
         if args.snap_radius is not None and hasattr(model, "snap_radius"):
             model.snap_radius = args.snap_radius
+        if args.rerank is not None and hasattr(model, "rerank_candidates"):
+            model.rerank_candidates = args.rerank
         cells = []
         for w in args.worlds:
             mp, mpose = S.load_session(w / "00")
             qp, qpose = S.load_session(w / "01")
             tf = _Lift(args.z) if args.z else None
             q = S.Queries(qp, qpose, args.tilt, seed=args.seed, transform=tf)
-            rows = S.evaluate(model, mp, mpose, q, args.threads, side_views)
+            rows = S.evaluate(model, mp, mpose, q, args.threads, side_views, radius=args.radius)
             s = S.summarize(rows)
             has = [r for r in rows if r["has"]]
             miss = sum(not r["r1"] for r in has)
+            bins = ""
+            if args.radius > S.RADIUS:
+                for lo, hi in S.REVISIT_BINS[1:-1]:
+                    sel = [r["r1"] for r in has if lo <= r["near_m"] < hi]
+                    bins += f" {lo:g}-{hi:g} m {np.mean(sel):.2f} ({len(sel)})" if sel else ""
             cells.append(
                 f"{w.name} {s['r1']:.3f} / {s['r5']:.3f} / {s['yaw_mean']:.2f} "
-                f"({miss} of {len(has)} missed)"
+                f"({miss} of {len(has)} missed; {s['yaw_over10']} yaw > 10 deg){bins}"
             )
         print(S.model_key(name), " | ".join(cells), flush=True)
     return 0
