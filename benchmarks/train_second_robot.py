@@ -10,8 +10,8 @@
 --variants 1, --seed 7) and bit-packs the occupancy BEVs (9,422 BEVs: 13 MB); `train`
 resumes a copy of `--init` (the shipped weights) with `training.loop.train`, the loop of
 `disco train`, writing a snapshot every `--every` epochs. Seeds: training 4101-4108
-(4190-4199 in tests),
-selection 5111-5115 (docs/model.md#seeds); the suite's boulevards are 7107, 7207, 7401.
+(4190-4199 in tests), selection 5111-5115; the suite's boulevards are 7107, 7207, 7401
+(docs/research/model-history.md#seeds).
 """
 
 from __future__ import annotations
