@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.columns import POSE_COLUMNS, RESULT_COLUMNS
 from disco_cli.errors import DiscoError
 
 __all__ = ["QueryService", "ServeOptions", "make_server", "MAX_REQUEST_BYTES"]
@@ -63,8 +64,6 @@ _QUERY_FIELDS = {
     "scan_format",
 }
 _MAX_TOPK = 10000
-_COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg"]
-_POSE_COLUMNS = ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "accepted"]
 
 
 class RequestError(DiscoError):
@@ -196,7 +195,7 @@ class QueryService:
         if has_scan == has_points:
             raise RequestError("give exactly one of 'scan' (a file path) or 'points'")
         with_pose = pose or verify
-        keys = _COLUMNS + (_POSE_COLUMNS + ["T"] if with_pose else [])
+        keys = RESULT_COLUMNS + (POSE_COLUMNS + ["T"] if with_pose else [])
         with self._lock:
             self._refresh_if_changed()
             if has_scan:

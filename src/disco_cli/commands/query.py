@@ -13,6 +13,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from disco_cli.columns import POSE_COLUMNS
+from disco_cli.columns import RESULT_COLUMNS as COLUMNS
 from disco_cli.commands.options import (
     MODEL_OF_MAP,
     PANEL_FILTER,
@@ -45,9 +47,6 @@ from disco_cli.commands.options import (
     topk_option,
 )
 from disco_cli.console import error, fail, handle_errors, note, warn
-
-COLUMNS = ["query", "rank", "match", "match_id", "distance", "yaw_deg", "yaw_conf"]
-POSE_COLUMNS = ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "accepted"]
 
 
 @handle_errors
