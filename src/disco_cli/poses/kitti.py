@@ -44,8 +44,20 @@ def read_kitti_poses(path: str | Path, calib: str | Path | np.ndarray | None = N
         Tr = read_calib_tr(calib) if isinstance(calib, (str, Path)) else np.asarray(calib, float)
         if Tr.shape != (4, 4):
             raise PoseFileError(f"calibration must be 4 x 4, got {Tr.shape}")
-        poses = np.linalg.inv(Tr) @ poses @ Tr
+        poses = invert_calibration(Tr, calib) @ poses @ Tr
     return poses
+
+
+def invert_calibration(Tr: np.ndarray, source: object) -> np.ndarray:
+    """inv(Tr), or `PoseFileError` naming `source` when Tr has no finite inverse."""
+    where = source if isinstance(source, (str, Path)) else "the calibration"
+    try:
+        inv = np.linalg.inv(Tr)
+    except np.linalg.LinAlgError:
+        raise PoseFileError(f"{where}: Tr is not invertible") from None
+    if not np.isfinite(inv).all():
+        raise PoseFileError(f"{where}: Tr is not invertible")
+    return inv
 
 
 def write_kitti_poses(path: str | Path, poses: np.ndarray) -> None:

@@ -41,7 +41,8 @@ def read_kitti360_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(frame indices [N] as int64, IMU poses [N, 4, 4])."""
     table, _ = numeric_table(path, 13, "poses")
     frames = table[:, 0]
-    if np.any(frames != np.round(frames)) or np.any(frames < 0):
+    # Frame numbers are integers from 0; past 2^53 a float64 holds no exact integer.
+    if np.any(frames != np.round(frames)) or np.any(frames < 0) or np.any(frames > 2**53):
         raise PoseFileError(f"{path}: the first column must be frame numbers")
     return frames.astype(np.int64), to_4x4(table[:, 1:]).reshape(-1, 4, 4)
 
@@ -78,4 +79,10 @@ def imu_to_velo(calibration: str | Path | None = None) -> np.ndarray:
         if not lines:
             raise PoseFileError(f"{velo_file}: empty")
         cam_to_velo = to_4x4(floats(velo_file, 1, lines[0].split(), 12))
+        from disco_cli.poses.kitti import invert_calibration
+
+        out = cam_to_pose @ invert_calibration(cam_to_velo, velo_file)
+        if not np.isfinite(out).all():
+            raise PoseFileError(f"{folder}: calibration values overflow (far too large)")
+        return out
     return cam_to_pose @ np.linalg.inv(cam_to_velo)

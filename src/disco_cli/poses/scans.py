@@ -20,6 +20,7 @@ is the format's calibration (see `FORMATS` and docs/formats.md, "Pose files") an
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -167,7 +168,9 @@ def _calibration(
         if Tr.shape != (4, 4):
             raise PoseFileError(f"calibration must be 4 x 4, got {Tr.shape}")
         where = f" ({calib})" if isinstance(calib, (str, Path)) else ""
-        return np.linalg.inv(Tr), Tr, f"camera 0 -> LiDAR by calib.txt{where}"
+        from disco_cli.poses.kitti import invert_calibration
+
+        return invert_calibration(Tr, calib), Tr, f"camera 0 -> LiDAR by calib.txt{where}"
     if fmt == "kitti360":
         from disco_cli.poses import kitti360
 
@@ -238,6 +241,8 @@ def _read_raw(
 
         frames, T = read_kitti360_poses(path)
         keys = frames * FRAME_S
+    if not (np.isfinite(keys).all() and np.isfinite(T).all()):
+        raise PoseFileError(f"{path}: poses or times overflow to Inf or NaN (values far too large)")
     left, right, frame = _calibration(fmt, path, calib)
     if extrinsic is not None:
         E = read_extrinsic(extrinsic) if isinstance(extrinsic, (str, Path)) else extrinsic
@@ -272,7 +277,11 @@ def read_poses(
     `T_frame<-lidar` (or a file holding one) applied after the calibration.
     """
     keys, T, fmt, left, right, frame = _read_raw(path, poses_format, calib, extrinsic)
-    return keys, _apply(T, left, right), fmt, frame
+    T = _apply(T, left, right)
+    if not np.isfinite(T).all():
+        # Finite numbers whose products overflow (1e300 in a pose and its calibration).
+        raise PoseFileError(f"{path}: poses overflow to Inf or NaN (values far too large)")
+    return keys, T, fmt, frame
 
 
 def _name_time(name: str, fmt: str) -> float | None:
@@ -285,24 +294,31 @@ def _name_time(name: str, fmt: str) -> float | None:
     """
     if "@" in name:
         stamp = name.rsplit("@", 1)[1]
-        return int(stamp) * 1e-9 if stamp.isdigit() else None
+        return int(stamp) * 1e-9 if _is_stamp(stamp) else None
     stem = Path(name).stem
     if fmt == "kitti360":
         from disco_cli.poses.kitti360 import FRAME_S
 
-        return int(stem) * FRAME_S if stem.isdigit() else None
+        return int(stem) * FRAME_S if _is_stamp(stem) else None
     if fmt in _NAME_UNIT_S:
-        return int(stem) * _NAME_UNIT_S[fmt] if stem.isdigit() else None
-    if stem.isdigit():
+        return int(stem) * _NAME_UNIT_S[fmt] if _is_stamp(stem) else None
+    if _is_stamp(stem):
         if len(stem) >= 18:
             return int(stem) * 1e-9
         if len(stem) >= 15:
             return int(stem) * 1e-6
         return float(stem)
     try:
-        return float(stem)
+        t = float(stem)
     except ValueError:
         return None
+    return t if math.isfinite(t) else None
+
+
+def _is_stamp(text: str) -> bool:
+    """ASCII digits only (str.isdigit also takes '²' and other scripts' digits, which
+    int() refuses), and few enough for a float (a name of 400 digits is no time)."""
+    return text.isascii() and text.isdigit() and len(text) <= 30
 
 
 def scan_times(scans: Sequence[str | Path], poses_format: str) -> np.ndarray:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from disco_cli.errors import PoseFileError
 from disco_cli.poses._text import numeric_table
 from disco_cli.poses.geometry import matrix_to_quat, quat_to_matrix
 
@@ -19,6 +20,12 @@ from disco_cli.poses.geometry import matrix_to_quat, quat_to_matrix
 def read_tum_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(stamps [N] seconds, poses [N, 4, 4]) of a TUM file, in file order."""
     table, _ = numeric_table(path, 8, "poses")
+    norms = np.linalg.norm(table[:, 4:8], axis=1)
+    bad = np.flatnonzero(~(norms > 1e-12) | ~np.isfinite(norms))
+    if len(bad):
+        raise PoseFileError(
+            f"{path}: pose {bad[0] + 1} has a quaternion of zero (or overflowing) length"
+        )
     T = np.tile(np.eye(4), (len(table), 1, 1))
     T[:, :3, :3] = quat_to_matrix(table[:, 4:8])
     T[:, :3, 3] = table[:, 1:4]

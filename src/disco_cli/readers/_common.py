@@ -36,10 +36,13 @@ def assemble(
     those rows carry no geometry, so they are dropped here.
     """
     out = np.empty((len(x), 4), dtype=np.float32)
-    out[:, 0] = x
-    out[:, 1] = y
-    out[:, 2] = z
-    out[:, 3] = 0.0 if intensity is None else intensity
+    # A value beyond float32's range becomes Inf (dropped below with NaN) without a
+    # RuntimeWarning on the user's terminal.
+    with np.errstate(over="ignore", invalid="ignore"):
+        out[:, 0] = x
+        out[:, 1] = y
+        out[:, 2] = z
+        out[:, 3] = 0.0 if intensity is None else intensity
     if drop_nonfinite:
         keep = np.isfinite(out[:, :3]).all(axis=1)
         if not keep.all():

@@ -3,6 +3,7 @@ or a structured array with fields x, y, z and optionally an intensity field."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ def read(path: Path) -> np.ndarray:
             magic = f.read(6)
         if magic != b"\x93NUMPY":
             raise ScanReadError(path, "not an .npy file (no NUMPY magic at the start)")
+        _check_claimed_size(path)
         # No pickles: a scan file must not be able to run code.
         arr = np.load(path, allow_pickle=False)
     except OSError as exc:
@@ -30,6 +32,29 @@ def read(path: Path) -> np.ndarray:
         reason = f"not a readable .npy array ({type(exc).__name__}: {exc})"
         raise ScanReadError(path, reason) from None
     return from_array(arr, path)
+
+
+def _check_claimed_size(path: Path) -> None:
+    """Refuse a header whose shape needs more bytes than the file holds, before np.load
+    allocates them (a damaged shape can claim terabytes)."""
+    with open(path, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            return  # a version np.load checks itself
+        data = path.stat().st_size - f.tell()
+    if dtype.hasobject:
+        return  # np.load refuses it without unpickling
+    need = math.prod(shape) * dtype.itemsize
+    if need > data:
+        raise ScanReadError(
+            path,
+            f"truncated: its header's shape {shape} of {dtype} needs {need} bytes, "
+            f"the file holds {data}",
+        )
 
 
 def from_array(arr: np.ndarray, path: str | Path) -> np.ndarray:

@@ -25,6 +25,9 @@ _TYPES.update({("U", n): f"<u{n}" for n in (1, 2, 4, 8)})
 _TYPES.update({("I", n): f"<i{n}" for n in (1, 2, 4, 8)})
 # The header is small; a longer "header" means this is not a PCD file.
 _MAX_HEADER_LINES = 64
+# Elements per field: real files have a few (a normal's 3, a histogram's 33 or 308); a
+# damaged COUNT must not reach np.dtype, which refuses shapes past a C int.
+_MAX_COUNT = 1 << 16
 
 
 def read(path: Path) -> np.ndarray:
@@ -110,7 +113,7 @@ def _parse_header(path: Path, h: dict[str, list[str]]) -> tuple[list[str], np.dt
         code = _TYPES.get((typ.upper(), size))
         if code is None:
             raise ScanReadError(path, f"PCD field {name!r} has unsupported TYPE {typ} SIZE {size}")
-        if count < 1:
+        if not 1 <= count <= _MAX_COUNT:
             raise ScanReadError(path, f"PCD field {name!r} has COUNT {count}")
         if name in ("x", "y", "z") and count != 1:
             raise ScanReadError(path, f"PCD field {name!r} has COUNT {count}, expected 1")

@@ -158,10 +158,13 @@ def decode_pointcloud2(
     if row_step == row_bytes:
         points = buf[: height * row_bytes]
     else:
-        # Rows end in padding: keep each row's points only.
-        padded = np.zeros(height * row_step, dtype=np.uint8)
-        padded[: min(buf.size, padded.size)] = buf[: padded.size]
-        points = np.ascontiguousarray(padded.reshape(height, row_step)[:, :row_bytes])
+        # Rows end in padding: keep each row's points only, through a strided view of
+        # the bytes checked above (never an array of height x row_step, which a damaged
+        # row_step would make huge).
+        rows = np.lib.stride_tricks.as_strided(
+            buf, shape=(height, row_bytes), strides=(row_step, 1), writeable=False
+        )
+        points = np.ascontiguousarray(rows).reshape(-1)
     record = np.dtype(
         {"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step}
     )
@@ -177,4 +180,7 @@ def decode_pointcloud2(
             raise ScanReadError(name, f"none of its {len(keep)} points has finite x, y, z")
         cols = [c[keep] for c in cols]
         inten_col = inten_col[keep] if inten_col is not None else None
-    return assemble(name, *cols, inten_col, drop_nonfinite=False)  # type: ignore[arg-type]
+    # A finite FLOAT64 coordinate can still be beyond float32's range: then the
+    # float32 result is checked again (Inf rows dropped).
+    wide = any(dt.itemsize == 8 for dt in formats[:3])
+    return assemble(name, *cols, inten_col, drop_nonfinite=wide)  # type: ignore[arg-type]
