@@ -11,7 +11,8 @@ SAMPLES := data/samples
 OUT := out/demo
 MODEL ?= default
 
-.PHONY: demo test install install-test dev bench clean check-aarch64 docs-check docs-update
+.PHONY: demo test install install-test dev bench clean check-aarch64 docs-check docs-update \
+  check-sanitize
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -82,6 +83,24 @@ check-aarch64:
 	grep -v '^#' $(CHECK)/aarch64.txt > $(CHECK)/aarch64.cmp
 	diff $(CHECK)/native.cmp $(CHECK)/aarch64.cmp
 	@echo "check-aarch64: all $$(grep -c . $(CHECK)/aarch64.cmp) lines equal ($$(tail -1 $(CHECK)/aarch64.cmp))"
+
+# The C++ core's checks (tests/cpp/check_core) built with AddressSanitizer and
+# UndefinedBehaviorSanitizer (float-cast-overflow too: gcc's -fsanitize=undefined
+# leaves it out) and run; any report stops the run with a non-zero exit. Needs g++
+# (or CXX=clang++), cmake and Eigen (.venv's cmeel-eigen or libeigen3-dev, or
+# CHECK_EIGEN=DIR). Not part of `make test`.
+SANITIZE_FLAGS := -fsanitize=address,undefined,float-cast-overflow -fno-sanitize-recover=all \
+  -fno-omit-frame-pointer -g -O1
+check-sanitize:
+	@[ -n "$(CHECK_EIGEN)" ] || { echo "check-sanitize: no Eigen headers (pip install cmeel-eigen, or CHECK_EIGEN=DIR)"; exit 1; }
+	cmake -S tests/cpp -B $(CHECK)/sanitize -DCMAKE_BUILD_TYPE=Debug \
+	  -DCMAKE_CXX_FLAGS="$(SANITIZE_FLAGS)" -DCMAKE_EXE_LINKER_FLAGS="$(SANITIZE_FLAGS)" \
+	  -DEIGEN3_INCLUDE_DIR="$(CHECK_EIGEN)" >/dev/null
+	cmake --build $(CHECK)/sanitize -j 2
+	ASAN_OPTIONS=detect_leaks=1:halt_on_error=1:abort_on_error=0 \
+	  UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 \
+	  $(CHECK)/sanitize/check_core > $(CHECK)/sanitize.txt
+	@echo "check-sanitize: clean ($$(grep -c . $(CHECK)/sanitize.txt) lines of checks, $$(tail -1 $(CHECK)/sanitize.txt))"
 
 clean:
 	rm -rf build dist out $(VENV)

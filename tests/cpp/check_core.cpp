@@ -21,9 +21,11 @@
 #include <cstdlib>
 #include <cstring>
 #include <limits>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
+#include "disco/icp.hpp"
 #include "disco/int8_search.hpp"
 #include "disco/polar_bev.hpp"
 #include "disco/raycast.hpp"
@@ -329,6 +331,201 @@ void check_raycast() {
                 static_cast<long long>(n), reported(h));
 }
 
+
+// Hostile input for every entry point: empty and one-point clouds, NaN, Inf, values far
+// beyond any grid (float -> int casts must not overflow), degenerate rays, worlds and
+// searches. Run under `make check-sanitize`, any out-of-bounds access, overflow or bad
+// cast stops the program; here each case must also end in a sane result.
+void expect(bool ok, const char* what) {
+    if (!ok) {
+        std::fprintf(stderr, "FAIL hostile: %s\n", what);
+        ++g_failures;
+    }
+}
+
+std::vector<float> hostile_cloud() {
+    const float inf = std::numeric_limits<float>::infinity();
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    const float big = std::numeric_limits<float>::max();
+    std::vector<float> rows;
+    for (float v : {nan, inf, -inf, big, -big, 1e30f, -1e30f, 3e9f, -3e9f, 1e-40f, 0.0f, -0.0f}) {
+        rows.insert(rows.end(), {v, 1.0f, 0.5f, 0.0f});
+        rows.insert(rows.end(), {1.0f, v, 0.5f, 0.0f});
+        rows.insert(rows.end(), {2.0f, 3.0f, v, 0.0f});
+        rows.insert(rows.end(), {v, v, v, v});
+    }
+    // A plane of ordinary points, so that the ICP has something to align.
+    for (int i = -20; i <= 20; ++i)
+        for (int j = -20; j <= 20; ++j)
+            rows.insert(rows.end(), {0.5f * static_cast<float>(i), 0.5f * static_cast<float>(j),
+                                     static_cast<float>((i * j) % 3) * 0.25f, 0.0f});
+    return rows;
+}
+
+disco::CloudView view_of(const std::vector<float>& rows) {
+    return disco::CloudView(rows.data(), static_cast<Eigen::Index>(rows.size() / 4), 3,
+                            Eigen::Stride<Eigen::Dynamic, Eigen::Dynamic>(4, 1));
+}
+
+void check_hostile_voxels() {
+    const double inf = std::numeric_limits<double>::infinity();
+    const double nan = std::numeric_limits<double>::quiet_NaN();
+    disco::Points3d points;
+    expect(disco::voxel_downsample(points, 0.5).empty(), "voxel_downsample of no points");
+    points.emplace_back(1.0, 2.0, 3.0);
+    const disco::Points3d one = disco::voxel_downsample(points, 0.5);
+    expect(one.size() == 1 && one[0] == points[0], "voxel_downsample of one point");
+    for (double v : {nan, inf, -inf, 1e300, -1e300, 3e9, -3e9, 0.5, -0.5, 0.0})
+        points.emplace_back(v, v, 1.0);
+    for (double voxel : {0.5, 1e-300, 1e300}) {
+        const disco::Points3d out = disco::voxel_downsample(points, voxel);
+        expect(!out.empty() && out.size() <= points.size(), "voxel_downsample of hostile points");
+    }
+    // A grid over points on cell edges and far away: lookups anywhere return a point
+    // within the radius or -1, never an index out of range.
+    disco::Points3d grid_points = {{0, 0, 0}, {1, 0, 0}, {-1, -1, -1}, {1e12, 0, 0}, {0, -1e12, 5}};
+    const disco::NeighborGrid grid(grid_points, 1.0);
+    int found = 0;
+    for (double q : {0.0, 1.0, -1.0, 0.999999, 1e12, -1e12, 1e300, -1e300, nan, inf}) {
+        double d2 = 0.0;
+        const int i = grid.nearest(Eigen::Vector3d(q, 0.0, 0.0), &d2);
+        expect(i >= -1 && i < static_cast<int>(grid_points.size()), "nearest index in range");
+        if (i >= 0) {
+            expect((grid_points[i] - Eigen::Vector3d(q, 0, 0)).squaredNorm() <= 1.0,
+                   "nearest within the radius");
+            ++found;
+        }
+        std::vector<int> within;
+        grid.within(Eigen::Vector3d(q, q, q), &within);
+        for (int w : within) expect(w >= 0 && w < static_cast<int>(grid_points.size()), "within");
+    }
+    std::printf("hostile voxels               found %d\n", found);
+}
+
+void check_hostile_icp() {
+    const std::vector<float> rows = hostile_cloud();
+    const std::vector<float> empty;
+    const std::vector<float> one = {1.0f, 2.0f, 0.5f, 0.0f};
+    int results = 0;
+    for (double max_range : {60.0, 0.0}) {  // 0: keep every finite point, however far
+        disco::IcpConfig config;
+        config.max_range = max_range;
+        for (const std::vector<float>* target : {&rows, &empty, &one}) {
+            const disco::PlaneTarget plane(view_of(*target), config);
+            for (const std::vector<float>* source : {&rows, &empty, &one}) {
+                const disco::Points3d src = disco::prepare_source(view_of(*source), config);
+                for (double shift : {0.0, 0.25, 1e12, std::numeric_limits<double>::quiet_NaN()}) {
+                    Eigen::Matrix4d initial = Eigen::Matrix4d::Identity();
+                    initial(0, 3) = shift;
+                    const disco::IcpResult r = plane.align(src, initial);
+                    expect(r.fitness >= 0.0 && r.fitness <= 1.0 && r.inliers >= 0 &&
+                               r.inliers <= r.source_points,
+                           "icp result in range");
+                    ++results;
+                }
+            }
+        }
+    }
+    for (double yaw : {0.0, 1.0}) {
+        const auto image = disco::height_image(view_of(rows), yaw, 0.5, 20.0);
+        expect(image.rows() == 80 && image.allFinite(), "height image of hostile points");
+    }
+    std::printf("hostile icp                  results %d\n", results);
+}
+
+void check_hostile_int8() {
+    const std::int64_t d = 8;
+    std::vector<float> x = {std::numeric_limits<float>::quiet_NaN(),
+                            std::numeric_limits<float>::infinity(),
+                            -std::numeric_limits<float>::infinity(),
+                            3e38f, -3e38f, 0.0f, 1.0f, -1.0f};
+    for (int i = 0; i < 8; ++i) x.push_back(static_cast<float>(i) * 0.25f);
+    std::vector<double> mean(d, 0.0), scale(d, 0.01);
+    std::vector<std::int8_t> codes(16);
+    std::vector<double> code_sq(2), code_norm(2), err(2);
+    disco::int8_encode(x.data(), 2, d, mean.data(), scale.data(), codes.data(), code_sq.data(),
+                       code_norm.data(), err.data(), 1);
+    disco::int8_encode(x.data(), 0, d, mean.data(), scale.data(), codes.data(), code_sq.data(),
+                       code_norm.data(), err.data(), 4);
+    for (std::int8_t c : codes) expect(c != -128, "int8 codes in -127..127");
+    disco::Int8Rows table{codes.data(), 2, d, code_sq.data(), code_norm.data(), err.data()};
+    const int limit = disco::int8_query_limit(d);
+    std::vector<std::int16_t> g(d, static_cast<std::int16_t>(limit));
+    disco::Int8Query query{g.data(), 1.0, 0.001, 0.0};
+    const std::uint8_t exclude[2] = {1, 0};
+    std::size_t total = 0;
+    for (int k : {-1, 0, 1, 2, 5}) {
+        for (std::int64_t lim : {std::int64_t{-3}, std::int64_t{0}, std::int64_t{1},
+                                 std::int64_t{2}, std::int64_t{1} << 40}) {
+            for (const std::uint8_t* ex : {static_cast<const std::uint8_t*>(nullptr), exclude}) {
+                const auto rows = disco::int8_candidates(table, query, k, lim, ex, 3);
+                for (std::int64_t r : rows) expect(r >= 0 && r < 2, "candidate row in range");
+                total += rows.size();
+            }
+        }
+    }
+    disco::Int8Rows none{codes.data(), 0, d, code_sq.data(), code_norm.data(), err.data()};
+    expect(disco::int8_candidates(none, query, 3, 10, nullptr, 2).empty(), "no rows, no candidates");
+    expect(disco::int8_query_limit(0) >= 1 && disco::int8_query_limit(1) == 32767 &&
+               disco::int8_query_limit(std::int64_t{1} << 40) == 1,
+           "int8 query limit");
+    std::printf("hostile int8                 candidates %zu\n", total);
+}
+
+void check_hostile_raycast() {
+    const double nan = std::numeric_limits<double>::quiet_NaN();
+    const double inf = std::numeric_limits<double>::infinity();
+    int refused = 0;
+    // Worlds too large for the cell size, or with non-finite primitives: refused.
+    for (double v : {1e12, 1e300, inf, nan}) {
+        disco::Primitive p;
+        p.cx = v;
+        p.hx = p.hy = p.hz = 1.0;
+        disco::Primitive q;
+        q.hx = q.hy = q.hz = 1.0;
+        try {
+            const disco::RaycastWorld world({p, q}, disco::GroundPlane{}, 1.0);
+        } catch (const std::invalid_argument&) {
+            ++refused;
+        }
+    }
+    for (double cell : {0.0, -1.0, nan}) {
+        try {
+            const disco::RaycastWorld world({}, disco::GroundPlane{}, cell);
+        } catch (const std::invalid_argument&) {
+            ++refused;
+        }
+    }
+    // Rays of zero, NaN and huge directions, from far and non-finite origins.
+    disco::Primitive box;
+    box.cx = 5.0;
+    box.hx = box.hy = box.hz = 1.0;
+    const float fnan = std::numeric_limits<float>::quiet_NaN();
+    const std::vector<float> dirs = {1, 0, 0,  0, 0, 0,  fnan, 0, 0,  0, 0, -1,
+                                     3e38f, 3e38f, 0,  -1, 0, 0,  0, 1, 0};
+    const auto n = static_cast<std::int64_t>(dirs.size() / 3);
+    int hits = 0;
+    for (const auto& prims : {std::vector<disco::Primitive>{}, std::vector<disco::Primitive>{box}}) {
+        const disco::RaycastWorld world(prims, disco::GroundPlane{0.0, 0.0, -1.7}, 2.0);
+        for (const Eigen::Vector3d& origin :
+             {Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(1e12, -1e12, 0),
+              Eigen::Vector3d(nan, 0, 0), Eigen::Vector3d(inf, 0, 0), Eigen::Vector3d(5, 0, 0)}) {
+            for (double max_range : {0.0, 100.0, 1e300}) {
+                std::vector<float> range(n), cosi(n);
+                std::vector<std::int32_t> id(n);
+                world.cast(origin, dirs.data(), n, max_range, 7, range.data(), id.data(),
+                           cosi.data());
+                for (std::int64_t i = 0; i < n; ++i) {
+                    expect(id[i] >= disco::kMiss && id[i] < static_cast<int>(prims.size()),
+                           "ray hit id in range");
+                    hits += id[i] >= 0;
+                }
+            }
+        }
+    }
+    std::printf("hostile raycast              refused %d hits %d\n", refused, hits);
+}
+
 // Times each kernel on 30k points: random ones within +-45 m, or the first 30k
 // of a KITTI .bin file (float32 x, y, z, intensity) given after --bench.
 int bench(const char* path, int level_only) {
@@ -411,9 +608,21 @@ int main(int argc, char** argv) {
     big.mode = disco::BEVMode::kDensity;
     check_bev("big grid random", random_scan(12, 5000), big);
 
+    disco::BEVConfig c = base;
+    check_bev("no points", {}, c);
+    check_bev("one point", {12.5, -3.25, 1.0}, c);
+    std::vector<double> far;
+    for (double v : {1e300, -1e300, 3e9, -3e9, 1e20})
+        far.insert(far.end(), {v, 1.0, 1.0, 1.0, v, 1.0, v, v, v});
+    check_bev("far points", far, c);
+
     check_voxel_downsample();
     check_int8_encode();
     check_raycast();
+    check_hostile_voxels();
+    check_hostile_icp();
+    check_hostile_int8();
+    check_hostile_raycast();
     std::printf("checksum %016llx\n", static_cast<unsigned long long>(g_checksum));
     if (g_failures) {
         std::fprintf(stderr, "%d failures\n", g_failures);

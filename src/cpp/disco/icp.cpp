@@ -203,8 +203,13 @@ Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> height_ima
         lo(r, k) = std::min(lo(r, k), z);
         hi(r, k) = std::max(hi(r, k), z);
     }
+    // The extent in double, saturated to float's range: z of +-3e38 in one cell must
+    // not make an Inf that the phase correlation would spread over the whole image.
+    const auto extent = (hi.array().cast<double>() - lo.array().cast<double>())
+                            .min(static_cast<double>(std::numeric_limits<float>::max()))
+                            .cast<float>();
     Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> out =
-        (hi.array() > lo.array()).select(hi.array() - lo.array(), 0.0f).matrix();
+        (hi.array() > lo.array()).select(extent, 0.0f).matrix();
     return out;
 }
 

@@ -25,6 +25,14 @@ double uniform01(std::uint64_t seed, std::uint64_t ray, std::uint64_t prim) {
     return static_cast<double>(h >> 11) * (1.0 / 9007199254740992.0);
 }
 
+// The cell of coordinate offset `v` (in cells) clamped to [0, n - 1], with the clamp
+// done in double: an int cast of a far or NaN value is undefined (NaN: cell 0).
+int cell_index(double v, int n) {
+    if (!(v > 0.0)) return 0;
+    if (!(v < static_cast<double>(n - 1))) return n - 1;
+    return static_cast<int>(v);
+}
+
 // Smallest root t > eps of a t^2 + 2 b t + c = 0, or inf.
 double first_root(double a, double b, double c) {
     const double disc = b * b - a * c;
@@ -41,6 +49,10 @@ double first_root(double a, double b, double c) {
 RaycastWorld::RaycastWorld(std::vector<Primitive> primitives, GroundPlane ground, double cell_size)
     : prims_(std::move(primitives)), ground_(ground), cell_(cell_size) {
     if (!(cell_ > 0)) throw std::invalid_argument("cell_size must be positive");
+    for (const Primitive& p : prims_) {
+        for (double v : {p.cx, p.cy, p.cz, p.hx, p.hy, p.hz, p.yaw, p.hit_prob})
+            if (!std::isfinite(v)) throw std::invalid_argument("primitive values must be finite");
+    }
     const std::size_t m = prims_.size();
     cos_yaw_.resize(m);
     sin_yaw_.resize(m);
@@ -75,19 +87,24 @@ RaycastWorld::RaycastWorld(std::vector<Primitive> primitives, GroundPlane ground
     }
     x0_ = xmin - 1e-3;
     y0_ = ymin - 1e-3;
-    nx_ = std::max(1, static_cast<int>(std::ceil((xmax - x0_ + 1e-3) / cell_)));
-    ny_ = std::max(1, static_cast<int>(std::ceil((ymax - y0_ + 1e-3) / cell_)));
+    // Sizes checked in double before the casts to int: a far or non-finite primitive
+    // would overflow them.
+    const double fx = std::max(1.0, std::ceil((xmax - x0_ + 1e-3) / cell_));
+    const double fy = std::max(1.0, std::ceil((ymax - y0_ + 1e-3) / cell_));
+    if (!(fx * fy <= 50'000'000.0))
+        throw std::invalid_argument("world too large for this cell size");
+    nx_ = static_cast<int>(fx);
+    ny_ = static_cast<int>(fy);
     const std::size_t cells = static_cast<std::size_t>(nx_) * ny_;
-    if (cells > 50'000'000) throw std::invalid_argument("world too large for this cell size");
 
     // Two passes into compressed rows: count, then fill.
     std::vector<std::int32_t> count(cells + 1, 0);
     cell_zmax_.assign(cells, -std::numeric_limits<float>::infinity());
     auto span = [&](std::size_t k, int& i0, int& i1, int& j0, int& j1) {
-        i0 = std::clamp(static_cast<int>((bx0[k] - x0_) / cell_), 0, nx_ - 1);
-        i1 = std::clamp(static_cast<int>((bx1[k] - x0_) / cell_), 0, nx_ - 1);
-        j0 = std::clamp(static_cast<int>((by0[k] - y0_) / cell_), 0, ny_ - 1);
-        j1 = std::clamp(static_cast<int>((by1[k] - y0_) / cell_), 0, ny_ - 1);
+        i0 = cell_index((bx0[k] - x0_) / cell_, nx_);
+        i1 = cell_index((bx1[k] - x0_) / cell_, nx_);
+        j0 = cell_index((by0[k] - y0_) / cell_, ny_);
+        j1 = cell_index((by1[k] - y0_) / cell_, ny_);
     };
     for (std::size_t k = 0; k < m; ++k) {
         int i0, i1, j0, j1;
@@ -276,8 +293,8 @@ void RaycastWorld::cast_from(const double* origins, int origin_stride, const flo
             }
             if (inside) {
                 const double px = origin.x() + t_enter * d.x(), py = origin.y() + t_enter * d.y();
-                int i = std::clamp(static_cast<int>((px - x0_) / cell_), 0, nx_ - 1);
-                int j = std::clamp(static_cast<int>((py - y0_) / cell_), 0, ny_ - 1);
+                int i = cell_index((px - x0_) / cell_, nx_);
+                int j = cell_index((py - y0_) / cell_, ny_);
                 const int step_i = d.x() > 0 ? 1 : -1, step_j = d.y() > 0 ? 1 : -1;
                 const double dti = std::abs(d.x()) > 1e-12 ? cell_ / std::abs(d.x()) : kInf;
                 const double dtj = std::abs(d.y()) > 1e-12 ? cell_ / std::abs(d.y()) : kInf;

@@ -48,8 +48,7 @@ void NeighborGrid::visit_cells(const Eigen::Vector3d& q, const double* bound2,
     const Eigen::Vector3d c = q * inv_cell_;
     const Eigen::Vector3d f = c.array().floor();
     const Eigen::Vector3d frac = c - f;
-    const int bx = static_cast<int>(f.x()), by = static_cast<int>(f.y()),
-              bz = static_cast<int>(f.z());
+    const int bx = voxel_index(c.x()), by = voxel_index(c.y()), bz = voxel_index(c.z());
     const double cell2 = radius_ * radius_;
     // Squared gap from q to the neighbouring slab on each side, per axis (in cells^2 * cell2).
     double gap[3][3];

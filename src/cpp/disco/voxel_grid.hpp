@@ -20,10 +20,19 @@ inline std::int64_t pack_voxel(std::int64_t ix, std::int64_t iy, std::int64_t iz
     return ((ix & mask) << 42) | ((iy & mask) << 21) | (iz & mask);
 }
 
+// floor(v) as an int, saturated at +-2^30 (NaN: the low end): a cast of a value
+// beyond int's range is undefined, and pack_voxel keeps 21 bits of it anyway.
+inline int voxel_index(double v) {
+    constexpr double kLimit = 1 << 30;
+    const double f = std::floor(v);
+    if (!(f > -kLimit)) return -(1 << 30);
+    if (!(f < kLimit)) return 1 << 30;
+    return static_cast<int>(f);
+}
+
 inline Eigen::Vector3i voxel_of(const Eigen::Vector3d& p, double inv_size) {
-    return {static_cast<int>(std::floor(p.x() * inv_size)),
-            static_cast<int>(std::floor(p.y() * inv_size)),
-            static_cast<int>(std::floor(p.z() * inv_size))};
+    return {voxel_index(p.x() * inv_size), voxel_index(p.y() * inv_size),
+            voxel_index(p.z() * inv_size)};
 }
 
 // Open-addressing hash table from a packed voxel key to a dense slot 0..size-1.
