@@ -181,6 +181,29 @@ def test_exclude_distance_against_numpy(samples: Path, seq_paths) -> None:
     np.testing.assert_allclose([lp.distance for lp in loops], [w[2] for w in want], rtol=1e-5)
 
 
+def test_loop_detector_feature_store_across_blocks() -> None:
+    """The detector's features live in fixed blocks (no copy as it grows, for the
+    soak): rows asked for in any order, across block edges, are the arrays added."""
+    from disco_cli.loop_detector import _Features
+
+    rng = np.random.default_rng(5)
+    added = rng.normal(size=(3 * _Features.BLOCK + 7, 2, 3)).astype(np.float32)
+    store = _Features()
+    for i, f in enumerate(added):
+        store.append(f, f"scan-{i}")
+    ids = np.array(
+        [0, _Features.BLOCK - 1, _Features.BLOCK, len(added) - 1, 5, 2 * _Features.BLOCK]
+    )
+    rows = store.rows(ids)
+    np.testing.assert_array_equal(rows.features, added[ids])
+    assert rows.paths == [f"scan-{i}" for i in ids]
+    assert store.nbytes() == added.nbytes and store.rows(np.array([], int)).features.shape == (
+        0,
+        2,
+        3,
+    )
+
+
 @pytest.mark.parametrize(
     "array",
     [

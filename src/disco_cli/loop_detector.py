@@ -87,31 +87,44 @@ def _check_window(value: Any, name: str, minimum: float) -> Any:
 
 class _Features:
     """The sequence's features, standing in for a database in `search.match_queries`
-    (a growing array: row = sequence index)."""
+    (row = sequence index).
+
+    Rows live in fixed blocks of `BLOCK` scans that are never copied or freed: a
+    doubling array would, past a few thousand scans, hold both copies at once while
+    growing (twice the features' memory), and freeing the old copy (tens of MB) makes
+    glibc raise its mmap threshold, after which the heap keeps up to twice that much
+    freed memory resident (the soak's step in docs/benchmarks.md)."""
+
+    BLOCK = 256
 
     def __init__(self) -> None:
-        self.buf: np.ndarray | None = None
+        self.blocks: list[np.ndarray] = []
         self.n = 0
         self.names: list[str] = []
 
     def append(self, features: np.ndarray, name: str) -> None:
         f = np.asarray(features, dtype=np.float32)
-        if self.buf is None or self.n == len(self.buf):
-            grown = np.empty((max(64, 2 * self.n), *f.shape), np.float32)
-            if self.buf is not None:
-                grown[: self.n] = self.buf[: self.n]
-            self.buf = grown
-        self.buf[self.n] = f
+        if self.n == len(self.blocks) * self.BLOCK:
+            self.blocks.append(np.empty((self.BLOCK, *f.shape), np.float32))
+        self.blocks[-1][self.n % self.BLOCK] = f
         self.n += 1
         self.names.append(name)
+
+    def nbytes(self) -> int:
+        """Bytes of the rows in use."""
+        return 0 if not self.blocks else self.n * self.blocks[0][0].nbytes
 
     def rows(self, ids: np.ndarray) -> Any:
         from disco_cli.database import MatchRows
 
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        assert self.buf is not None
+        feats = [self.blocks[i // self.BLOCK][i % self.BLOCK] for i in ids]
+        shape = (0, *self.blocks[0].shape[1:]) if self.blocks else (0,)
         return MatchRows(
-            ids, [self.names[i] for i in ids], np.full((len(ids), 4), np.nan), self.buf[ids]
+            ids,
+            [self.names[i] for i in ids],
+            np.full((len(ids), 4), np.nan),
+            np.stack(feats) if feats else np.empty(shape, np.float32),
         )
 
 
