@@ -12,7 +12,7 @@ OUT := out/demo
 MODEL ?= default
 
 .PHONY: demo test install install-test dev bench clean check-aarch64 docs-check docs-update \
-  check-sanitize
+  check-sanitize check-sanitize-python
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -101,6 +101,28 @@ check-sanitize:
 	  UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 \
 	  $(CHECK)/sanitize/check_core > $(CHECK)/sanitize.txt
 	@echo "check-sanitize: clean ($$(grep -c . $(CHECK)/sanitize.txt) lines of checks, $$(tail -1 $(CHECK)/sanitize.txt))"
+
+# The Python tests that drive the C++ core, run against an extension built with the
+# same sanitizers (libasan and libstdc++ preloaded into Python: without libstdc++,
+# ASan's __cxa_throw interceptor fails on the first C++ exception). Leak checks are
+# off: CPython keeps its own memory to exit. Needs pybind11 (`make dev`) and Eigen.
+ASAN_PKG := $(CHECK)/sanitize-python
+SANITIZED_TESTS ?= tests/test_bev.py tests/test_bev_fuzz.py tests/test_relative_pose.py \
+  tests/test_search.py tests/test_simulator.py tests/test_yaw_refine.py tests/test_sim_change.py \
+  tests/test_scancontext.py
+check-sanitize-python:
+	cmake -S . -B $(ASAN_PKG)/build -DCMAKE_BUILD_TYPE=Debug -DSKBUILD_PROJECT_VERSION=0.0.0 \
+	  -DCMAKE_CXX_FLAGS="$(SANITIZE_FLAGS)" -DCMAKE_MODULE_LINKER_FLAGS="$(SANITIZE_FLAGS)" \
+	  -DPython_EXECUTABLE=$(abspath $(PY)) \
+	  -Dpybind11_DIR="$$($(PY) -c 'import pybind11; print(pybind11.get_cmake_dir())')" >/dev/null
+	cmake --build $(ASAN_PKG)/build -j 2
+	rm -rf $(ASAN_PKG)/pkg && mkdir -p $(ASAN_PKG)/pkg && cp -r src/disco_cli $(ASAN_PKG)/pkg/
+	rm -f $(ASAN_PKG)/pkg/disco_cli/_core*.so && cp $(ASAN_PKG)/build/_core*.so $(ASAN_PKG)/pkg/disco_cli/
+	for t in $(SANITIZED_TESTS); do \
+	  LD_PRELOAD="$$($(CXX) -print-file-name=libasan.so) $$($(CXX) -print-file-name=libstdc++.so)" \
+	  ASAN_OPTIONS=detect_leaks=0:halt_on_error=1 UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 \
+	  PYTHONPATH=$(ASAN_PKG)/pkg:tests $(PY) -m pytest -q -p no:cacheprovider $$t || exit 1; done
+	@echo "check-sanitize-python: clean"
 
 clean:
 	rm -rf build dist out $(VENV)
