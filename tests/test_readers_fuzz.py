@@ -758,3 +758,6 @@ def test_pcd_with_a_huge_count_and_pointcloud2_beyond_float32(fuzz_dir: Path) ->
     msg = SimpleNamespace(fields=fields, data=data, height=1, width=2, point_step=16,
                           row_step=32, is_bigendian=False)  # fmt: skip
     np.testing.assert_array_equal(decode_message(msg, "b#t@1"), [[3, 4, 5, 0]])
+    # One row and a row_step of 2^63 (a damaged header): its padding is never read.
+    msg.data, msg.width, msg.row_step = struct.pack("<fdf", 3, 4, 5), 1, 2**63
+    np.testing.assert_array_equal(decode_message(msg, "b#t@1"), [[3, 4, 5, 0]])

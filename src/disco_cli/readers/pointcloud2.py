@@ -155,12 +155,12 @@ def decode_pointcloud2(
             f"data holds {buf.size} bytes, {height} rows of {row_step} bytes need {need}: "
             "truncated",
         )
-    if row_step == row_bytes:
+    if row_step == row_bytes or height == 1:  # one row: its padding never matters
         points = buf[: height * row_bytes]
     else:
         # Rows end in padding: keep each row's points only, through a strided view of
         # the bytes checked above (never an array of height x row_step, which a damaged
-        # row_step would make huge).
+        # row_step would make huge; with 2+ rows, row_step <= the data's size).
         rows = np.lib.stride_tricks.as_strided(
             buf, shape=(height, row_bytes), strides=(row_step, 1), writeable=False
         )
