@@ -46,6 +46,8 @@ from disco_cli.poses import (  # noqa: E402
 from disco_cli.readers import read_scan  # noqa: E402
 from disco_cli.readers.pointcloud2 import PointField, decode_message  # noqa: E402
 
+# A reader must not print NumPy's RuntimeWarnings (overflow, invalid cast) either.
+pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
 EXAMPLES = int(os.environ.get("DISCO_FUZZ_EXAMPLES", "120"))
 FUZZ = settings(
     max_examples=EXAMPLES,
