@@ -1,7 +1,14 @@
-"""Soak: one `LoopDetector` fed a long stream of scans in one process; resident memory
-and time per scan at intervals after a warm-up.
+"""Soak: one `LoopDetector` fed a long stream of scans in one process (or, with
+`--queries N`, N queries against one map); resident memory and time per scan at
+intervals after a warm-up.
 
     .venv/bin/python benchmarks/bench_soak.py [--scans 20000] [--pool 200] [--every 1000]
+    .venv/bin/python benchmarks/bench_soak.py --queries 10000 [--pool 200]
+
+With `--queries`, the pool is written to a map (`Map.add_many`, in a temporary folder)
+and then queried round and round with `Map.query` (top 10, the default search: re-ranking,
+refined yaw, snap), each query a perturbed pool scan as below. Nothing is kept between
+queries by design, so the target is growth under 5 % of the warm-up VmRSS, flat time.
 
 The scans are a pool of `--pool` simulated HDL-32E scans along session 00 of a
 generated town (`disco_cli.simulator`), fed round and round, each turned by a random
@@ -91,7 +98,11 @@ def main() -> None:
     ap.add_argument("--model", default="default")
     ap.add_argument("--verify", action="store_true", help="also estimate every loop's pose")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--queries", type=int, default=0, help="soak a query stream instead")
     args = ap.parse_args()
+    if args.queries:
+        soak_queries(args)
+        return
     every = args.every or max(1, args.scans // 20)
     warmup = args.warmup or max(1, args.scans // 10)
 
@@ -155,6 +166,61 @@ def main() -> None:
     print(
         f"time per scan: median {interval_ms[0]:.2f} ms in the first interval after the "
         f"warm-up, {interval_ms[-1]:.2f} ms in the last ({drift:.2f}x)"
+    )
+
+
+def soak_queries(args) -> None:
+    """`--queries N`: one map, N queries in one process; VmRSS and time per query."""
+    import tempfile
+    from pathlib import Path
+
+    from disco_cli.map import Map
+
+    n = args.queries
+    every = args.every or max(1, n // 20)
+    warmup = args.warmup or max(1, n // 10)
+    print_header("bench_soak --queries")
+    t0 = time.perf_counter()
+    pool = simulated_pool(args.pool, args.seed)
+    print(f"pool: {len(pool)} simulated scans in {time.perf_counter() - t0:.1f} s")
+    rng = np.random.default_rng(args.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        db = Path(tmp) / "map.db"
+        with Map.create(db, args.model) as m:
+            m.add_many((p, f"scan-{i}", None) for i, p in enumerate(pool))
+        with Map.open(db) as m:
+            print(f"map: {len(m)} scans; {n} queries, warm-up {warmup}, report every {every}")
+            print(f"{'queries':>7} {'VmRSS MB':>9} {'growth':>8} {'ms/query':>9}")
+            base = None
+            times: list[float] = []
+            interval_ms: list[float] = []
+            for i in range(n):
+                query = perturbed(pool[i % len(pool)], rng)
+                start = time.perf_counter()
+                m.query(query, topk=10)
+                times.append(time.perf_counter() - start)
+                done = i + 1
+                if done == warmup:
+                    gc.collect()
+                    base = vm_rss_bytes()
+                if done % every == 0 or done == n:
+                    rss = vm_rss_bytes()
+                    ms = 1000 * statistics.median(times)
+                    times.clear()
+                    if base is None:
+                        print(f"{done:7d} {rss / 1e6:9.1f} {'(warm-up)':>8} {ms:9.2f}")
+                        continue
+                    interval_ms.append(ms)
+                    grown = 100 * (rss - base) / base
+                    print(f"{done:7d} {rss / 1e6:9.1f} {grown:+7.2f}% {ms:9.2f}")
+    if base is None or not interval_ms:
+        print("too few queries for a figure after the warm-up")
+        return
+    growth = 100 * (rss - base) / base
+    print(
+        f"after {n} queries: VmRSS {base / 1e6:.1f} -> {rss / 1e6:.1f} MB ({growth:+.2f} %, "
+        f"target < 5 %): {'ok' if growth < 5 else 'OVER'}; time per query {interval_ms[0]:.2f} "
+        f"-> {interval_ms[-1]:.2f} ms ({interval_ms[-1] / interval_ms[0]:.2f}x)"
     )
 
 

@@ -12,6 +12,15 @@ SAMPLES = REPO / "data" / "samples"
 REALDATA = REPO.parent / "shared" / "realdata"
 
 
+def package_path() -> str:
+    """The folder holding the `disco_cli` these tests import (site-packages after an
+    install, src/ in a checkout whose compiled core lies there): PYTHONPATH for test
+    subprocesses, so that they run the same code with its compiled core."""
+    import disco_cli
+
+    return str(Path(disco_cli.__file__).resolve().parent.parent)
+
+
 @pytest.fixture(scope="session")
 def realdata() -> Path:
     """The real-scan folder, or skip when this machine does not have it."""

@@ -10,12 +10,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import package_path
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
 from disco_cli.console import progress_line
-
-SRC = Path(__file__).resolve().parent.parent / "src"
 
 
 def _disco(*args: object, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -32,7 +31,7 @@ def _disco(*args: object, env: dict | None = None) -> subprocess.CompletedProces
     )
     import os
 
-    full_env = {**os.environ, "PYTHONPATH": str(SRC), **(env or {})}
+    full_env = {**os.environ, "PYTHONPATH": package_path(), **(env or {})}
     return subprocess.run(
         [sys.executable, "-c", code, *map(str, args)],
         capture_output=True,

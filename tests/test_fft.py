@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import scipy.fft
-from conftest import REPO
+from conftest import package_path
 
 _CODE = """
 import sys
@@ -38,7 +38,7 @@ def test_pocketfft_without_scipy_fft_matches_scipy_fft(tmp_path):
     subprocess.run(
         [sys.executable, "-c", _CODE, str(path)],
         check=True,
-        env={"PYTHONPATH": str(REPO / "src")},
+        env={"PYTHONPATH": package_path()},
     )
     out = np.load(path)
     assert str(out["backend"]) == "pypocketfft"

@@ -18,7 +18,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from conftest import REPO  # noqa: E402
+from conftest import package_path  # noqa: E402
 
 from disco_cli.bev import BEVConfig, polar_bev  # noqa: E402
 from disco_cli.errors import ModelError  # noqa: E402
@@ -221,7 +221,7 @@ def test_the_query_path_never_imports_torch(samples, tmp_path):
     args = ["build-db", str(samples / "00"), f"-o{db}"]
     args += ["query", str(samples / "01" / "velodyne" / "000005.bin"), "--db", str(db)]
     args += ["--format", "tsv", "--topk", "1"]
-    env = {"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"}
+    env = {"PYTHONPATH": package_path(), "PATH": "/usr/bin:/bin"}
     out = subprocess.run(
         [sys.executable, "-c", code, *args], capture_output=True, text=True, env=env
     )

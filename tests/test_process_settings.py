@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import REPO
+from conftest import package_path
 
 from disco_cli.blas_threads import _functions, blas_threads
 
@@ -47,7 +47,7 @@ def test_keep_freed_memory_keeps_a_freed_block_mapped():
         [sys.executable, "-c", code],
         capture_output=True,
         text=True,
-        env={"PYTHONPATH": str(REPO / "src")},
+        env={"PYTHONPATH": package_path()},
         check=True,
     )
     took, before, after = out.stdout.split()

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 import typer
+from conftest import package_path
 from typer.testing import CliRunner
 
 from disco_cli import threads as disco_threads
@@ -240,7 +241,6 @@ def test_commands_apply_the_setting_before_numpy_or_torch_load(tmp_path: Path) -
     import subprocess
     import sys
 
-    src = Path(__file__).resolve().parent.parent / "src"
     runs = [
         "build-db x.bin",
         "query x.bin",
@@ -252,7 +252,7 @@ def test_commands_apply_the_setting_before_numpy_or_torch_load(tmp_path: Path) -
         "serve",
     ]
     assert {r.split()[0] for r in runs} == set(COMPUTING)
-    env = {"PYTHONPATH": str(src), "PATH": "/usr/bin:/bin"}
+    env = {"PYTHONPATH": package_path(), "PATH": "/usr/bin:/bin"}
     res = subprocess.run(
         [sys.executable, "-c", CHECK_ORDER, *runs], capture_output=True, text=True, env=env
     )
