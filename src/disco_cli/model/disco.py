@@ -21,9 +21,7 @@ from disco_cli.model.unet_numpy import FrozenUNet
 from disco_cli.model.verify import aligned_correlation
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
 from disco_cli.model.yaw_refine import (
-    query_in_match_frame,
     query_in_match_frame_conf,
-    refine_yaw,
     refine_yaw_conf,
 )
 
@@ -209,22 +207,15 @@ class DiscoModel:
         resample better than the learned G (mean error 0.11 against 0.22 degrees on the
         terrace hard set, docs/research/model-history.md), so that image is re-centred when
         there is one."""
-        return refine_yaw(
-            self.refine_image(query_features),
-            self.refine_image(match_features),
-            self.bev_config.max_range,
-        )
+        return self.refine_yaw_conf(query_features, match_features)[0]
 
     def query_position(
         self, query_features: np.ndarray, match_features: np.ndarray
     ) -> tuple[float, np.ndarray]:
         """(yaw_deg, position [2] of the query sensor in the match's frame, m) of one
         match, parallax-free (`refine_yaw`'s yaw for that match)."""
-        return query_in_match_frame(
-            self.refine_image(query_features),
-            self.refine_image(match_features),
-            self.bev_config.max_range,
-        )
+        yaw, position, _ = self.query_position_conf(query_features, match_features)
+        return yaw, position
 
     def yaw_conf(
         self, query_features: np.ndarray, match_features: np.ndarray

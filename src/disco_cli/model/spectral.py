@@ -15,7 +15,7 @@ import numpy as np
 
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
-from disco_cli.model.yaw_refine import refine_yaw, refine_yaw_conf
+from disco_cli.model.yaw_refine import refine_yaw_conf
 
 
 class SpectralModel:
@@ -57,7 +57,7 @@ class SpectralModel:
 
     def refine_yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
         """`yaw` with the parallax of the two sensors' offset removed (yaw_refine.py)."""
-        return refine_yaw(query_features, match_features, self.bev_config.max_range)
+        return self.refine_yaw_conf(query_features, match_features)[0]
 
     def yaw_conf(
         self, query_features: np.ndarray, match_features: np.ndarray
