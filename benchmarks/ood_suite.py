@@ -253,24 +253,11 @@ def simulate(disco: str, out: Path, w: World, caps: dict[str, object]) -> Path:
 
 def _simulate_boulevard(cmd: list[str], folder: Path, out: Path, w: World) -> Path:
     """A boulevard world: its town and change in a TOML, its query offsets as options."""
-    from disco_cli.simulator.styles import BOULEVARD_TOWN, boulevard_change
+    from disco_cli.simulator.styles import boulevard_toml
 
-    town = dict(BOULEVARD_TOWN)
-    if w.side_m is not None:  # room for two cars 8 m apart and a kerb
-        town["road_width_m"] = (19.0, 22.0)
-
-    def value(v: object) -> str:
-        if isinstance(v, str):
-            return f'"{v}"'
-        if isinstance(v, tuple):
-            return "[" + ", ".join(f"{x:g}" for x in v) + "]"
-        return f"{v:g}"
-
-    lines = ["[town]"] + [f"{k} = {value(v)}" for k, v in town.items()]
-    lines += ["", "[change]"] + [f"{k} = {v:g}" for k, v in boulevard_change(w.change).items()]
     toml = out / "towns" / f"{w.name}.toml"
     toml.parent.mkdir(parents=True, exist_ok=True)
-    toml.write_text("\n".join(lines) + "\n")
+    toml.write_text(boulevard_toml(w.change, wide=w.side_m is not None))
     cmd += ["--town", str(toml), "--step-m", f"{w.step_m:g}"]
     if w.side_m is not None:
         cmd += ["--robot-side", f"{w.side_m[0]:g},{w.side_m[1]:g}"]

@@ -54,23 +54,10 @@ GRID = {
 
 def _town_toml(path: Path, change: float, wide: bool) -> Path:
     """The suite's boulevard town (ood_suite._simulate_boulevard), wider for side revisits."""
-    from disco_cli.simulator.styles import BOULEVARD_TOWN, boulevard_change
+    from disco_cli.simulator.styles import boulevard_toml
 
-    town = dict(BOULEVARD_TOWN)
-    if wide:
-        town["road_width_m"] = (19.0, 22.0)
-
-    def value(v: object) -> str:
-        if isinstance(v, str):
-            return f'"{v}"'
-        if isinstance(v, tuple):
-            return "[" + ", ".join(f"{x:g}" for x in v) + "]"
-        return f"{v:g}"
-
-    lines = ["[town]"] + [f"{k} = {value(v)}" for k, v in town.items()]
-    lines += ["", "[change]"] + [f"{k} = {v:g}" for k, v in boulevard_change(change).items()]
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text(boulevard_toml(change, wide))
     return path
 
 

@@ -129,3 +129,23 @@ def boulevard_change(f: float) -> dict:
         "trees": f,
         "buildings": 0.0,
     }
+
+
+def boulevard_toml(change: float, wide: bool = False) -> str:
+    """The suite's boulevard town and its change at level `change`, as the TOML that
+    `disco simulate --town` reads; `wide`: 19-22 m kerb to kerb (room for two cars 8 m
+    apart and a kerb), for revisits to the side."""
+    town = dict(BOULEVARD_TOWN)
+    if wide:
+        town["road_width_m"] = (19.0, 22.0)
+
+    def value(v: object) -> str:
+        if isinstance(v, str):
+            return f'"{v}"'
+        if isinstance(v, tuple):
+            return "[" + ", ".join(f"{x:g}" for x in v) + "]"
+        return f"{v:g}"
+
+    lines = ["[town]"] + [f"{k} = {value(v)}" for k, v in town.items()]
+    lines += ["", "[change]"] + [f"{k} = {v:g}" for k, v in boulevard_change(change).items()]
+    return "\n".join(lines) + "\n"
