@@ -48,7 +48,8 @@ import sqlite3
 import struct
 import zlib
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -573,21 +574,10 @@ class Database:
         self._check_writable_format()
         self.check_batch_shapes(batch)
         encoded = _encode_batch(batch)
-        try:
-            self._conn.execute("BEGIN IMMEDIATE")
-            try:
-                last = self._conn.execute("SELECT MAX(id) FROM scans").fetchone()[0] or 0
-                ids = list(range(last + 1, last + 1 + len(batch.paths)))
-                _insert_rows(self._conn, ids, batch, encoded)
-                self._bump_generation()
-                self._conn.commit()
-            except BaseException:
-                self._conn.rollback()
-                raise
-        except sqlite3.IntegrityError as exc:
-            raise DatabaseError(self.path, f"cannot append: {exc}") from None
-        except sqlite3.Error as exc:
-            raise DatabaseError(self.path, f"cannot write: {exc}") from None
+        with self._write_transaction("append"):
+            last = self._conn.execute("SELECT MAX(id) FROM scans").fetchone()[0] or 0
+            ids = list(range(last + 1, last + 1 + len(batch.paths)))
+            _insert_rows(self._conn, ids, batch, encoded)
         return ids
 
     @_sql_errors
@@ -603,22 +593,11 @@ class Database:
         self.check_batch_shapes(batch)
         encoded = _encode_batch(batch)
         marks = ",".join("?" * len(ids))
-        try:
-            self._conn.execute("BEGIN IMMEDIATE")
-            try:
-                for table, key in (("scans", "id"), ("features", "id"), ("side_views", "scan_id")):
-                    if table != "side_views" or self.side_offsets:
-                        self._conn.execute(f"DELETE FROM {table} WHERE {key} IN ({marks})", ids)
-                _insert_rows(self._conn, ids, batch, encoded)
-                self._bump_generation()
-                self._conn.commit()
-            except BaseException:
-                self._conn.rollback()
-                raise
-        except sqlite3.IntegrityError as exc:
-            raise DatabaseError(self.path, f"cannot rewrite: {exc}") from None
-        except sqlite3.Error as exc:
-            raise DatabaseError(self.path, f"cannot write: {exc}") from None
+        with self._write_transaction("rewrite"):
+            for table, key in (("scans", "id"), ("features", "id"), ("side_views", "scan_id")):
+                if table != "side_views" or self.side_offsets:
+                    self._conn.execute(f"DELETE FROM {table} WHERE {key} IN ({marks})", ids)
+            _insert_rows(self._conn, ids, batch, encoded)
         for i in ids:
             self.damaged.pop(i, None)
 
@@ -627,6 +606,24 @@ class Database:
             raise DatabaseError(
                 self.path, "format 1 map opened read-only; open it for writing to migrate it"
             )
+
+    @contextmanager
+    def _write_transaction(self, what: str) -> Iterator[None]:
+        """One write transaction (all or nothing) that raises the map's `generation`;
+        SQLite's errors become one `DatabaseError` ("cannot <what>: ...")."""
+        try:
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield
+                self._bump_generation()
+                self._conn.commit()
+            except BaseException:
+                self._conn.rollback()
+                raise
+        except sqlite3.IntegrityError as exc:
+            raise DatabaseError(self.path, f"cannot {what}: {exc}") from None
+        except sqlite3.Error as exc:
+            raise DatabaseError(self.path, f"cannot write: {exc}") from None
 
     def _bump_generation(self) -> None:
         self._conn.execute(
