@@ -69,6 +69,15 @@ def print_header(name: str) -> None:
     print(f"# {name} on {machine_line()}", flush=True)
 
 
+def rss_mib() -> float:
+    """This process's resident memory (VmRSS) in MiB; NaN where /proc does not say."""
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
 def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
     """Median wall-clock milliseconds of fn() over `repeats` calls, after `warmup`."""
     return median_wall_cpu_ms(fn, repeats, warmup)[0]

@@ -42,17 +42,10 @@ from _common import (
     interleaved_medians_ms,
     model_arg,
     print_header,
+    rss_mib,
     synthetic_scan,
 )
 from _common import median_of_ms as median_ms
-
-
-def rss_mib() -> float:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def bench_search(n: int, dim: int, reps: int) -> dict:

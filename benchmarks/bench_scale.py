@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import REPO, print_header
+from _common import REPO, print_header, rss_mib
 
 SEEDS = {
     "industrial": 8101,
@@ -53,14 +53,6 @@ SEEDS = {
 }
 RADIUS = 5.0
 TOWN_SPACING = 1e5  # towns laid side by side in x, so no match crosses between them
-
-
-def rss_mib() -> float:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def towns(out: Path, model) -> list[dict]:
