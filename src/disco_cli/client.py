@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--topk", "-k", type=int, help="matches per query (server's default)")
     ap.add_argument("--pose", action="store_true", help="add the verified relative pose")
     args = ap.parse_args(argv)
-    sock = args.socket if args.port is not None or args.socket else "disco.sock"
+    sock = None if args.port is not None else (args.socket or "disco.sock")
     paths = (
         (line.strip() for line in sys.stdin if line.strip())
         if args.scans == ["-"]
@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     failed = 0
     try:
-        with Client(None if args.port else sock, host=args.host, port=args.port) as c:
+        with Client(sock, host=args.host, port=args.port) as c:
             for path in paths:
                 req: dict[str, Any] = {"scan": path}
                 if args.topk is not None:
@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
                 sys.stdout.write(json.dumps(reply) + "\n")
                 sys.stdout.flush()
     except OSError as exc:
-        where = f"{args.host}:{args.port}" if args.port else sock
+        where = sock or f"{args.host}:{args.port}"
         print(f"error: {where}: cannot reach the server ({exc})", file=sys.stderr)
         return 1
     except BrokenPipeError:
