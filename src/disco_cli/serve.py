@@ -235,8 +235,6 @@ class QueryService:
         return reply
 
     def _query_file(self, path, topk, pose, max_distance, scan_format) -> Any:
-        if not Path(path).exists():
-            raise RequestError(f"{path}: no such file")
         results = list(
             self.map.query_files(
                 [path],
