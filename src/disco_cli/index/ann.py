@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError
+from disco_cli.output_paths import atomic_path
 
 __all__ = ["AnnParams", "AnnIndex", "default_params", "open_or_build", "SidecarError"]
 
@@ -194,8 +195,7 @@ class AnnIndex:
         """Write the sidecar at `path` atomically (a temporary file renamed into place)."""
         faiss = _faiss()
         path = Path(path)
-        tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-        try:
+        with atomic_path(path) as tmp:
             faiss.write_index(self._index, str(tmp))
             index_bytes = tmp.stat().st_size
             ids = np.ascontiguousarray(ids, dtype="<i8")
@@ -222,9 +222,6 @@ class AnnIndex:
                 fh.write(_TRAILER.pack(len(blob), _MAGIC))
                 fh.flush()
                 os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
 
     @classmethod
     def load(cls, path: Path, key: dict) -> tuple[AnnIndex, np.ndarray, np.ndarray | None]:

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import sys
 import zipfile
 from pathlib import Path
@@ -29,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import ModelError
+from disco_cli.output_paths import atomic_path
 
 FORMAT = "disco-cli-npz/1"
 _META = "__disco__"
@@ -56,10 +56,8 @@ def save_npz(
     arrays = {key: to_numpy(value) for key, value in state.items()}
     if _META in arrays:
         raise ValueError(f"a state dict key may not be {_META}")
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **arrays, **{_META: np.array(json.dumps(meta, sort_keys=True))})
-    os.replace(tmp, path)
 
 
 def read_npz(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
