@@ -208,3 +208,52 @@ def test_shipped_network_re_centres_the_bev_it_was_given(samples):
     got = model.refine_yaw(fq, fm[None])
     want = refine_yaw(q.sum(axis=0), m.sum(axis=0)[None], model.bev_config.max_range)
     assert got == pytest.approx(want, abs=0.02)
+
+
+def test_core_resampling_refuses_places_outside_the_image():
+    """The C++ reads check their indices: a bad place is an error, not a stray read."""
+    from disco_cli import _core
+
+    padded = np.zeros((R + 3) * (2 * S + 1), np.float32)
+    places = np.zeros((3, R * S), np.int32)
+    places[0, 7] = padded.size - 1  # its far row lies past the end
+    with pytest.raises(IndexError):
+        _core.resample_views(padded, 2 * S + 1, [places], R * S)
+    places[0, 7] = -1
+    with pytest.raises(IndexError):
+        _core.resample_views(padded, 2 * S + 1, [places], R * S)
+    with pytest.raises(ValueError):
+        _core.resample_views(padded, 2 * S + 1, [places[:2]], R * S)
+
+
+def test_kept_views_give_what_a_fresh_search_gives():
+    """The query's views are kept between its matches; the yaw, position and confidence
+    against each match are those of a search that starts from nothing."""
+    from disco_cli.model.yaw_refine import forget_kept_views, refine_checked
+
+    rng = np.random.default_rng(5)
+    query = rng.random((R, S)).astype(np.float32) * (rng.random((R, S)) < 0.3)
+    matches = [np.roll(query, k, axis=1) + 0.3 * rng.random((R, S), np.float32) for k in (9, 70)]
+    matches.append(rng.random((R, S)).astype(np.float32))  # unrelated: the check runs
+    fresh = []
+    for m in matches:
+        forget_kept_views()
+        fresh.append(refine_checked(query, m, MAX_RANGE))
+    forget_kept_views()
+    for m, (yaw, pos, conf) in zip(matches, fresh):
+        got = refine_checked(query, m, MAX_RANGE)
+        assert got[0] == yaw and got[2] == conf
+        np.testing.assert_array_equal(got[1], pos)
+
+
+def test_search_positions_must_lie_on_the_lattice():
+    from disco_cli.model.yaw_refine import _lattice_index
+
+    assert _lattice_index(np.array([[0.0, 0.0], [-8.0, 8.0]], np.float32)).tolist() == [
+        16 * 33 + 16,
+        0 * 33 + 32,
+    ]
+    with pytest.raises(ValueError):
+        _lattice_index(np.array([[0.25, 0.0]], np.float32))
+    with pytest.raises(ValueError):
+        _lattice_index(np.array([[8.5, 0.0]], np.float32))

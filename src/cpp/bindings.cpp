@@ -9,6 +9,7 @@
 #include "disco/icp.hpp"          // relative pose
 #include "disco/int8_search.hpp"  // signature search
 #include "disco/polar_bev.hpp"    // polar BEV voxelizer
+#include "disco/polar_resample.hpp"  // re-centred views (parallax-free yaw)
 #include "disco/raycast.hpp"      // simulator ray casting
 #include "disco/version.hpp"
 
@@ -399,5 +400,34 @@ PYBIND11_MODULE(_core, m) {
             "int8 codes of float32 rows, with |scale c|^2, |c| and the error per row");
         m.def("int8_query_limit", &disco::int8_query_limit, py::arg("d"),
               "Largest |g_j| for which g . c cannot overflow int32");
+    }
+
+    // --- re-centred views of a polar image (src/cpp/disco/polar_resample.*) ---
+    {
+        using I32 = py::array_t<std::int32_t, py::array::c_style>;
+        m.def(
+            "resample_views",
+            [](const py::array_t<float, py::array::c_style>& padded, std::int64_t width,
+               const std::vector<I32>& places, std::int64_t cells) {
+                if (padded.ndim() != 1 || width < 1 || cells < 0)
+                    throw py::value_error("padded must be a flat float32 image, width >= 1");
+                std::vector<disco::ResamplePlaces> ptrs;
+                ptrs.reserve(places.size());
+                for (const auto& p : places) {
+                    if (p.ndim() != 2 || p.shape(0) != 3 || p.shape(1) != cells)
+                        throw py::value_error("each view's places must be int32 [3, cells]");
+                    ptrs.push_back(p.data());
+                }
+                py::array_t<float> out({static_cast<py::ssize_t>(places.size()),
+                                        static_cast<py::ssize_t>(cells)});
+                {
+                    py::gil_scoped_release release;
+                    disco::resample_views(padded.data(), padded.size(), width, ptrs, cells,
+                                          out.mutable_data());
+                }
+                return out;
+            },
+            py::arg("padded"), py::arg("width"), py::arg("places"), py::arg("cells"),
+            "Bilinear reads [views, cells] of a padded polar image at precomputed places");
     }
 }

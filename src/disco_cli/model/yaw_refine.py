@@ -10,12 +10,18 @@ Here the query's polar image is resampled as seen from candidate positions aroun
 query sensor (bilinear in ring and sector, in the query's own frame, so the unknown yaw
 stays a circular shift), each resampled image is phase-correlated with the match's, and
 the position whose correlation peaks highest wins: a 3 x 3 grid 3 m apart, then two
-rounds of its 8 neighbours at 1.5 m and 0.5 m. Its peak is the yaw. 25 resamplings of a
-40 x 120 image cost about 1.5 ms; docs/research/model-history.md has the figures.
+rounds of its 8 neighbours at 1.5 m and 0.5 m. Its peak is the yaw.
+
+Every position lies on a 0.5 m lattice, so the searches share their work: where a view
+reads is kept per position, the query's views and their spectra per query (its matches
+are searched from the same positions), and the curves per query and match. The reads
+themselves are C++ (`_core.resample_views`). A search costs about 0.4 ms, the yaw
+check's five about 1.3 ms (docs/benchmarks.md).
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from functools import lru_cache
 
 import numpy as np
@@ -68,11 +74,15 @@ def recentre(image: np.ndarray, positions: np.ndarray, max_range: float) -> np.n
     the inner ring's centre, is empty (0).
     """
     img = np.asarray(image, dtype=np.float32)
-    return _sample(img, _sampling(*img.shape, float(max_range), positions))
+    rings, sectors = img.shape
+    places = _places(rings, sectors, float(max_range), positions)
+    return _resample(_padded(img), places, img.shape)
 
 
-def _sampling(rings: int, sectors: int, max_range: float, positions: np.ndarray) -> tuple:
-    """Where `recentre` reads: flat indices into `_pairs`' table and the weights."""
+def _places(rings: int, sectors: int, max_range: float, positions: np.ndarray) -> list:
+    """Where each view of `recentre` reads: per position, int32 [3, R * S] holding the
+    flat index into `_padded`'s image of each cell's corner (ring r0, sector s0), and
+    the bits of its float32 fractions along sectors and along rings."""
     x0, y0 = _grid(rings, sectors, max_range)
     pos = np.asarray(positions, dtype=np.float32).reshape(-1, 2)
     x = x0[None] + pos[:, 0, None, None]
@@ -81,99 +91,240 @@ def _sampling(rings: int, sectors: int, max_range: float, positions: np.ndarray)
     # index shifted by one turn so that it is positive (arctan2 >= -pi).
     ring_f = np.sqrt(x * x + y * y) * np.float32(rings / max_range) + np.float32(0.5)
     sector_f = np.arctan2(y, x) * np.float32(sectors / (2.0 * np.pi)) + np.float32(sectors - 0.5)
-    # Both are >= 0: truncation is the floor. Weights stay float32 (int32 would promote).
+    # Both are >= 0: truncation is the floor. Beyond the outer ring the corner is the
+    # zero row after it and the fraction 0, so the far row (one more zero row) adds 0.
     ring_f = np.minimum(ring_f, np.float32(rings + 1))
     r0 = ring_f.astype(np.int32)
     s0 = sector_f.astype(np.int32)
     fr = ring_f - r0.astype(np.float32)
     fs = sector_f - s0.astype(np.float32)
-    width = 2 * sectors + 1
-    i0 = r0 * width + s0
-    i1 = np.minimum(r0 + 1, rings + 1) * width + s0
-    return i0, i1, fs, fr
+    i0 = r0 * np.int32(2 * sectors + 1) + s0
+    both = np.stack([i0, fs.view(np.int32), fr.view(np.int32)], axis=1)
+    return list(both.reshape(len(pos), 3, rings * sectors))
+
+
+# Every position a search visits lies on one lattice: the coarse grid's and the fine
+# steps' multiples of 0.5 m, out to the widest search's reach (33 x 33 positions).
+LATTICE_STEP = 0.5
+LATTICE_REACH = CHECK_REACH + sum(FINE_STEPS)
+_LATTICE_SIDE = int(round(2 * LATTICE_REACH / LATTICE_STEP)) + 1
+
+
+def _lattice_index(positions: np.ndarray) -> np.ndarray:
+    """Flat lattice indices [M] of `positions` [M, 2] (m), which must lie on it."""
+    k = np.rint((positions + LATTICE_REACH) / LATTICE_STEP).astype(np.int64)
+    if (
+        k.size == 0
+        or k.min() < 0
+        or k.max() >= _LATTICE_SIDE
+        or not np.array_equal(k * LATTICE_STEP - LATTICE_REACH, positions)
+    ):
+        raise ValueError(f"yaw search positions off the {LATTICE_STEP} m lattice: {positions}")
+    return k[:, 0] * _LATTICE_SIDE + k[:, 1]
+
+
+# Where each view reads is worked out once per lattice position and kept (computing it,
+# a square root and an arctan2 per cell, cost as much as reading the view itself):
+# queries keep to a few positions near the centre. Past 512 positions (28 MiB for a
+# 40 x 120 image) the kept ones are dropped and kept afresh.
+_PLACES_KEPT = 512
+_places_kept: dict[tuple, dict[int, np.ndarray]] = {}
+
+
+def _places_at(
+    rings: int, sectors: int, max_range: float, index: np.ndarray, positions: np.ndarray
+) -> list:
+    """`_places` of lattice `positions` [M, 2] (flat lattice `index` [M]), each
+    position's computed once and kept."""
+    kept = _places_kept.setdefault((rings, sectors, max_range), {})
+    keys = index.tolist()
+    new = [j for j, key in enumerate(keys) if key not in kept]
+    if new:  # one batch for all that are new
+        if len(kept) + len(new) > _PLACES_KEPT:
+            kept.clear()
+            new = list(range(len(keys)))
+        for j, places in zip(new, _places(rings, sectors, max_range, positions[new])):
+            kept[keys[j]] = places
+    return [kept[key] for key in keys]
 
 
 @lru_cache(maxsize=8)
-def _coarse_sampling(
-    rings: int, sectors: int, max_range: float, reach: float = COARSE_REACH
-) -> tuple[np.ndarray, tuple]:
-    """The first search grid's positions [M, 2] and their `_sampling`, computed once."""
+def _coarse_positions(reach: float = COARSE_REACH) -> np.ndarray:
+    """The first search grid's positions [M, 2] (m)."""
     k = np.arange(-reach, reach + 1e-6, COARSE_STEP, dtype=np.float32)
-    positions = np.stack(np.meshgrid(k, k, indexing="ij"), -1).reshape(-1, 2)
-    return positions, _sampling(rings, sectors, max_range, positions)
+    return np.stack(np.meshgrid(k, k, indexing="ij"), -1).reshape(-1, 2)
 
 
-def _pairs(img: np.ndarray) -> np.ndarray:
-    """The image padded (a zero ring before the first and after the last; the sectors
-    twice and the first once more, so that sector indices in [S - 1, 2 S] never wrap),
-    each cell paired with its next sector and read as one float64: two gathers, not four."""
+def _padded(img: np.ndarray) -> np.ndarray:
+    """The image flat with a zero ring before the first and two after the last, and its
+    sectors twice and the first once more, so that sector indices in [S - 1, 2 S] never
+    wrap: the table `_places` indexes."""
     rings, sectors = img.shape
-    padded = np.zeros((rings + 2, 2 * sectors + 1), np.float32)
+    padded = np.zeros((rings + 3, 2 * sectors + 1), np.float32)
     padded[1 : rings + 1, :sectors] = img
     padded[1 : rings + 1, sectors : 2 * sectors] = img
     padded[1 : rings + 1, 2 * sectors] = img[:, 0]
-    flat = padded.ravel()
-    return np.stack([flat[:-1], flat[1:]], axis=-1).view(np.float64).ravel()
+    return padded.ravel()
 
 
-def _sample(img: np.ndarray, sampling: tuple, pairs: np.ndarray | None = None) -> np.ndarray:
-    i0, i1, fs, fr = sampling
-    table = _pairs(img) if pairs is None else pairs
-    near = np.take(table, i0).view(np.float32).reshape(*i0.shape, 2)
-    far = np.take(table, i1).view(np.float32).reshape(*i1.shape, 2)
-    near = near[..., 0] + (near[..., 1] - near[..., 0]) * fs
-    far = far[..., 0] + (far[..., 1] - far[..., 0]) * fs
-    return near + (far - near) * fr
+def _resample(padded: np.ndarray, places: list, shape: tuple[int, int]) -> np.ndarray:
+    """Views [M, R, S] of an image of `shape` [R, S], read from its `_padded` table at
+    `places` (C++: bilinear reads in float32, each rounded as NumPy would)."""
+    from disco_cli import _core
+
+    rings, sectors = shape
+    views = _core.resample_views(padded, 2 * sectors + 1, places, rings * sectors)
+    return views.reshape(len(places), rings, sectors)
 
 
-def _curves(views: np.ndarray, match_spectrum: np.ndarray) -> np.ndarray:
-    """Phase-correlation curves [M, S] of views [M, R, S] against one match's spectrum
-    (yaw.py's curves; float32 weights keep the sums in single precision)."""
-    cross = fft.rfft(views, axis=-1) * np.conj(match_spectrum)[None]
-    weights = ring_weights(views.shape[1]).astype(np.float32)
-    return curves_of_cross_power(cross, weights, views.shape[-1])
+def _curves(spectra: np.ndarray, match_spectrum: np.ndarray) -> np.ndarray:
+    """Phase-correlation curves [M, S] of views given by their spectra along sectors
+    [M, R, S // 2 + 1] against one match's spectrum (yaw.py's curves; float32 weights
+    keep the sums in single precision)."""
+    cross = spectra * np.conj(match_spectrum)[None]
+    weights = ring_weights(spectra.shape[1]).astype(np.float32)
+    return curves_of_cross_power(cross, weights, 2 * (spectra.shape[-1] - 1))
 
 
-def refine_one(
-    query: np.ndarray, match: np.ndarray, max_range: float
-) -> tuple[float, np.ndarray, float]:
-    """(yaw_deg, position [2] of the match's sensor in the query frame (m), peak value)."""
+class _QueryViews:
+    """The query re-centred at lattice positions, each view and its spectrum along
+    sectors computed once: a query's yaw is refined against several matches (the best,
+    and after the snap the scan it moves to), whose searches visit the same positions."""
+
+    def __init__(self, q: np.ndarray, max_range: float):
+        self.q, self.max_range = q, float(max_range)
+        self.padded = _padded(q)
+        self.kept_views: dict[int, np.ndarray] = {}
+        self.kept_spectra: dict[int, np.ndarray] = {}
+
+    def spectra(self, index: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """Spectra [M, R, S // 2 + 1] of the views at lattice `positions` [M, 2] (flat
+        lattice `index` [M], no repeats)."""
+        keys = index.tolist()
+        new = [j for j, key in enumerate(keys) if key not in self.kept_spectra]
+        if len(new) == len(keys):
+            out = fft.rfft(self.views(index, positions), axis=-1)
+            self.kept_spectra.update(zip(keys, out))
+            return out
+        if new:
+            computed = fft.rfft(self.views(index[new], positions[new]), axis=-1)
+            self.kept_spectra.update(zip((keys[j] for j in new), computed))
+        return np.stack([self.kept_spectra[key] for key in keys])
+
+    def views(self, index: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """The views [M, R, S] at lattice `positions` [M, 2] (flat lattice `index` [M])."""
+        keys = index.tolist()
+        if all(key in self.kept_views for key in keys):
+            return np.stack([self.kept_views[key] for key in keys])
+        rings, sectors = self.q.shape
+        places = _places_at(rings, sectors, self.max_range, index, positions)
+        out = _resample(self.padded, places, self.q.shape)
+        self.kept_views.update(zip(keys, out))
+        return out
+
+
+# The last few queries' views (a stream refines each query's matches, then moves on).
+_QUERIES_KEPT = 2
+_queries_kept: OrderedDict = OrderedDict()
+
+
+def _query_views(q: np.ndarray, max_range: float) -> _QueryViews:
+    key = (float(max_range), q.shape, q.tobytes())
+    views = _queries_kept.get(key)
+    if views is None:
+        views = _queries_kept[key] = _QueryViews(q, max_range)
+        while len(_queries_kept) > _QUERIES_KEPT:
+            _queries_kept.popitem(last=False)
+    return views
+
+
+def forget_kept_views() -> None:
+    """Drops the kept query views (benchmarks: a repeated query then costs what a new
+    one does)."""
+    _queries_kept.clear()
+
+
+class _Views:
+    """The query's views phase-correlated with one match: each lattice position's curve
+    is computed once per pair, since the searches of `refine_checked` (the first, and
+    two per heading) revisit the same positions."""
+
+    def __init__(self, q: np.ndarray, m: np.ndarray, max_range: float):
+        self.q, self.m = q, m
+        self.query = _query_views(q, max_range)
+        self.fm = fft.rfft(m, axis=-1)
+        self.kept = np.empty((_LATTICE_SIDE**2, q.shape[1]), np.float32)
+        self.done = np.zeros(_LATTICE_SIDE**2, bool)
+        self.m_centred = m - m.mean()
+        self.m_norm = float(np.linalg.norm(self.m_centred))
+
+    def curves(self, positions: np.ndarray) -> np.ndarray:
+        """Curves [M, S] of the views at lattice `positions` [M, 2]."""
+        index = _lattice_index(positions)
+        new, first = np.unique(index[~self.done[index]], return_index=True)
+        if len(new):  # all new positions in one batch
+            spectra = self.query.spectra(new, positions[~self.done[index]][first])
+            self.kept[new] = _curves(spectra, self.fm)
+            self.done[new] = True
+        return self.kept[index]
+
+    def view(self, position: np.ndarray) -> np.ndarray:
+        """The query re-centred at one lattice `position` [2]."""
+        position = np.asarray(position, np.float32)[None]
+        return self.query.views(_lattice_index(position), position)[0]
+
+
+def _images(query: np.ndarray, match: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     q = np.asarray(query, dtype=np.float32)
     m = np.asarray(match, dtype=np.float32)
     if q.ndim != 2 or q.shape != m.shape:
         raise ValueError(
             f"query and match must be [R, S] images of one shape: {q.shape}, {m.shape}"
         )
-    fm = fft.rfft(m, axis=-1)
-    best_pos, best_val, best_curve = _search(q, fm, _pairs(q), float(max_range))
-    yaw = float(shift_to_yaw(peak_shift(best_curve[None]), q.shape[1])[0])
+    return q, m
+
+
+def refine_one(
+    query: np.ndarray, match: np.ndarray, max_range: float
+) -> tuple[float, np.ndarray, float]:
+    """(yaw_deg, position [2] of the match's sensor in the query frame (m), peak value)."""
+    views = _Views(*_images(query, match), max_range)
+    best_pos, best_val, best_curve = _search(views)
+    yaw = float(shift_to_yaw(peak_shift(best_curve[None]), views.q.shape[1])[0])
     return yaw, np.asarray(best_pos, np.float64), best_val
 
 
 def _search(
-    q: np.ndarray,
-    fm: np.ndarray,
-    table: np.ndarray,
-    max_range: float,
-    window: np.ndarray | None = None,
-    reach: float = COARSE_REACH,
+    views: _Views, window: np.ndarray | None = None, reach: float = COARSE_REACH
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """The re-centring search: (position, peak value, curve) of the view whose curve
     peaks highest; with `window` (sector shifts), the peak is sought among those only;
     `reach`: the first grid's half width (m)."""
-    rings, sectors = q.shape
-    positions, sampling = _coarse_sampling(rings, sectors, max_range, reach)
-    best_pos, best_val, best_curve = positions[0], -np.inf, None
+    return _searches(views, [(window, reach)])[0]
+
+
+def _searches(
+    views: _Views, specs: list[tuple[np.ndarray | None, float]]
+) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """`_search` for each (window, reach) of `specs`, run side by side so that each
+    round's new views are computed in one batch; each search's result is what it gives
+    alone."""
+    found = [(_coarse_positions(reach)[0], -np.inf, None) for _, reach in specs]
     for step in (None, *FINE_STEPS):
-        if step is not None:
-            positions = best_pos + _NEIGHBOURS * np.float32(step)
-            sampling = _sampling(rings, sectors, max_range, positions)
-        curves = _curves(_sample(q, sampling, table), fm)
-        peaks = (curves if window is None else curves[:, window]).max(axis=1)
-        i = int(np.argmax(peaks))
-        if peaks[i] > best_val:
-            best_pos, best_val, best_curve = positions[i], float(peaks[i]), curves[i]
-    return best_pos, best_val, best_curve
+        if step is None:
+            rounds = [_coarse_positions(reach) for _, reach in specs]
+        else:
+            rounds = [best_pos + _NEIGHBOURS * np.float32(step) for best_pos, _, _ in found]
+        curves = views.curves(np.concatenate(rounds))
+        start = 0
+        for n, ((window, _), positions) in enumerate(zip(specs, rounds)):
+            mine = curves[start : start + len(positions)]
+            start += len(positions)
+            peaks = (mine if window is None else mine[:, window]).max(axis=1)
+            i = int(np.argmax(peaks))
+            if peaks[i] > found[n][1]:
+                found[n] = (positions[i], float(peaks[i]), mine[i])
+    return found
 
 
 def refine_checked(
@@ -194,23 +345,18 @@ def refine_checked(
     correlation of the images (large structures weigh most there, as in the
     training-free floor's occupancy correlation). The confidence is then the margin
     between the two headings' own peaks."""
-    q = np.asarray(query, dtype=np.float32)
-    m = np.asarray(match, dtype=np.float32)
-    if q.ndim != 2 or q.shape != m.shape:
-        raise ValueError(
-            f"query and match must be [R, S] images of one shape: {q.shape}, {m.shape}"
-        )
-    sectors = q.shape[1]
-    fm = fft.rfft(m, axis=-1)
-    table = _pairs(q)
-    pos, val, curve = _search(q, fm, table, float(max_range))
+    views = _Views(*_images(query, match), max_range)
+    sectors = views.q.shape[1]
+    pos, val, curve = _search(views)
     best = int(np.argmax(curve))
     idx, peak = second_peak(curve[None], np.array([best]))
     other, other_val = int(idx[0]), float(peak[0])
     conf = float(margin(val, other_val))
     if conf < CHECK_BELOW:
-        v1, ncc1, _, _ = _heading(q, m, fm, table, float(max_range), best)
-        v2, ncc2, pos2, curve2 = _heading(q, m, fm, table, float(max_range), other)
+        windows = [(c + np.arange(-2, 3)) % sectors for c in (best, other)]
+        found = _searches(views, [(w, r) for w in windows for r in (COARSE_REACH, CHECK_REACH)])
+        v1, ncc1, _, _ = _heading(views, windows[0], found[:2])
+        v2, ncc2, pos2, curve2 = _heading(views, windows[1], found[2:])
         v1 = max(v1, val)
         if v2 > v1 and ncc2 > ncc1:
             pos, curve, conf = pos2, curve2, float(margin(v2, v1))
@@ -221,34 +367,30 @@ def refine_checked(
 
 
 def _heading(
-    q: np.ndarray, m: np.ndarray, fm: np.ndarray, table: np.ndarray, max_range: float, centre: int
+    views: _Views, window: np.ndarray, found: list[tuple[np.ndarray, float, np.ndarray]]
 ) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """The evidence for one heading (sector `centre`, +-2 sectors): (its highest phase-
-    correlation peak over the two searches, the higher plain correlation of their
-    re-centred views, the position and curve, peak kept in the window, of the first)."""
-    sectors = q.shape[1]
-    window = (centre + np.arange(-2, 3)) % sectors
+    """The evidence for one heading (the sector shifts `window`, its centre +-2) from its
+    two searches `found` (as wide as the first, and reaching CHECK_REACH): (its highest
+    phase-correlation peak, the higher plain correlation of their re-centred views, the
+    position and curve, peak kept in the window, of the search with that peak)."""
+    sectors = views.q.shape[1]
     best_val, best_ncc, best_pos, best_curve = -np.inf, -np.inf, None, None
-    for reach in (COARSE_REACH, CHECK_REACH):
-        p, v, c = _search(q, fm, table, max_range, window, reach)
+    for p, v, c in found:
         inside = np.full(sectors, c[window].min(), c.dtype)  # the peak stays in the window
         inside[window] = c[window]
-        best_ncc = max(best_ncc, _aligned_ncc(q, m, p, int(np.argmax(inside)), max_range))
+        best_ncc = max(best_ncc, _aligned_ncc(views, p, int(np.argmax(inside))))
         if v > best_val:
             best_val, best_pos, best_curve = v, p, inside
     return best_val, best_ncc, best_pos, best_curve
 
 
-def _aligned_ncc(
-    q: np.ndarray, m: np.ndarray, position: np.ndarray, shift: int, max_range: float
-) -> float:
+def _aligned_ncc(views: _Views, position: np.ndarray, shift: int) -> float:
     """Normalized correlation of the query re-centred at `position` and turned by `shift`
     sectors onto the match, with the match."""
-    view = np.roll(recentre(q, np.asarray(position)[None], max_range)[0], -shift, axis=1)
+    view = np.roll(views.view(position), -shift, axis=1)
     a = view - view.mean()
-    b = m - m.mean()
-    norm = float(np.linalg.norm(a) * np.linalg.norm(b))
-    return float((a * b).sum()) / norm if norm > 0 else 0.0
+    norm = float(np.linalg.norm(a)) * views.m_norm
+    return float((a * views.m_centred).sum()) / norm if norm > 0 else 0.0
 
 
 def refine_yaw_conf(
