@@ -211,19 +211,17 @@ def test_shipped_network_re_centres_the_bev_it_was_given(samples):
 
 
 def test_core_resampling_refuses_places_outside_the_image():
-    """The C++ reads check their indices: a bad place is an error, not a stray read."""
+    """The C++ reads check their places: a bad one is an error, not a stray read."""
     from disco_cli import _core
 
     padded = np.zeros((R + 3) * (2 * S + 1), np.float32)
-    places = np.zeros((3, R * S), np.int32)
-    places[0, 7] = padded.size - 1  # its far row lies past the end
-    with pytest.raises(IndexError):
-        _core.resample_views(padded, 2 * S + 1, [places], R * S)
-    places[0, 7] = -1
-    with pytest.raises(IndexError):
-        _core.resample_views(padded, 2 * S + 1, [places], R * S)
+    for ring, sector in [(R + 2.5, 3.0), (-0.5, 3.0), (2.0, 2 * S + 0.5), (np.nan, 1.0)]:
+        places = np.ones((2, R * S), np.float32)
+        places[:, 7] = ring, sector
+        with pytest.raises(IndexError):
+            _core.resample_views(padded, 2 * S + 1, [places], R * S)
     with pytest.raises(ValueError):
-        _core.resample_views(padded, 2 * S + 1, [places[:2]], R * S)
+        _core.resample_views(padded, 2 * S + 1, [np.ones((3, R * S), np.float32)], R * S)
 
 
 def test_kept_views_give_what_a_fresh_search_gives():

@@ -404,18 +404,18 @@ PYBIND11_MODULE(_core, m) {
 
     // --- re-centred views of a polar image (src/cpp/disco/polar_resample.*) ---
     {
-        using I32 = py::array_t<std::int32_t, py::array::c_style>;
+        using F32 = py::array_t<float, py::array::c_style>;
         m.def(
             "resample_views",
-            [](const py::array_t<float, py::array::c_style>& padded, std::int64_t width,
-               const std::vector<I32>& places, std::int64_t cells) {
+            [](const F32& padded, std::int64_t width, const std::vector<F32>& places,
+               std::int64_t cells) {
                 if (padded.ndim() != 1 || width < 1 || cells < 0)
                     throw py::value_error("padded must be a flat float32 image, width >= 1");
                 std::vector<disco::ResamplePlaces> ptrs;
                 ptrs.reserve(places.size());
                 for (const auto& p : places) {
-                    if (p.ndim() != 2 || p.shape(0) != 3 || p.shape(1) != cells)
-                        throw py::value_error("each view's places must be int32 [3, cells]");
+                    if (p.ndim() != 2 || p.shape(0) != 2 || p.shape(1) != cells)
+                        throw py::value_error("each view's places must be float32 [2, cells]");
                     ptrs.push_back(p.data());
                 }
                 py::array_t<float> out({static_cast<py::ssize_t>(places.size()),

@@ -574,45 +574,42 @@ int bench(const char* path, int level_only) {
 
 }  // namespace
 
-// Re-centred views: bilinear reads agree with the formula by hand; a corner index that
-// would read past either end of the image throws instead of reading.
+// Re-centred views: bilinear reads agree with the formula by hand; a place outside the
+// image (negative, past either end, NaN, huge) throws instead of reading.
 void check_resample() {
     const std::int64_t width = 5, rows = 4, cells = 3;
     std::vector<float> padded(static_cast<std::size_t>(width * rows));
     for (std::size_t i = 0; i < padded.size(); ++i) padded[i] = static_cast<float>(i * i % 7);
-    auto bits = [](float f) {
-        std::int32_t b;
-        std::memcpy(&b, &f, sizeof b);
-        return b;
-    };
-    // cells: corner indices 0, 6, 13; fractions along sectors and rings
-    std::vector<std::int32_t> places = {0, 6, 13, bits(0.0f), bits(0.25f), bits(1.0f),
-                                        bits(0.0f), bits(0.5f), bits(0.75f)};
+    // cells: (ring, sector) places
+    std::vector<float> places = {0.0f, 1.5f, 2.75f, 0.0f, 1.25f, 3.0f};
     std::vector<float> out(cells);
     disco::resample_views(padded.data(), static_cast<std::int64_t>(padded.size()), width,
                           {places.data()}, cells, out.data());
     for (std::int64_t c = 0; c < cells; ++c) {
-        const std::int64_t k = places[c];
-        float fs, fr;
-        std::memcpy(&fs, &places[cells + c], sizeof fs);
-        std::memcpy(&fr, &places[2 * cells + c], sizeof fr);
+        const float rf = places[c], sf = places[cells + c];
+        const std::int64_t r0 = static_cast<std::int64_t>(rf), s0 = static_cast<std::int64_t>(sf);
+        const float fr = rf - static_cast<float>(r0), fs = sf - static_cast<float>(s0);
+        const std::int64_t k = r0 * width + s0;
         const float near = padded[k] + (padded[k + 1] - padded[k]) * fs;
         const float far = padded[k + width] + (padded[k + width + 1] - padded[k + width]) * fs;
         expect(out[c] == near + (far - near) * fr, "resample: bilinear read");
     }
-    for (std::int32_t bad : {-1, static_cast<std::int32_t>(width * (rows - 1) - 1),
-                             std::numeric_limits<std::int32_t>::max()}) {
-        places[1] = bad;
-        bool thrown = false;
-        try {
-            disco::resample_views(padded.data(), static_cast<std::int64_t>(padded.size()), width,
-                                  {places.data()}, cells, out.data());
-        } catch (const std::out_of_range&) {
-            thrown = true;
-        }
-        expect(thrown, "resample: an index outside the image throws");
-    }
     std::printf("resample                     %9.3f %9.3f %9.3f\n", out[0], out[1], out[2]);
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    for (float bad : {-0.5f, 3.0f, 4.0f, nan, 3e9f, std::numeric_limits<float>::infinity()}) {
+        for (int which : {0, 1}) {
+            std::vector<float> p = places;
+            p[which * cells + 1] = (which == 1 && bad == 3.0f) ? 4.5f : bad;
+            bool thrown = false;
+            try {
+                disco::resample_views(padded.data(), static_cast<std::int64_t>(padded.size()),
+                                      width, {p.data()}, cells, out.data());
+            } catch (const std::out_of_range&) {
+                thrown = true;
+            }
+            expect(thrown, "resample: a place outside the image throws");
+        }
+    }
 }
 
 int main(int argc, char** argv) {

@@ -7,16 +7,18 @@
 
 namespace disco {
 
-// One view's places: for each of `cells` output cells, the flat index i0 of its corner
-// (ring r0, sector s0) in the padded image, and the fractions fs (along sectors) and
-// fr (along rings) as float32 bit patterns, stored as int32 [3, cells].
-using ResamplePlaces = const std::int32_t*;
+// One view's places: for each of `cells` output cells, where it reads in the padded
+// image of rows of `width` as a fractional ring and sector, float32 [2, cells].
+using ResamplePlaces = const float*;
 
-// out[v, c] for every view v of `places` and cell c:
+// out[v, c] for every view v of `places` and cell c, with (ring, sector) its place:
+//   r0 = int(ring), s0 = int(sector), fr = ring - r0, fs = sector - s0,
+//   i0 = r0 * width + s0,
 //   near = p[i0] + (p[i0 + 1] - p[i0]) * fs,  far = the same one ring (`width`) further,
 //   out  = near + (far - near) * fr,
 // in float32 with each operation rounded as written (the same values as NumPy's).
-// `padded` holds `padded_size` floats; an index outside it throws std::out_of_range.
+// `padded` holds `padded_size` floats; a place that is negative, not finite, or reads
+// outside the image throws std::out_of_range.
 void resample_views(const float* padded, std::int64_t padded_size, std::int64_t width,
                     const std::vector<ResamplePlaces>& places, std::int64_t cells, float* out);
 

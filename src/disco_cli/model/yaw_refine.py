@@ -80,27 +80,21 @@ def recentre(image: np.ndarray, positions: np.ndarray, max_range: float) -> np.n
 
 
 def _places(rings: int, sectors: int, max_range: float, positions: np.ndarray) -> list:
-    """Where each view of `recentre` reads: per position, int32 [3, R * S] holding the
-    flat index into `_padded`'s image of each cell's corner (ring r0, sector s0), and
-    the bits of its float32 fractions along sectors and along rings."""
+    """Where each view of `recentre` reads: per position, float32 [2, R * S] holding each
+    cell's fractional ring and sector in `_padded`'s image (the C++ reads take the
+    corner and the fractions from them)."""
     x0, y0 = _grid(rings, sectors, max_range)
     pos = np.asarray(positions, dtype=np.float32).reshape(-1, 2)
     x = x0[None] + pos[:, 0, None, None]
     y = y0[None] + pos[:, 1, None, None]
     # Fractional ring index, shifted by one for the zero row padded in front; sector
-    # index shifted by one turn so that it is positive (arctan2 >= -pi).
+    # index shifted by one turn so that it is positive (arctan2 >= -pi). Beyond the
+    # outer ring the corner is the zero row after it and the fraction 0.
     ring_f = np.sqrt(x * x + y * y) * np.float32(rings / max_range) + np.float32(0.5)
-    sector_f = np.arctan2(y, x) * np.float32(sectors / (2.0 * np.pi)) + np.float32(sectors - 0.5)
-    # Both are >= 0: truncation is the floor. Beyond the outer ring the corner is the
-    # zero row after it and the fraction 0, so the far row (one more zero row) adds 0.
     ring_f = np.minimum(ring_f, np.float32(rings + 1))
-    r0 = ring_f.astype(np.int32)
-    s0 = sector_f.astype(np.int32)
-    fr = ring_f - r0.astype(np.float32)
-    fs = sector_f - s0.astype(np.float32)
-    i0 = r0 * np.int32(2 * sectors + 1) + s0
-    both = np.stack([i0, fs.view(np.int32), fr.view(np.int32)], axis=1)
-    return list(both.reshape(len(pos), 3, rings * sectors))
+    sector_f = np.arctan2(y, x) * np.float32(sectors / (2.0 * np.pi)) + np.float32(sectors - 0.5)
+    both = np.stack([ring_f, sector_f], axis=1)
+    return list(both.reshape(len(pos), 2, rings * sectors))
 
 
 # Every position a search visits lies on one lattice: the coarse grid's and the fine
@@ -123,11 +117,10 @@ def _lattice_index(positions: np.ndarray) -> np.ndarray:
     return k[:, 0] * _LATTICE_SIDE + k[:, 1]
 
 
-# Where each view reads is worked out once per lattice position and kept (computing it,
-# a square root and an arctan2 per cell, cost as much as reading the view itself):
-# queries keep to a few positions near the centre. Past 512 positions (28 MiB for a
-# 40 x 120 image) the kept ones are dropped and kept afresh.
-_PLACES_KEPT = 512
+# Where each view reads is worked out once per lattice position and kept for the
+# process's life: computing it (a square root and an arctan2 per cell) cost as much as
+# reading the view itself. All 33 x 33 positions of a 40 x 120 image hold 42 MiB; a
+# stream of real queries visits a few near the centre, random images most of them.
 _places_kept: dict[tuple, dict[int, np.ndarray]] = {}
 
 
@@ -140,11 +133,7 @@ def _places_at(
     keys = index.tolist()
     new = [j for j, key in enumerate(keys) if key not in kept]
     if new:  # one batch for all that are new
-        if len(kept) + len(new) > _PLACES_KEPT:
-            kept.clear()
-            new = list(range(len(keys)))
-        for j, places in zip(new, _places(rings, sectors, max_range, positions[new])):
-            kept[keys[j]] = places
+        kept.update(zip((keys[j] for j in new), _places(rings, sectors, max_range, positions[new])))
     return [kept[key] for key in keys]
 
 
