@@ -242,16 +242,3 @@ def test_kept_views_give_what_a_fresh_search_gives():
         got = refine_checked(query, m, MAX_RANGE)
         assert got[0] == yaw and got[2] == conf
         np.testing.assert_array_equal(got[1], pos)
-
-
-def test_search_positions_must_lie_on_the_lattice():
-    from disco_cli.model.yaw_refine import _lattice_index
-
-    assert _lattice_index(np.array([[0.0, 0.0], [-8.0, 8.0]], np.float32)).tolist() == [
-        16 * 33 + 16,
-        0 * 33 + 32,
-    ]
-    with pytest.raises(ValueError):
-        _lattice_index(np.array([[0.25, 0.0]], np.float32))
-    with pytest.raises(ValueError):
-        _lattice_index(np.array([[8.5, 0.0]], np.float32))

@@ -6,11 +6,11 @@ namespace disco {
 
 void resample_views(const float* padded, std::int64_t padded_size, std::int64_t width,
                     const std::vector<ResamplePlaces>& places, std::int64_t cells, float* out) {
-    // Every corner index up to `last` keeps its four reads inside the image; the bounds
-    // on ring and sector are checked as floats, before a cast could overflow.
-    const std::int64_t last = padded_size - width - 2;
-    const float ring_limit = static_cast<float>(padded_size / width);
-    const float sector_limit = static_cast<float>(width - 1);  // s0 + 1 stays in the row
+    // A corner at ring < rows - 1 and sector < width - 1 keeps all four reads inside the
+    // image. The places are checked as floats (NaN fails every comparison) before any
+    // cast. (A separate checking pass made the whole 25 % slower.)
+    const float ring_limit = static_cast<float>(padded_size / width - 1);
+    const float sector_limit = static_cast<float>(width - 1);
     for (std::size_t v = 0; v < places.size(); ++v) {
         const float* ring = places[v];
         const float* sector = ring + cells;
@@ -24,7 +24,6 @@ void resample_views(const float* padded, std::int64_t padded_size, std::int64_t 
             const float fr = rf - static_cast<float>(r0);
             const float fs = sf - static_cast<float>(s0);
             const std::int64_t k = static_cast<std::int64_t>(r0) * width + s0;
-            if (k > last) throw std::out_of_range("resample_views: a place outside the image");
             const float a0 = padded[k], a1 = padded[k + 1];
             const float b0 = padded[k + width], b1 = padded[k + width + 1];
             const float near = a0 + (a1 - a0) * fs;

@@ -17,8 +17,8 @@ using ResamplePlaces = const float*;
 //   near = p[i0] + (p[i0 + 1] - p[i0]) * fs,  far = the same one ring (`width`) further,
 //   out  = near + (far - near) * fr,
 // in float32 with each operation rounded as written (the same values as NumPy's).
-// `padded` holds `padded_size` floats; a place that is negative, not finite, or reads
-// outside the image throws std::out_of_range.
+// `padded` holds `padded_size` floats (rows of `width`); a place that is negative, not
+// finite, at ring >= rows - 1 or at sector >= width - 1 throws std::out_of_range.
 void resample_views(const float* padded, std::int64_t padded_size, std::int64_t width,
                     const std::vector<ResamplePlaces>& places, std::int64_t cells, float* out);
 

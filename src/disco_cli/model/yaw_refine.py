@@ -50,9 +50,7 @@ CHECK_REACH = 6.0
 COARSE_STEP = 3.0
 COARSE_REACH = 3.0
 FINE_STEPS = (1.5, 0.5)
-_NEIGHBOURS = np.array(
-    [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if (a, b) != (0, 0)], np.float32
-)
+_NEIGHBOURS = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if (a, b) != (0, 0)])
 
 
 @lru_cache(maxsize=8)
@@ -104,17 +102,17 @@ LATTICE_REACH = CHECK_REACH + sum(FINE_STEPS)
 _LATTICE_SIDE = int(round(2 * LATTICE_REACH / LATTICE_STEP)) + 1
 
 
-def _lattice_index(positions: np.ndarray) -> np.ndarray:
-    """Flat lattice indices [M] of `positions` [M, 2] (m), which must lie on it."""
-    k = np.rint((positions + LATTICE_REACH) / LATTICE_STEP).astype(np.int64)
-    if (
-        k.size == 0
-        or k.min() < 0
-        or k.max() >= _LATTICE_SIDE
-        or not np.array_equal(k * LATTICE_STEP - LATTICE_REACH, positions)
-    ):
-        raise ValueError(f"yaw search positions off the {LATTICE_STEP} m lattice: {positions}")
-    return k[:, 0] * _LATTICE_SIDE + k[:, 1]
+# Searches move on the lattice in whole cells: each fine step's length in cells.
+_FINE_CELLS = tuple(int(round(step / LATTICE_STEP)) for step in FINE_STEPS)
+
+
+def _metres(cells: np.ndarray) -> np.ndarray:
+    """Positions [M, 2] (m, float32) of lattice cells [M, 2] (exact: multiples of 0.5)."""
+    return (cells * LATTICE_STEP - LATTICE_REACH).astype(np.float32)
+
+
+def _flat(cells: np.ndarray) -> np.ndarray:
+    return cells[:, 0] * _LATTICE_SIDE + cells[:, 1]
 
 
 # Where each view reads is worked out once per lattice position and kept for the
@@ -138,10 +136,11 @@ def _places_at(
 
 
 @lru_cache(maxsize=8)
-def _coarse_positions(reach: float = COARSE_REACH) -> np.ndarray:
-    """The first search grid's positions [M, 2] (m)."""
-    k = np.arange(-reach, reach + 1e-6, COARSE_STEP, dtype=np.float32)
-    return np.stack(np.meshgrid(k, k, indexing="ij"), -1).reshape(-1, 2)
+def _coarse_cells(reach: float = COARSE_REACH) -> np.ndarray:
+    """The first search grid [M, 2] as lattice cells."""
+    k = np.arange(-reach, reach + 1e-6, COARSE_STEP)
+    metres = np.stack(np.meshgrid(k, k, indexing="ij"), -1).reshape(-1, 2)
+    return np.rint((metres + LATTICE_REACH) / LATTICE_STEP).astype(np.int64)
 
 
 def _padded(img: np.ndarray) -> np.ndarray:
@@ -247,20 +246,22 @@ class _Views:
         self.m_centred = m - m.mean()
         self.m_norm = float(np.linalg.norm(self.m_centred))
 
-    def curves(self, positions: np.ndarray) -> np.ndarray:
-        """Curves [M, S] of the views at lattice `positions` [M, 2]."""
-        index = _lattice_index(positions)
-        new, first = np.unique(index[~self.done[index]], return_index=True)
+    def curves(self, cells: np.ndarray) -> np.ndarray:
+        """Curves [M, S] of the views at lattice `cells` [M, 2]."""
+        index = _flat(cells)
+        todo = ~self.done[index]
+        new, first = np.unique(index[todo], return_index=True)
         if len(new):  # all new positions in one batch
-            spectra = self.query.spectra(new, positions[~self.done[index]][first])
+            spectra = self.query.spectra(new, _metres(cells[todo][first]))
             self.kept[new] = _curves(spectra, self.fm)
             self.done[new] = True
         return self.kept[index]
 
     def view(self, position: np.ndarray) -> np.ndarray:
-        """The query re-centred at one lattice `position` [2]."""
-        position = np.asarray(position, np.float32)[None]
-        return self.query.views(_lattice_index(position), position)[0]
+        """The query re-centred at one lattice `position` [2] (m)."""
+        cells = np.rint((np.asarray(position)[None] + LATTICE_REACH) / LATTICE_STEP)
+        cells = cells.astype(np.int64)
+        return self.query.views(_flat(cells), _metres(cells))[0]
 
 
 def _images(query: np.ndarray, match: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -298,22 +299,22 @@ def _searches(
     """`_search` for each (window, reach) of `specs`, run side by side so that each
     round's new views are computed in one batch; each search's result is what it gives
     alone."""
-    found = [(_coarse_positions(reach)[0], -np.inf, None) for _, reach in specs]
-    for step in (None, *FINE_STEPS):
+    found = [(_coarse_cells(reach)[0], -np.inf, None) for _, reach in specs]
+    for step in (None, *_FINE_CELLS):
         if step is None:
-            rounds = [_coarse_positions(reach) for _, reach in specs]
+            rounds = [_coarse_cells(reach) for _, reach in specs]
         else:
-            rounds = [best_pos + _NEIGHBOURS * np.float32(step) for best_pos, _, _ in found]
+            rounds = [best + _NEIGHBOURS * step for best, _, _ in found]
         curves = views.curves(np.concatenate(rounds))
         start = 0
-        for n, ((window, _), positions) in enumerate(zip(specs, rounds)):
-            mine = curves[start : start + len(positions)]
-            start += len(positions)
+        for n, ((window, _), cells) in enumerate(zip(specs, rounds)):
+            mine = curves[start : start + len(cells)]
+            start += len(cells)
             peaks = (mine if window is None else mine[:, window]).max(axis=1)
             i = int(np.argmax(peaks))
             if peaks[i] > found[n][1]:
-                found[n] = (positions[i], float(peaks[i]), mine[i])
-    return found
+                found[n] = (cells[i], float(peaks[i]), mine[i])
+    return [(_metres(cell[None])[0], value, curve) for cell, value, curve in found]
 
 
 def refine_checked(
