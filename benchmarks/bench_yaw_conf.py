@@ -11,7 +11,8 @@ this process:
 - the parallax-free yaw of the best match without the check (`CHECK_BELOW` = -1: what
   `refine_yaw` did before) against with it (the default: the second heading searched
   only where the confidence is below 0.6), and with it forced on every match (the worst
-  case: every match ambiguous);
+  case: every match ambiguous); each starts without the query's kept views, as a new
+  query does;
 - the plain phase-correlation yaw of the 9 other rows against the same with their
   confidence (`yaw_conf`).
 """
@@ -63,6 +64,7 @@ def main() -> None:
         rest = w.map_features[j + 1 : j + 10]
         for key, level in (("plain", -1.0), ("checked", below), ("forced", 1.01)):
             yaw_refine.CHECK_BELOW = level
+            yaw_refine.forget_kept_views()  # each as a new query would pay it
             t = time.process_time()
             _, conf = model.refine_yaw_conf(q, m)
             times[key].append(time.process_time() - t)
