@@ -21,6 +21,7 @@ check's five about 1.3 ms (docs/benchmarks.md).
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from functools import lru_cache
 
@@ -216,20 +217,25 @@ _QUERIES_KEPT = 2
 _queries_kept: OrderedDict = OrderedDict()
 
 
+_queries_lock = threading.Lock()  # Map.query may be called from several threads
+
+
 def _query_views(q: np.ndarray, max_range: float) -> _QueryViews:
     key = (float(max_range), q.shape, q.tobytes())
-    views = _queries_kept.get(key)
-    if views is None:
-        views = _queries_kept[key] = _QueryViews(q, max_range)
-        while len(_queries_kept) > _QUERIES_KEPT:
-            _queries_kept.popitem(last=False)
+    with _queries_lock:
+        views = _queries_kept.get(key)
+        if views is None:
+            views = _queries_kept[key] = _QueryViews(q, max_range)
+            while len(_queries_kept) > _QUERIES_KEPT:
+                _queries_kept.popitem(last=False)
     return views
 
 
 def forget_kept_views() -> None:
     """Drops the kept query views (benchmarks: a repeated query then costs what a new
     one does)."""
-    _queries_kept.clear()
+    with _queries_lock:
+        _queries_kept.clear()
 
 
 class _Views:
