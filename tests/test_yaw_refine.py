@@ -242,3 +242,30 @@ def test_kept_views_give_what_a_fresh_search_gives():
         got = refine_checked(query, m, MAX_RANGE)
         assert got[0] == yaw and got[2] == conf
         np.testing.assert_array_equal(got[1], pos)
+
+
+def test_searches_on_several_threads_give_what_one_thread_gives():
+    """The kept views are shared by every thread: queries refined side by side (as
+    `Map.query` may be called) come back as they do one at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from disco_cli.model.yaw_refine import forget_kept_views, refine_checked
+
+    rng = np.random.default_rng(9)
+    queries = [rng.random((R, S)).astype(np.float32) for _ in range(3)]
+    pairs = [
+        (q, np.roll(q, k, axis=1) + 0.5 * rng.random((R, S), np.float32))
+        for q in queries
+        for k in (4, 50)
+    ]
+    pairs += [(q, rng.random((R, S)).astype(np.float32)) for q in queries]
+    alone = []
+    for q, m in pairs:
+        forget_kept_views()
+        alone.append(refine_checked(q, m, MAX_RANGE))
+    forget_kept_views()
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda p: refine_checked(p[0], p[1], MAX_RANGE), pairs * 3))
+    for (yaw, pos, conf), (y2, p2, c2) in zip(alone * 3, together):
+        assert (yaw, conf) == (y2, c2)
+        np.testing.assert_array_equal(pos, p2)
