@@ -105,12 +105,14 @@ check-sanitize:
 # The Python tests that drive the C++ core, run against an extension built with the
 # same sanitizers (libasan and libstdc++ preloaded into Python: without libstdc++,
 # ASan's __cxa_throw interceptor fails on the first C++ exception). Leak checks are
-# off: CPython keeps its own memory to exit. Needs pybind11 (`make dev`) and Eigen.
+# off: CPython keeps its own memory to exit. Installs the build's pybind11 and Eigen
+# (cmeel-eigen) into .venv itself.
 ASAN_PKG := $(CHECK)/sanitize-python
 SANITIZED_TESTS ?= tests/test_bev.py tests/test_bev_fuzz.py tests/test_relative_pose.py \
   tests/test_search.py tests/test_simulator.py tests/test_yaw_refine.py tests/test_sim_change.py \
   tests/test_scancontext.py
-check-sanitize-python:
+check-sanitize-python: install-test
+	$(PIP_INSTALL) 'pybind11>=2.12' 'cmeel-eigen>=3.4'
 	cmake -S . -B $(ASAN_PKG)/build -DCMAKE_BUILD_TYPE=Debug -DSKBUILD_PROJECT_VERSION=0.0.0 \
 	  -DCMAKE_CXX_FLAGS="$(SANITIZE_FLAGS)" -DCMAKE_MODULE_LINKER_FLAGS="$(SANITIZE_FLAGS)" \
 	  -DPython_EXECUTABLE=$(abspath $(PY)) \
