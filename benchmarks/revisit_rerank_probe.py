@@ -128,10 +128,44 @@ class Evaluated:
         return float(hits.mean()), len(hits), by
 
 
+def time_rule(e: dict[str, np.ndarray], model, reps: int = 5) -> None:
+    """Median time per query of `search.match_queries` (one query at a time, the world's
+    map in memory) with the shipped weight and with 0, interleaved in this process."""
+    import time
+
+    from disco_cli.database import MatchRows
+    from disco_cli.search import SignatureIndex, match_queries
+
+    paths = [f"scan{i}" for i in range(len(e["ms"]))]
+
+    class Memory:
+        def rows(self, ids: np.ndarray) -> MatchRows:
+            ids = np.asarray(ids, np.int64)
+            return MatchRows(ids, [paths[i] for i in ids], e["mpose"][ids], e["mf"][ids])
+
+    index, ids, db = SignatureIndex(e["ms"]), np.arange(len(e["ms"])), Memory()
+    weight = model.rerank_signature_weight
+    times: dict[float, list[float]] = {weight: [], 0.0: []}
+    for _ in range(reps):
+        for i in range(len(e["qs"])):
+            for w in (weight, 0.0):
+                model.rerank_signature_weight = w
+                t = time.perf_counter()
+                match_queries(index, ids, db, model, e["qs"][i : i + 1], e["qf"][i : i + 1], 10)
+                times[w].append(time.perf_counter() - t)
+    model.rerank_signature_weight = weight
+    a, b = (1e3 * float(np.median(times[w])) for w in (weight, 0.0))
+    print(
+        f"match_queries per query: {a:.2f} ms with weight {weight:g}, {b:.2f} ms with 0 "
+        f"(median of {len(times[0.0])}; ratio {a / b:.3f})"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("worlds", nargs="+", help="WORLD:RADIUS:SIDE_VIEWS")
     ap.add_argument("--cache", type=Path, default=Path("out/rrprobe"))
+    ap.add_argument("--time", action="store_true", help="time match_queries on the first world")
     args = ap.parse_args()
     from _common import print_header
 
@@ -142,6 +176,9 @@ def main() -> None:
     from disco_cli.model import load_model
 
     model = load_model("default")
+    if args.time:
+        time_rule(embedded(Path(args.worlds[0].rsplit(":", 2)[0]), args.cache, model), model)
+        return
     print("| world | side views | queries | " + " | ".join(RULES) + " |")
     print("| --- | ---: | ---: | " + " | ".join("---:" for _ in RULES) + " |")
     for spec in args.worlds:
