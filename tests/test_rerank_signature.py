@@ -91,6 +91,17 @@ def test_shipped_model_weighs_the_signature() -> None:
     assert rerank_signature_weight(object()) == 0.0
 
 
+def test_the_weight_reaches_the_report_run() -> None:
+    from disco_cli.evaluation.report import model_run
+    from disco_cli.model import load_model
+
+    model = load_model("default")
+    assert model_run(model)["rerank_signature_weight"] == 0.3
+    model.rerank_candidates = 0  # --rerank 0: the signature order, no weight
+    assert "rerank_signature_weight" not in model_run(model)
+    assert "rerank_signature_weight" not in model_run(load_model("spectral"))
+
+
 def test_query_from_5_to_6_m_beside_a_map_scan_finds_it_in_a_map_with_side_views(
     samples: Path, tmp_path: Path
 ) -> None:
