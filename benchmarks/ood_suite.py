@@ -566,12 +566,19 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
         from disco_cli.model.yaw_refine import VERSION
 
         head["refine_version"] = VERSION
-    from disco_cli.search import rerank_depth, rerank_wider, snap_settings
+    from disco_cli.search import (
+        rerank_depth,
+        rerank_signature_weight,
+        rerank_wider,
+        snap_settings,
+    )
 
     depth = rerank_depth(model)
     wider = rerank_wider(model, depth)
     if wider[0]:  # rows from before the wider pass have no such key, and are redone
         head["rerank_wider"] = list(wider)
+    if depth and rerank_signature_weight(model):  # likewise rows ordered by re-ranking alone
+        head["rerank_signature_weight"] = rerank_signature_weight(model)
     snap = snap_settings(model)
     if depth and snap[0]:  # likewise rows from before the snap
         head["snap"] = list(snap)

@@ -31,6 +31,8 @@ __all__ = [
     "match_queries",
     "check_rerank",
     "rerank_depth",
+    "rerank_order",
+    "rerank_signature_weight",
     "rerank_wider",
     "check_snap_radius",
     "snap_settings",
@@ -390,6 +392,32 @@ def _reranked(
     return r, stored, d, yaw
 
 
+def rerank_signature_weight(model: Any) -> float:
+    """The weight of the signature distance in the model's re-ranked order (0: the
+    re-rank distance alone; `rerank_order`)."""
+    return float(getattr(model, "rerank_signature_weight", 0.0) or 0.0)
+
+
+def rerank_order(
+    rows: np.ndarray, rerank_d: np.ndarray, signature_d: np.ndarray, weight: float
+) -> np.ndarray:
+    """Indices of re-ranked candidates, best first: by `rerank_d - weight / signature_d`,
+    ties by row.
+
+    The re-rank distance compares the query's feature images with each candidate
+    scan's own. Where the query was taken 4-8 m to the side of every candidate, or the
+    street looks alike all along, those distances differ by a few hundredths of noise;
+    a near signature (the scan's nearest, side views included) then tells the place
+    apart. The bonus `weight / d` grows fast as d shrinks and changes little among far
+    signatures: under heavy change, where every signature is far, the re-ranking
+    decides, as it does without the signature."""
+    score = np.asarray(rerank_d, np.float64)
+    if weight:
+        # A signature at distance 0 (a copy) wins; the floor keeps the score finite.
+        score = score - weight / np.maximum(np.asarray(signature_d, np.float64), 1e-9)
+    return np.lexsort((rows, score))
+
+
 def rerank_wider(model: Any, first: int) -> tuple[int, float]:
     """The model's second re-ranking pass after `first` candidates: (depth, distance), run
     when the best of the first pass re-ranks worse than the distance; (0, inf) for none."""
@@ -534,12 +562,14 @@ def match_queries(
     features of the top rows only. `db` is a `Database` (anything with `rows(ids)`).
     `rerank` overrides the model's re-ranking depth; where the best of those re-ranks
     worse than the model's `rerank_wider_above`, the candidates down to its
-    `rerank_wider` are re-ranked too (`rerank_wider`). Where the map has poses, the
-    re-ranked best is then snapped to the map scan nearest the query (`snap_to_nearest`,
-    within `snap_radius` m, default the model's `snap_radius`; 0: never). The yaw of
-    the best `refine_yaw` matches (default: the model's `refine_yaw_top`, else
-    `REFINE_YAW`) is re-estimated without parallax when the model can (its `refine_yaw`
-    hook)."""
+    `rerank_wider` are re-ranked too (`rerank_wider`). The re-ranked candidates are
+    ordered by their re-rank distance less the model's `rerank_signature_weight` over
+    their signature distance (`rerank_order`); `Match.distance` stays the re-rank
+    distance. Where the map has poses, the re-ranked best is then snapped to the map
+    scan nearest the query (`snap_to_nearest`, within `snap_radius` m, default the
+    model's `snap_radius`; 0: never). The yaw of the best `refine_yaw` matches (default:
+    the model's `refine_yaw_top`, else `REFINE_YAW`) is re-estimated without parallax
+    when the model can (its `refine_yaw` hook)."""
     if refine_yaw is None:
         refine_n = refine_yaw_count(model)
     else:
@@ -547,6 +577,7 @@ def match_queries(
     rerank_n = rerank_depth(model) if rerank is None else check_rerank(model, rerank)
     first = max(k, rerank_n) if rerank_n > 0 else k
     wider_n, wider_above = rerank_wider(model, first) if rerank_n > 0 else (0, float("inf"))
+    sig_weight = rerank_signature_weight(model)
     snap_r, snap_margin = snap_settings(model)
     if snap_radius is not None:
         snap_r = check_snap_radius(model, snap_radius)
@@ -566,7 +597,8 @@ def match_queries(
             r, stored, d_new, yaw = _reranked(
                 model, features[i], db, ids, r_all, first, wider_above
             )
-            order = np.lexsort((r, d_new))
+            # The signature distances of the re-ranked rows: they are a prefix of r_all.
+            order = rerank_order(r, d_new, d_all[: len(r)], sig_weight)
             if snap_r > 0:
                 order, first_yaw, first_conf = snap_to_nearest_conf(
                     model, features[i], stored, order, d_new, snap_r, snap_margin

@@ -137,16 +137,24 @@ def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
 
 
 def model_run(model: Any) -> dict[str, Any]:
-    """What a report's "run" says about the model: its name, fingerprint, re-ranking, the
-    snap to the nearest map scan and how many matches per query got the parallax-free
-    yaw."""
-    from disco_cli.search import refine_yaw_count, rerank_depth, rerank_wider, snap_settings
+    """What a report's "run" says about the model: its name, fingerprint, re-ranking (and
+    the signature's weight in its order), the snap to the nearest map scan and how many
+    matches per query got the parallax-free yaw."""
+    from disco_cli.search import (
+        refine_yaw_count,
+        rerank_depth,
+        rerank_signature_weight,
+        rerank_wider,
+        snap_settings,
+    )
 
     depth = rerank_depth(model)
     wider, above = rerank_wider(model, depth)
     run = {"model": model.name, "fingerprint": model.fingerprint, "rerank": depth}
     if wider:
         run["rerank_wider"] = {"depth": wider, "above": above}
+    if depth and rerank_signature_weight(model):
+        run["rerank_signature_weight"] = rerank_signature_weight(model)
     radius, margin = snap_settings(model)
     if depth and radius:
         run["snap"] = {"radius_m": radius, "margin": margin}

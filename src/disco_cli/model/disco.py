@@ -38,6 +38,15 @@ RERANK_CANDIDATES = 10
 # wider when unsure").
 RERANK_WIDER = 40
 RERANK_WIDER_ABOVE = 0.7
+# The candidates are ordered by their re-rank distance minus RERANK_SIGNATURE_WEIGHT
+# over their signature distance (a scan's nearest signature, its side views' included;
+# search.rerank_order). A near signature (a side view that finds a revisit 4-8 m aside,
+# whose feature images share little with any map scan's) then outweighs re-rank
+# distances that are all alike; far ones (heavy change: all 0.55-0.6 away) differ by
+# little, and the re-ranking decides. The largest weight of 0.1-0.4 with which no
+# selection world (5001-5008, 5101-5103) falls below re-ranking alone
+# (docs/research/model-history.md, "Re-ranking with the signature").
+RERANK_SIGNATURE_WEIGHT = 0.3
 # The best match is then snapped to the map scan nearest the query's position estimated
 # from it (search.snap_to_nearest): among the candidates within SNAP_RADIUS m of it on
 # the map that re-rank within SNAP_MARGIN of its distance. 5 m is as far as the position
@@ -123,6 +132,7 @@ class DiscoModel:
         self.rerank_candidates = RERANK_CANDIDATES
         self.rerank_wider = RERANK_WIDER
         self.rerank_wider_above = RERANK_WIDER_ABOVE
+        self.rerank_signature_weight = RERANK_SIGNATURE_WEIGHT
         self.snap_radius = SNAP_RADIUS
         self.snap_margin = SNAP_MARGIN
         # The name is left out: the same weights loaded as `default` or by path are one model.

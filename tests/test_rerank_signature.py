@@ -1,0 +1,121 @@
+"""Re-ranking with the signature (search.rerank_order): the candidates are ordered by
+their re-rank distance less the model's `rerank_signature_weight` over their signature
+distance, so a side view that finds the place is not undone by re-rank distances that
+are all alike, while far signatures (heavy change) leave the order to the re-ranking."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from disco_cli.database import MatchRows
+from disco_cli.readers import list_scans, read_scan
+from disco_cli.search import match_queries, rerank_order, rerank_signature_weight
+from disco_cli.side_views import ViewIndex
+
+
+def test_rerank_order_by_hand() -> None:
+    rows = np.array([5, 7, 9, 11])
+    rerank_d = np.array([0.70, 0.72, 0.71, 0.70])
+    sig_d = np.array([0.50, 0.30, 0.45, 0.50])
+    # 0.70 - 0.3 / 0.50 = 0.10, 0.72 - 1.00 = -0.28, 0.71 - 0.667 = 0.043, 0.10 (tie:
+    # row 5 first)
+    assert rerank_order(rows, rerank_d, sig_d, 0.3).tolist() == [1, 2, 0, 3]
+    # Weight 0: the re-rank distance alone, ties by row.
+    assert rerank_order(rows, rerank_d, sig_d, 0.0).tolist() == [0, 3, 2, 1]
+    # Far signatures, as under heavy change: 0.75 - 0.3 / 0.60 = 0.250 against
+    # 0.82 - 0.545 = 0.275, 0.80 - 0.526 = 0.274, 0.85 - 0.536 = 0.314: the re-ranking's
+    # best stays first although its signature is the farthest.
+    far = np.array([0.60, 0.55, 0.57, 0.56])
+    assert rerank_order(rows, np.array([0.75, 0.82, 0.80, 0.85]), far, 0.3).tolist() == [
+        0, 2, 1, 3,
+    ]  # fmt: skip
+    # A signature at distance 0 (a copy of the query) comes first.
+    assert rerank_order(rows, rerank_d, np.array([0.5, 0.5, 0.0, 0.5]), 0.3)[0] == 2
+
+
+class _Db:
+    """Map row i holds its re-rank distance `scores[i]` as its only feature."""
+
+    def __init__(self, scores: np.ndarray):
+        self.scores = np.asarray(scores, np.float64)
+
+    def rows(self, ids: np.ndarray) -> MatchRows:
+        ids = np.asarray(ids)
+        return MatchRows(ids, [f"scan{i}" for i in ids], np.zeros((len(ids), 4)), self.scores[ids])
+
+
+class _Model:
+    name = "stub"
+    rerank_candidates = 4
+
+    def __init__(self, weight: float):
+        self.rerank_signature_weight = weight
+
+    def rerank(self, query_features: np.ndarray, features: np.ndarray):
+        return features.copy(), np.zeros(len(features))
+
+    def yaw(self, query_features: np.ndarray, features: np.ndarray) -> np.ndarray:
+        return np.zeros(len(features))
+
+
+@pytest.mark.parametrize("weight", [0.0, 0.3])
+def test_a_side_view_match_stays_first_through_re_ranking(weight: float) -> None:
+    # Scan i's own signature sits at distance 1 + 0.1 i from the query (a query from far
+    # to the side matches no scan's own signature well); scan 2's side view sits at 0.2.
+    sigs = (1.0 + 0.1 * np.arange(6, dtype=np.float32))[:, None]
+    index = ViewIndex(sigs, np.array([2]), np.array([[0.2]], np.float32))
+    # Re-rank distances all alike, scan 2's a hair worse than scan 0's.
+    scores = np.array([0.70, 0.73, 0.72, 0.74, 0.75, 0.76])
+    (found,) = match_queries(
+        index, np.arange(6), _Db(scores), _Model(weight), np.zeros((1, 1), np.float32),
+        np.zeros((1, 1)), 3,
+    )  # fmt: skip
+    # The truth by hand: the 4 re-ranked are scans 0-3 (scan 2 by its view), ordered by
+    # scores - weight / (0.2 for scan 2, else 1 + 0.1 i).
+    sig_d = np.where(np.arange(6) == 2, 0.2, 1.0 + 0.1 * np.arange(6))[:4]
+    want = np.lexsort((np.arange(4), scores[:4] - weight / sig_d))[:3].tolist()
+    assert [m.row for m in found] == want
+    assert want[0] == (2 if weight else 0)
+    # The reported distance stays the re-rank distance.
+    assert [m.distance for m in found] == pytest.approx(scores[want].tolist())
+
+
+def test_shipped_model_weighs_the_signature() -> None:
+    from disco_cli.model import load_model
+
+    assert rerank_signature_weight(load_model("default")) == 0.3
+    assert rerank_signature_weight(load_model("spectral")) == 0.0  # it does not re-rank
+    assert rerank_signature_weight(object()) == 0.0
+
+
+def test_the_weight_reaches_the_report_run() -> None:
+    from disco_cli.evaluation.report import model_run
+    from disco_cli.model import load_model
+
+    model = load_model("default")
+    assert model_run(model)["rerank_signature_weight"] == 0.3
+    model.rerank_candidates = 0  # --rerank 0: the signature order, no weight
+    assert "rerank_signature_weight" not in model_run(model)
+    assert "rerank_signature_weight" not in model_run(load_model("spectral"))
+
+
+def test_query_from_5_to_6_m_beside_a_map_scan_finds_it_in_a_map_with_side_views(
+    samples: Path, tmp_path: Path
+) -> None:
+    """A query that is a map scan's own points seen from 5-6 m to its side (the truth:
+    that scan) comes back first from the shipped model in a map with side views at 5 m.
+    Ordered by the re-rank distance alone, two of these 27 queries take another scan."""
+    from disco_cli import Map
+
+    paths = list_scans(samples / "00")
+    clouds = [read_scan(p) for p in paths]
+    with Map.create(tmp_path / "m.db", "default", side_views=5.0) as m:
+        m.add_many((c, str(p), None) for c, p in zip(clouds, paths))
+        for k in range(0, len(clouds), 3):
+            for offset in (5.0, -5.0, 6.0):
+                query = clouds[k].copy()
+                query[:, 1] -= offset
+                assert m.query(query, topk=1)[0].name == str(paths[k]), (k, offset)
