@@ -375,20 +375,25 @@ def _reranked(
 ) -> tuple[np.ndarray, Any, np.ndarray, np.ndarray]:
     """The model's re-ranking of `rows[:first]`, or of all `rows` when none of the first
     re-ranks better than `wider_above`: (rows re-ranked, their stored data, distances,
-    yaw), in the order of `rows`."""
+    yaw), in the order of `rows`. The yaw is None where the model re-ranks by distance
+    alone (`rerank_distances`: its yaw is then worked out for the rows kept only)."""
+
+    def reranked(features: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        if hasattr(model, "rerank_distances"):
+            return np.asarray(model.rerank_distances(query_features, features), np.float64), None
+        d, yaw = model.rerank(query_features, features)
+        return np.asarray(d, np.float64), np.asarray(yaw, np.float64)
+
     r = rows[:first]
     stored = db.rows(ids[r])
-    d, yaw = (
-        np.asarray(v, dtype=np.float64) for v in model.rerank(query_features, stored.features)
-    )
+    d, yaw = reranked(stored.features)
     if len(rows) > len(r) and d.min() > wider_above:
         # No candidate is a good match: re-rank the next ones too.
         more = db.rows(ids[rows[len(r) :]])
-        d_more, yaw_more = (
-            np.asarray(v, dtype=np.float64) for v in model.rerank(query_features, more.features)
-        )
+        d_more, yaw_more = reranked(more.features)
         r, stored = rows, _joined_rows(stored, more)
-        d, yaw = np.concatenate([d, d_more]), np.concatenate([yaw, yaw_more])
+        d = np.concatenate([d, d_more])
+        yaw = None if yaw is None else np.concatenate([yaw, yaw_more])
     return r, stored, d, yaw
 
 
@@ -524,6 +529,18 @@ def _refined_yaw(
     return yaw, np.full(len(yaw), np.nan)
 
 
+def _coarse_yaw_conf(
+    model: Any, query_features: np.ndarray, match_features: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The model's yaw [K] of the matches and its confidence [K] (NaN: it gives none),
+    from one phase correlation where the model has both."""
+    if hasattr(model, "yaw_conf"):
+        yaw, conf = model.yaw_conf(query_features, match_features)
+        return np.asarray(yaw, np.float64), np.asarray(conf, np.float64)
+    yaw = np.asarray(model.yaw(query_features, match_features), np.float64)
+    return yaw, np.full(len(yaw), np.nan)
+
+
 def _coarse_conf(
     model: Any,
     query_features: np.ndarray,
@@ -604,7 +621,8 @@ def match_queries(
                     model, features[i], stored, order, d_new, snap_r, snap_margin
                 )
             order = order[:k]
-            r, d, yaw = r[order], d_new[order], yaw[order]
+            r, d = r[order], d_new[order]
+            yaw = None if yaw is None else yaw[order]
             sel = order
         else:  # the search returned `first` rows: no wider pass without re-ranking
             r, d = r_all, d_all
@@ -616,9 +634,9 @@ def match_queries(
             r, d, sel = r[ok], d[ok], sel[ok]
             if yaw is not None:
                 yaw = yaw[ok]
-        if len(r) and yaw is None:
-            yaw = np.asarray(model.yaw(features[i], stored.features[sel]), dtype=np.float64)
         conf = np.full(len(r), np.nan)
+        if len(r) and yaw is None:
+            yaw, conf = _coarse_yaw_conf(model, features[i], stored.features[sel])
         if len(r) and refine_n > 0:
             todo = np.arange(min(refine_n, len(r)))
             if first_yaw is not None and sel[0] == order[0]:  # the snap refined it

@@ -577,11 +577,15 @@ int bench(const char* path, int level_only) {
 // Re-centred views: bilinear reads agree with the formula by hand; a place outside the
 // image (negative, past either end, NaN, huge) throws instead of reading.
 void check_resample() {
-    const std::int64_t width = 5, rows = 4, cells = 3;
+    // 19 cells: two blocks of eight for the vector kernel and three for its tail.
+    const std::int64_t width = 5, rows = 4, cells = 19;
     std::vector<float> padded(static_cast<std::size_t>(width * rows));
     for (std::size_t i = 0; i < padded.size(); ++i) padded[i] = static_cast<float>(i * i % 7);
-    // cells: (ring, sector) places
-    std::vector<float> places = {0.0f, 1.5f, 2.75f, 0.0f, 1.25f, 3.0f};
+    std::vector<float> places(2 * cells);  // (ring, sector) places inside the limits
+    for (std::int64_t c = 0; c < cells; ++c) {
+        places[c] = std::fmod(0.37f * static_cast<float>(c), 2.9f);
+        places[cells + c] = std::fmod(0.53f * static_cast<float>(c), 3.9f);
+    }
     std::vector<float> out(cells);
     disco::resample_views(padded.data(), static_cast<std::int64_t>(padded.size()), width,
                           {places.data()}, cells, out.data());
@@ -594,20 +598,24 @@ void check_resample() {
         const float far = padded[k + width] + (padded[k + width + 1] - padded[k + width]) * fs;
         expect(out[c] == near + (far - near) * fr, "resample: bilinear read");
     }
-    std::printf("resample                     %9.3f %9.3f %9.3f\n", out[0], out[1], out[2]);
+    std::printf("resample                     %9.3f %9.3f %9.3f\n", out[0], out[9], out[18]);
     const float nan = std::numeric_limits<float>::quiet_NaN();
-    for (float bad : {-0.5f, 3.0f, 4.0f, nan, 3e9f, std::numeric_limits<float>::infinity()}) {
-        for (int which : {0, 1}) {
-            std::vector<float> p = places;
-            p[which * cells + 1] = (which == 1 && bad == 3.0f) ? 4.5f : bad;
-            bool thrown = false;
-            try {
-                disco::resample_views(padded.data(), static_cast<std::int64_t>(padded.size()),
-                                      width, {p.data()}, cells, out.data());
-            } catch (const std::out_of_range&) {
-                thrown = true;
+    const float inf = std::numeric_limits<float>::infinity();
+    for (std::int64_t at : {std::int64_t{1}, std::int64_t{17}}) {  // vector block, tail
+        for (float bad : {-0.5f, 3.0f, 4.5f, nan, 3e9f, inf, -inf}) {
+            for (int which : {0, 1}) {
+                std::vector<float> p = places;
+                // rings stop below 3 (rows - 1), sectors below 4 (width - 1)
+                p[which * cells + at] = (which == 1 && bad == 3.0f) ? 4.0f : bad;
+                bool thrown = false;
+                try {
+                    disco::resample_views(padded.data(), static_cast<std::int64_t>(padded.size()),
+                                          width, {p.data()}, cells, out.data());
+                } catch (const std::out_of_range&) {
+                    thrown = true;
+                }
+                expect(thrown, "resample: a place outside the image throws");
             }
-            expect(thrown, "resample: a place outside the image throws");
         }
     }
 }

@@ -265,5 +265,14 @@ class DiscoModel:
         cands = np.asarray(candidate_features)
         if len(cands) == 0:
             return np.zeros(0, np.float32), np.zeros(0, np.float32)
+        return self.rerank_distances(query_features, cands), self.yaw(query_features, cands)
+
+    def rerank_distances(
+        self, query_features: np.ndarray, candidate_features: np.ndarray
+    ) -> np.ndarray:
+        """`rerank`'s distances alone (search works out the yaw of the rows it keeps)."""
+        cands = np.asarray(candidate_features)
+        if len(cands) == 0:
+            return np.zeros(0, np.float32)
         score = aligned_correlation(self._u(query_features), self._u(cands))
-        return (1.0 - score).astype(np.float32), self.yaw(query_features, cands)
+        return (1.0 - score).astype(np.float32)
