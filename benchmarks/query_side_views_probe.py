@@ -1,8 +1,11 @@
 """Issue 24 probe: query-side views, the query seen again from beside itself.
 
+    SEL=/work/wt/revisit-rerank/out/sel   # the selection worlds (model-history.md, "Seeds")
     PYTHONPATH=src nice -n 15 /work/main/.venv/bin/python benchmarks/query_side_views_probe.py \
-        SEL/sel5103:8.5 SEL/sel5101:5 SEL/sel5102:5 SEL/s5001:5 ... SEL/s5008:5 \
-        --cache out/qsv [--bev] [--time]
+        $SEL/sel5103:8.5 $SEL/sel5101:5 $SEL/sel5102:5 \
+        $(for i in 1 2 3 4 5 6 7 8; do echo $SEL/s500$i:5; done) --cache out/qsv --bev
+    PYTHONPATH=src nice -n 15 /work/main/.venv/bin/python benchmarks/query_side_views_probe.py \
+        $SEL/sel5103:8.5 --cache out/qsv --time      # also $SEL/s5001:5, $SEL/sel5102:5
 
 Each argument is WORLD:RADIUS, a `disco simulate` folder (sessions 00 and 01, as the
 suite reads them) and the radius (m) within which a match is true. Worlds are embedded
@@ -21,12 +24,16 @@ memory; only the signature search changes:
   `U y5`: that re-ranking alone, with today's signature search;
 - `BEV y5` (--bev): views made as map side views are, from the query's points re-centred
   and embedded again (one U-Net pass per view): what query-side views can do at best;
-  `BEV+U y5`: also re-ranked with those views' own U, as `G+U`.
+  `BEV+U y5`: also re-ranked with those views' own U, as `G+U`;
+- rules against regressions (`VARIANTS`): `+0.03` on a view's re-rank distance, `x1.05`
+  on a view's signature distance, `if r>T` (views only where today's answer re-ranks
+  worse than T), `own` (the wider pass keeps today's 40 nearest, `QueryViewIndex`).
 
 Prints Recall@1 per world (revisits: by distance to the nearest map scan, 4-5 / 5-6 /
 6-7 / 7-8 m) and the correct top-1s whose yaw is off by more than 10 degrees. --time
-prints the median time per query of `match_queries` today against `G y5` (the views
-and their signatures included), interleaved in this process, on the first world.
+prints the median time per query of `match_queries` today and with the `TIMED` views
+(their re-centring and signatures included), interleaved in this process, on the first
+world.
 """
 
 from __future__ import annotations
