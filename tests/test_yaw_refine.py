@@ -269,3 +269,19 @@ def test_searches_on_several_threads_give_what_one_thread_gives():
     for (yaw, pos, conf), (y2, p2, c2) in zip(alone * 3, together):
         assert (yaw, conf) == (y2, c2)
         np.testing.assert_array_equal(pos, p2)
+
+
+@pytest.mark.parametrize("sectors", [90, 121])
+def test_yaw_of_a_turned_image_on_other_grids(sectors):
+    """An image turned by whole sectors comes back with that yaw on grids of other
+    sizes, odd sector counts included (the spectra of odd lengths)."""
+    from disco_cli.model.yaw_refine import refine_checked
+
+    rng = np.random.default_rng(3)
+    img = (rng.random((24, sectors)) < 0.15).astype(np.float32) * rng.random(
+        (24, sectors), np.float32
+    )
+    img[:, : sectors // 3] += 0.5  # one heavy side: a clear heading
+    shift = 17
+    yaw, _, _ = refine_checked(np.roll(img, shift, axis=1), img, MAX_RANGE)
+    assert abs(wrap_deg(yaw + shift * 360.0 / sectors)) < 360.0 / sectors

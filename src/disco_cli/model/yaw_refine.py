@@ -166,13 +166,13 @@ def _resample(padded: np.ndarray, places: list, shape: tuple[int, int]) -> np.nd
     return views.reshape(len(places), rings, sectors)
 
 
-def _curves(spectra: np.ndarray, match_spectrum: np.ndarray) -> np.ndarray:
+def _curves(spectra: np.ndarray, match_spectrum: np.ndarray, sectors: int) -> np.ndarray:
     """Phase-correlation curves [M, S] of views given by their spectra along sectors
     [M, R, S // 2 + 1] against one match's spectrum (yaw.py's curves; float32 weights
     keep the sums in single precision)."""
     cross = spectra * np.conj(match_spectrum)[None]
     weights = ring_weights(spectra.shape[1]).astype(np.float32)
-    return curves_of_cross_power(cross, weights, 2 * (spectra.shape[-1] - 1))
+    return curves_of_cross_power(cross, weights, sectors)
 
 
 class _QueryViews:
@@ -259,7 +259,7 @@ class _Views:
         new, first = np.unique(index[todo], return_index=True)
         if len(new):  # all new positions in one batch
             spectra = self.query.spectra(new, _metres(cells[todo][first]))
-            self.kept[new] = _curves(spectra, self.fm)
+            self.kept[new] = _curves(spectra, self.fm, self.q.shape[1])
             self.done[new] = True
         return self.kept[index]
 
