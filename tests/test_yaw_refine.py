@@ -285,3 +285,27 @@ def test_yaw_of_a_turned_image_on_other_grids(sectors):
     shift = 17
     yaw, _, _ = refine_checked(np.roll(img, shift, axis=1), img, MAX_RANGE)
     assert abs(wrap_deg(yaw + shift * 360.0 / sectors)) < 360.0 / sectors
+
+
+def test_read_places_kept_within_their_budget(monkeypatch):
+    """With room for only a few positions' read places (a large grid), the kept ones are
+    dropped and kept afresh, and the searches give what they give with room for all."""
+    from disco_cli.model import yaw_refine
+
+    rng = np.random.default_rng(11)
+    pairs = [
+        (rng.random((R, S)).astype(np.float32), rng.random((R, S)).astype(np.float32))
+        for _ in range(3)
+    ]
+    roomy = []
+    for q, m in pairs:
+        yaw_refine.forget_kept_views()
+        roomy.append(yaw_refine.refine_checked(q, m, MAX_RANGE))
+    monkeypatch.setattr(yaw_refine, "PLACES_KEPT_BYTES", 20 * 2 * R * S * 4)  # 20 positions
+    monkeypatch.setattr(yaw_refine, "_places_kept", {})
+    for (q, m), (yaw, pos, conf) in zip(pairs, roomy):
+        yaw_refine.forget_kept_views()
+        got = yaw_refine.refine_checked(q, m, MAX_RANGE)
+        assert (got[0], got[2]) == (yaw, conf)
+        np.testing.assert_array_equal(got[1], pos)
+        assert len(yaw_refine._places_kept[(R, S, MAX_RANGE)]) <= 20 + 68

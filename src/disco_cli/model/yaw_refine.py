@@ -120,6 +120,9 @@ def _flat(cells: np.ndarray) -> np.ndarray:
 # process's life: computing it (a square root and an arctan2 per cell) cost as much as
 # reading the view itself. All 33 x 33 positions of a 40 x 120 image hold 42 MiB; a
 # stream of real queries visits a few near the centre, random images most of them.
+# Larger grids (a model of another BEV) keep what fits in PLACES_KEPT_BYTES, and start
+# afresh when it is full.
+PLACES_KEPT_BYTES = 64 << 20
 _places_kept: dict[tuple, dict[int, np.ndarray]] = {}
 
 
@@ -131,9 +134,14 @@ def _places_at(
     kept = _places_kept.setdefault((rings, sectors, max_range), {})
     keys = index.tolist()
     new = [j for j, key in enumerate(keys) if key not in kept]
-    if new:  # one batch for all that are new
-        kept.update(zip((keys[j] for j in new), _places(rings, sectors, max_range, positions[new])))
-    return [kept[key] for key in keys]
+    if not new:
+        return [kept[key] for key in keys]
+    places = dict(zip((keys[j] for j in new), _places(rings, sectors, max_range, positions[new])))
+    out = [kept[key] if key in kept else places[key] for key in keys]
+    if (len(kept) + len(places)) * 2 * rings * sectors * 4 > PLACES_KEPT_BYTES:
+        kept.clear()
+    kept.update(places)
+    return out
 
 
 @lru_cache(maxsize=8)
