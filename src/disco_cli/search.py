@@ -518,26 +518,16 @@ def snap_to_nearest_conf(
     return np.r_[nearest, order[order != nearest]], None, float("nan")
 
 
-def _refined_yaw(
-    model: Any, query_features: np.ndarray, match_features: np.ndarray
+def _yaw_conf(
+    model: Any, query_features: np.ndarray, match_features: np.ndarray, refined: bool
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The model's parallax-free yaw [K] and its confidence [K] (NaN: it gives none)."""
-    if hasattr(model, "refine_yaw_conf"):
-        yaw, conf = model.refine_yaw_conf(query_features, match_features)
+    """The model's yaw [K] of the matches, parallax-free (`refine_yaw`) or from one phase
+    correlation (`yaw`), and its confidence [K] (NaN where the model gives none)."""
+    name = "refine_yaw" if refined else "yaw"
+    if hasattr(model, f"{name}_conf"):
+        yaw, conf = getattr(model, f"{name}_conf")(query_features, match_features)
         return np.asarray(yaw, np.float64), np.asarray(conf, np.float64)
-    yaw = np.asarray(model.refine_yaw(query_features, match_features), np.float64)
-    return yaw, np.full(len(yaw), np.nan)
-
-
-def _coarse_yaw_conf(
-    model: Any, query_features: np.ndarray, match_features: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The model's yaw [K] of the matches and its confidence [K] (NaN: it gives none),
-    from one phase correlation where the model has both."""
-    if hasattr(model, "yaw_conf"):
-        yaw, conf = model.yaw_conf(query_features, match_features)
-        return np.asarray(yaw, np.float64), np.asarray(conf, np.float64)
-    yaw = np.asarray(model.yaw(query_features, match_features), np.float64)
+    yaw = np.asarray(getattr(model, name)(query_features, match_features), np.float64)
     return yaw, np.full(len(yaw), np.nan)
 
 
@@ -636,13 +626,15 @@ def match_queries(
                 yaw = yaw[ok]
         conf = np.full(len(r), np.nan)
         if len(r) and yaw is None:
-            yaw, conf = _coarse_yaw_conf(model, features[i], stored.features[sel])
+            yaw, conf = _yaw_conf(model, features[i], stored.features[sel], refined=False)
         if len(r) and refine_n > 0:
             todo = np.arange(min(refine_n, len(r)))
             if first_yaw is not None and sel[0] == order[0]:  # the snap refined it
                 yaw[0], conf[0], todo = first_yaw, first_conf, todo[1:]
             if len(todo):
-                yaw[todo], conf[todo] = _refined_yaw(model, features[i], stored.features[sel[todo]])
+                yaw[todo], conf[todo] = _yaw_conf(
+                    model, features[i], stored.features[sel[todo]], refined=True
+                )
         if len(r):
             _coarse_conf(model, features[i], stored.features[sel], yaw, conf)
         out.append(
