@@ -54,6 +54,19 @@ def brute_force_topk(
     return order, d[order]
 
 
+def checked_queries(queries: np.ndarray, dim: int) -> tuple[np.ndarray, bool]:
+    """Queries as a C-contiguous float32 [B, dim] matrix, and whether one [dim] vector
+    was given; ValueError for another width or a value that is not finite."""
+    q = np.asarray(queries, dtype=np.float32)
+    single = q.ndim == 1
+    q = np.ascontiguousarray(np.atleast_2d(q))
+    if q.shape[1] != dim:
+        raise ValueError(f"queries must be [B, {dim}], got {q.shape}")
+    if not np.isfinite(q).all():
+        raise ValueError("queries must be finite")
+    return q, single
+
+
 class SignatureIndex:
     """Signatures `[N, D]` held once as one float32 matrix, searched exactly.
 
@@ -125,13 +138,7 @@ class SignatureIndex:
 
         Where fewer than k rows are allowed, the tail is padded with row -1, distance inf.
         """
-        q = np.asarray(queries, dtype=np.float32)
-        single = q.ndim == 1
-        q = np.ascontiguousarray(np.atleast_2d(q))
-        if q.shape[1] != self.dim:
-            raise ValueError(f"queries must be [B, {self.dim}], got {q.shape}")
-        if not np.isfinite(q).all():
-            raise ValueError("queries must be finite")
+        q, single = checked_queries(queries, self.dim)
         b, n = len(q), len(self.matrix)
         if limit is not None:
             limit = np.broadcast_to(np.asarray(limit, dtype=np.int64), (b,))

@@ -37,6 +37,7 @@ import numpy as np
 
 from disco_cli.errors import DiscoError
 from disco_cli.output_paths import atomic_path
+from disco_cli.search import checked_queries
 
 __all__ = ["AnnParams", "AnnIndex", "default_params", "open_or_build", "SidecarError"]
 
@@ -161,13 +162,7 @@ class AnnIndex:
     ) -> tuple[np.ndarray, np.ndarray]:
         if limit is not None:
             raise ValueError("the approximate index searches a whole map (no limit)")
-        q = np.asarray(queries, dtype=np.float32)
-        single = q.ndim == 1
-        q = np.ascontiguousarray(np.atleast_2d(q))
-        if q.shape[1] != self._dim:
-            raise ValueError(f"queries must be [B, {self._dim}], got {q.shape}")
-        if not np.isfinite(q).all():
-            raise ValueError("queries must be finite")
+        q, single = checked_queries(queries, self._dim)
         b, k = len(q), max(int(k), 0)
         rows = np.full((b, k), -1, dtype=np.int64)
         dists = np.full((b, k), np.inf)
