@@ -118,3 +118,40 @@ def _format1(db: Path, rel_paths: bool = True) -> None:
 def to_format1():
     """`to_format1(db, rel_paths=True)`: the map rewritten in place as format 1."""
     return _format1
+
+
+@pytest.fixture()
+def one_thread():
+    """One torch thread: on a shared 2-core CI box two threads fight and run far slower."""
+    torch = pytest.importorskip("torch")
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def short_training(train_data, held_out, out: Path, radius: float, max_queries: int, **options):
+    """A few steps of training of a small plain U-Net (width 4, no residual path to the
+    spectral floor, so that it must learn) on `train_data`, written to `out`: (its
+    TrainOptions, Recall@1 metrics on `held_out` before, the training history, the
+    metrics after). `options` completes the TrainOptions (steps, d_pos, d_neg, ...)."""
+    import torch
+
+    from disco_cli.bev import BEVConfig
+    from disco_cli.model import load_model
+    from disco_cli.model.disco import DiscoModel, build_net, default_model_config
+    from disco_cli.training.evaluate import retrieval_metrics
+    from disco_cli.training.loop import TrainOptions, train
+
+    opts = TrainOptions(
+        epochs=2, batch=4, negatives=2, width=4, lr=3e-3, residual=False, hard_after=1,
+        seed=0, **options,
+    )  # fmt: skip
+    torch.manual_seed(opts.seed)
+    config = {**default_model_config(20, 4), "residual": False}
+    untrained = DiscoModel(build_net(config), BEVConfig(), config)
+    before = retrieval_metrics(untrained, held_out, radius, max_queries=max_queries, seed=0)
+    history = train(train_data, BEVConfig(), opts, out, command="test", log=lambda s: None)
+    trained = load_model(str(out))
+    after = retrieval_metrics(trained, held_out, radius, max_queries=max_queries, seed=0)
+    return opts, before, history, after

@@ -10,6 +10,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from conftest import short_training  # noqa: E402
+
 from disco_cli.errors import DiscoError  # noqa: E402
 from disco_cli.training.losses import quadruplet_loss, shift_target, yaw_loss  # noqa: E402
 
@@ -72,15 +74,6 @@ def write_world(root: Path, seed: int = 0, scans: int = 40) -> Path:
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> Path:
     return write_world(tmp_path_factory.mktemp("train"))
-
-
-@pytest.fixture()
-def one_thread():
-    """One torch thread: on a shared 2-core CI box two threads fight and run far slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 # -- losses --------------------------------------------------------------------------
@@ -233,38 +226,16 @@ def test_self_supervised_training_runs_and_finds_the_copies(tmp_path, one_thread
 
 def test_short_training_lowers_loss_and_beats_the_untrained_network(world, tmp_path, one_thread):
     from disco_cli.bev import BEVConfig
-    from disco_cli.model import load_model
-    from disco_cli.model.disco import DiscoModel, build_net, default_model_config
     from disco_cli.training.data import load_training_data
-    from disco_cli.training.evaluate import retrieval_metrics
-    from disco_cli.training.loop import TrainOptions, train
+    from disco_cli.training.loop import train
 
     data = load_training_data([world], BEVConfig())
-    # A plain U-Net (no residual path to the spectral floor), so that it must learn.
-    opts = TrainOptions(
-        epochs=2,
-        steps=10,
-        batch=4,
-        negatives=2,
-        width=4,
-        lr=3e-3,
-        residual=False,
-        hard_after=1,
-        d_pos=3.0,
-        d_neg=10.0,
-        seed=0,
-        val_queries=40,
-    )
-    torch.manual_seed(opts.seed)
-    config = {**default_model_config(20, 4), "residual": False}
-    untrained = DiscoModel(build_net(config), BEVConfig(), config)
-    before = retrieval_metrics(untrained, data, 3.0, max_queries=40, seed=0)
     out = tmp_path / "m.pt"
-    history = train(data, BEVConfig(), opts, out, command="test", log=lambda s: None)
+    opts, before, history, after = short_training(
+        data, data, out, 3.0, 40, steps=10, d_pos=3.0, d_neg=10.0, val_queries=40
+    )
     assert len(history) == 2
     assert history[-1]["loss"] < history[0]["loss"]
-    trained = load_model(str(out))
-    after = retrieval_metrics(trained, data, 3.0, max_queries=40, seed=0)
     assert after["recall_at_1"] >= before["recall_at_1"] + 0.2, (before, after)
     # Resuming a finished run trains no further epochs and keeps the history.
     again = train(data, BEVConfig(), opts, out, command="test", resume=True, log=lambda s: None)

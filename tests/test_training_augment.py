@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import short_training
 
 from disco_cli.training.augment import (
     AugmentConfig,
@@ -244,33 +245,16 @@ def test_variants_share_their_scans_pose_and_are_never_anchors(changed):
     assert np.mean(differ) > 0.85
 
 
-def test_short_training_under_change_beats_the_untrained_network(changed, tmp_path):
-    torch = pytest.importorskip("torch")
+def test_short_training_under_change_beats_the_untrained_network(changed, tmp_path, one_thread):
     from disco_cli.bev import BEVConfig
-    from disco_cli.model import load_model
-    from disco_cli.model.disco import DiscoModel, build_net, default_model_config
     from disco_cli.training.data import load_training_data
-    from disco_cli.training.evaluate import retrieval_metrics
-    from disco_cli.training.loop import TrainOptions, train
 
-    before_threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        data = load_training_data([changed[0]], BEVConfig(), variants=1, seed=0)
-        held_out = load_training_data([changed[1]], BEVConfig())
-        opts = TrainOptions(
-            epochs=2, steps=10, batch=4, negatives=2, width=4, lr=3e-3, residual=False,
-            hard_after=1, seed=0, val_queries=40, variants=1, augment_p=0.5, occlude_p=0.3,
-        )  # fmt: skip
-        torch.manual_seed(opts.seed)
-        config = {**default_model_config(20, 4), "residual": False}
-        untrained = DiscoModel(build_net(config), BEVConfig(), config)
-        before = retrieval_metrics(untrained, held_out, 3.0, max_queries=40, seed=0)
-        out = tmp_path / "m.pt"
-        history = train(data, BEVConfig(), opts, out, command="test", log=lambda s: None)
-        after = retrieval_metrics(load_model(str(out)), held_out, 3.0, max_queries=40, seed=0)
-    finally:
-        torch.set_num_threads(before_threads)
+    data = load_training_data([changed[0]], BEVConfig(), variants=1, seed=0)
+    held_out = load_training_data([changed[1]], BEVConfig())
+    _, before, history, after = short_training(
+        data, held_out, tmp_path / "m.pt", 3.0, 40,
+        steps=10, val_queries=40, variants=1, augment_p=0.5, occlude_p=0.3,
+    )  # fmt: skip
     assert history[-1]["loss"] < history[0]["loss"]
     # On another world, also changed by 40 % between its sessions.
     assert after["recall_at_1"] >= before["recall_at_1"] + 0.2, (before, after)
