@@ -9,9 +9,10 @@
    model's shapes, written with the Database API) and 30k-point query scans on disk;
    per query: read, voxelize, embed, search, yaw of the top 10; then, with the rows
    cached, what the best one's parallax-free yaw, re-ranking wider (which every query
-   against this synthetic map gets) and the snap to the nearest map scan (which moves
-   nearly every query's best match here, so the winner's yaw is refined twice) cost,
-   each timed against a search without it; median of each stage.
+   against this synthetic map gets), the snap to the nearest map scan (which moves
+   nearly every query's best match here) and the query's side views
+   (`query_views.py`) cost, each timed against a search without it; median of each
+   stage.
 3. Time to the first result of `disco query` as a fresh process, by stage.
 4. With a learned model: its embedding with the NumPy U-Net the CPU models use
    (`unet_numpy.py`) against torch's U-Net on the same weights (one torch thread, as
@@ -212,7 +213,18 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
     db = Database.open(db_path)
     ids, sigs = db.signatures()
     index = SignatureIndex(sigs)
-    keys = ("read", "bev", "embed", "search", "yaw_rows", "total", "refine", "wider", "snap")
+    keys = (
+        "read",
+        "bev",
+        "embed",
+        "search",
+        "yaw_rows",
+        "total",
+        "refine",
+        "wider",
+        "snap",
+        "views",
+    )
     cpu = {"total": [], "embed": []}  # process CPU time: the work, apart from waiting
     stages = {k: [] for k in keys}
     wider = getattr(model, "rerank_wider", 0)
@@ -253,7 +265,13 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
         model.snap_radius = 0.0
         match_queries(index, ids, db, model, sig, feat, 10)
         model.snap_radius = snap
+        forget_kept_views()
         td = time.perf_counter()
+        offsets = getattr(model, "query_view_offsets", ())
+        model.query_view_offsets = ()
+        match_queries(index, ids, db, model, sig, feat, 10)
+        model.query_view_offsets = offsets
+        te = time.perf_counter()
         for k, v in zip(
             stages,
             (
@@ -266,6 +284,7 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
                 (ta - t5) - (tb - ta),
                 (ta - t5) - (tc - tb),
                 (ta - t5) - (td - tc),
+                (ta - t5) - (te - td),
             ),
         ):
             stages[k].append(v)
@@ -559,10 +578,13 @@ def main() -> None:
             "ms/query"
             f" = read {s['read']:.2f} + voxelize {s['bev']:.2f} + embed {s['embed']:.2f} + "
             f"search {s['search']:.2f} + rows, re-ranking and yaw {s['yaw_rows']:.2f} (medians); "
-            f"of the latter, the parallax-free yaw of the best match {s['refine']:.2f} and "
+            f"of the latter, the parallax-free yaw of the best match {s['refine']:.2f} (beyond "
+            "the snap's, which finds it on the way), "
             f"re-ranking down to 40 where none of the 10 matches well {s['wider']:.2f} (every "
-            f"query here) and the snap to the nearest map scan {s['snap']:.2f} (a second "
-            "parallax-free yaw: here the snap moves nearly every query's best match); "
+            f"query here), the snap to the nearest map scan {s['snap']:.2f} (here it moves "
+            "nearly every query's best match; the yaw to the scan it moves to follows from "
+            f"the two map poses) and the query's side views {s['views']:.2f} (their search "
+            "and re-ranking); "
             f"process CPU time per query {s['cpu_total']:.2f} ms, of the embed "
             f"{s['cpu_embed']:.2f} ms (medians)"
         )

@@ -74,8 +74,27 @@ def test_the_candidate_nearest_the_estimate_goes_first() -> None:
     order = np.array([0, 4, 1, 2, 3])
     got, yaw = snap_to_nearest(model, None, stored, order, stored.features[:, 0], 5.0, 0.1)
     assert list(got) == [2, 0, 4, 1, 3]
-    assert yaw is None  # the yaw estimated was to row 0, not to row 2
+    # The query heads 90 + 30 = 120 degrees on the map (row 0's heading and the yaw to
+    # it); row 2 heads 0 degrees: the yaw to row 2 is 120, with no second search.
+    assert yaw == pytest.approx(120.0)
     assert model.asked == [0]
+
+
+def test_the_yaw_to_the_scan_snapped_to_wraps_and_needs_its_heading() -> None:
+    # The query heads 90 + 30 = 120 degrees; row 1 heads -100: the yaw to it is 220,
+    # that is -140. Without row 1's heading the yaw is left to be searched for.
+    poses = [[10.0, 0.0, 0.0, math.pi / 2], [10.0, 2.0, 0.0, math.radians(-100.0)]]
+    stored = _stored(poses, [0.40, 0.42])
+    got, yaw = snap_to_nearest(
+        _Model(at=(2.0, 0.0)), None, stored, np.array([0, 1]), stored.features[:, 0], 5, 0.1
+    )
+    assert list(got) == [1, 0] and yaw == pytest.approx(-140.0)
+    poses[1][3] = np.nan
+    stored = _stored(poses, [0.40, 0.42])
+    got, yaw = snap_to_nearest(
+        _Model(at=(2.0, 0.0)), None, stored, np.array([0, 1]), stored.features[:, 0], 5, 0.1
+    )
+    assert list(got) == [1, 0] and yaw is None
 
 
 def test_radius_and_margin_bound_the_candidates() -> None:
@@ -124,18 +143,19 @@ def _match(model, db, k=2, refine_yaw=1):
     return found
 
 
-def test_match_queries_snaps_and_refines_the_new_first() -> None:
+def test_match_queries_snaps_and_carries_the_yaw_to_the_new_first() -> None:
     # Rows 0-3 along the x axis, 1 m apart, headed 0; row 1 re-ranks best, but the query
-    # is 1.8 m ahead of it: row 3 (0.2 m away, re-ranking 0.05 worse) goes first, and its
-    # yaw is refined (the one estimated with row 1 was to row 1).
+    # is 1.8 m ahead of it: row 3 (0.2 m away, re-ranking 0.05 worse) goes first. Its
+    # yaw is the one estimated with row 1 (30 degrees) carried over by the two poses,
+    # which head alike: 30, with no second search.
     poses = [[x, 0.0, 0.0, 0.0] for x in range(4)]
     db = _Db(poses, [0.50, 0.40, 0.60, 0.45])
     model = _Model(at=(1.8, 0.0))
     found = _match(model, db)
     assert [m.row for m in found] == [3, 1]
     assert [m.distance for m in found] == [0.45, 0.40]
-    assert model.asked == [1] and model.refined == [3]
-    assert [m.yaw_deg for m in found] == [-1.0, 0.0]
+    assert model.asked == [1] and model.refined == []
+    assert [m.yaw_deg for m in found] == [30.0, 0.0]
 
 
 def test_match_queries_reuses_the_yaw_when_the_best_stays() -> None:

@@ -16,12 +16,14 @@ those are re-measured directly in float64:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from disco_cli.query_views import merged_rows, views_search
 from disco_cli.threads import get_threads
 
 __all__ = [
@@ -92,6 +94,7 @@ class SignatureIndex:
         # None (or 0): disco's thread setting (disco_cli/threads.py), read once.
         self.threads = threads if threads else get_threads()
         self._codes: _Int8Codes | None = None
+        self._projected: Any = None  # approximate_search's, made on first use
         self._spare: tuple[np.ndarray, np.ndarray] | None = None  # growth room (append)
         if len(self.matrix) >= max(int8_min_rows, 1) and _Int8Codes.available():
             self._codes = _Int8Codes(self.matrix, sq64)
@@ -121,7 +124,7 @@ class SignatureIndex:
         self.matrix, self.sq_norms = mat[:need], sq[:need]
         if len(new):
             self._max_norm = max(self._max_norm, float(np.sqrt(sq64.max())))
-        self._codes = None
+        self._codes = self._projected = None
 
     @property
     def dim(self) -> int:
@@ -172,6 +175,26 @@ class SignatureIndex:
                 rows[i, : len(r)] = r
                 dists[i, : len(d)] = d
         return (rows[0], dists[0]) if single else (rows, dists)
+
+    def approximate_search(
+        self,
+        queries: np.ndarray,
+        k: int,
+        limit: Sequence[int] | np.ndarray | None = None,
+        exclude: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`search` for candidates only (a query's side views, `query_views.py`): on a
+        map large enough for the int8 pass, the nearest by projected signatures
+        (`ProjectedSignatures`) re-measured exactly, which may miss a true neighbour;
+        else `search` itself (one matrix product for the whole batch)."""
+        if self._codes is None:
+            return self.search(queries, k, limit=limit, exclude=exclude)
+        if self._projected is None:
+            from disco_cli.query_views import ProjectedSignatures
+
+            self._projected = ProjectedSignatures(self.matrix)
+        q, _ = checked_queries(queries, self.dim)
+        return self._projected.search(q, k, limit=limit, exclude=exclude)
 
     def _exact(self, q: np.ndarray, cand: np.ndarray) -> np.ndarray:
         """Squared distances in float64, a block of rows at a time (bounded memory even
@@ -377,17 +400,32 @@ def _reranked(
     db: Any,
     ids: np.ndarray,
     rows: np.ndarray,
+    sig_d: np.ndarray,
     first: int,
     wider_above: float,
-) -> tuple[np.ndarray, Any, np.ndarray, np.ndarray]:
-    """The model's re-ranking of `rows[:first]`, or of all `rows` when none of the first
-    re-ranks better than `wider_above`: (rows re-ranked, their stored data, distances,
-    yaw), in the order of `rows`. The yaw is None where the model re-ranks by distance
-    alone (`rerank_distances`: its yaw is then worked out for the rows kept only)."""
+    beside: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+) -> tuple[np.ndarray, Any, np.ndarray, np.ndarray | None, np.ndarray]:
+    """The model's re-ranking of the `first` candidates, or of all when none of those
+    re-ranks better than `wider_above`: (rows re-ranked, their stored data, re-rank
+    distances, yaw, signature distances), in one order. The yaw is None where the model
+    re-ranks by distance alone (`rerank_distances`: its yaw is then worked out for the
+    rows kept only).
+
+    The candidates are `rows` (signature distances `sig_d`, nearest first) and, where
+    the model makes side views of the query (`beside`: what they find, and their
+    re-rank images), the scans those find among the `first` nearest over the query and
+    its views (`query_views.merged_rows`); each candidate then re-ranks at its best over
+    the query and its views."""
+    images = None
+    if beside is not None:
+        view_rows, view_d, images = beside()
+        rows, sig_d = merged_rows(rows, sig_d, view_rows, view_d, first)
 
     def reranked(features: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         if hasattr(model, "rerank_distances"):
-            return np.asarray(model.rerank_distances(query_features, features), np.float64), None
+            extra = {} if images is None else {"views": images}
+            d = model.rerank_distances(query_features, features, **extra)
+            return np.asarray(d, np.float64), None
         d, yaw = model.rerank(query_features, features)
         return np.asarray(d, np.float64), np.asarray(yaw, np.float64)
 
@@ -401,7 +439,7 @@ def _reranked(
         r, stored = rows, _joined_rows(stored, more)
         d = np.concatenate([d, d_more])
         yaw = None if yaw is None else np.concatenate([yaw, yaw_more])
-    return r, stored, d, yaw
+    return r, stored, d, yaw, sig_d[: len(r)]
 
 
 def rerank_signature_weight(model: Any) -> float:
@@ -483,7 +521,11 @@ def snap_to_nearest(
 ) -> tuple[np.ndarray, float | None]:
     """`order` (indices into `stored` and `distances`, best first) with the map scan
     nearest the query's position first, and the parallax-free yaw of that first one
-    when it was computed here (None otherwise).
+    (None where the best match has no pose, or the scan snapped to no heading).
+
+    Where the snap moves the first, its yaw is the best match's carried over by the
+    two map poses a few metres apart (the query's heading on the map is the best
+    match's heading plus the yaw to it), not searched for again.
 
     The query's position is estimated from the best match alone (its pose on the map
     plus `model.query_position`); the candidates that may take its place lie within
@@ -522,7 +564,19 @@ def snap_to_nearest_conf(
     nearest = int(cands[np.argmin(np.hypot(*(pose[cands, :2] - estimate).T))])
     if nearest == best:
         return order, yaw, conf
-    return np.r_[nearest, order[order != nearest]], None, float("nan")
+    moved = np.r_[nearest, order[order != nearest]]
+    if not np.isfinite(pose[nearest, 3]):
+        return moved, None, float("nan")
+    # The query's heading on the map is the best match's plus the yaw to it; the yaw to
+    # the scan snapped to follows from the two map poses, a few metres apart.
+    turned = yaw + math.degrees(pose[best, 3] - pose[nearest, 3])
+    return moved, float(_wrapped_deg(turned)), conf
+
+
+def _wrapped_deg(yaw: float) -> float:
+    """An angle in degrees in (-180, 180]."""
+    out = (yaw + 180.0) % 360.0 - 180.0
+    return 180.0 if out <= -180.0 else out
 
 
 def _yaw_conf(
@@ -554,6 +608,38 @@ def _coarse_conf(
     # Only where the row's yaw is that phase correlation's (not another re-ranker's).
     same = np.abs((np.asarray(coarse, np.float64) - yaw[todo] + 180.0) % 360.0 - 180.0) < 1e-3
     conf[todo[same]] = np.asarray(c, np.float64)[same]
+
+
+def makes_query_views(model: Any) -> bool:
+    """Whether the model makes side views of a query (`DiscoModel.query_views`)."""
+    return hasattr(model, "query_views") and len(getattr(model, "query_view_offsets", ())) > 0
+
+
+def _beside(
+    model: Any,
+    index: Any,
+    query_features: np.ndarray,
+    k: int,
+    limit: Any,
+    exclude: Any,
+    i: int,
+) -> Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """What query i's side views find, worked out when called: (rows [V, k], signature
+    distances [V, k], re-rank images [V, R, S]), within the query's `limit`/`exclude`."""
+
+    def seen() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        sigs, images = model.query_views(query_features)
+        lim = None
+        if limit is not None:
+            lim = int(limit) if np.ndim(limit) == 0 else int(np.asarray(limit)[i])
+        ex = None
+        if exclude is not None:
+            ex = np.asarray(exclude, dtype=bool)
+            ex = ex[i] if ex.ndim == 2 else ex
+        view_rows, view_d = views_search(index, sigs, k, limit=lim, exclude=ex)
+        return view_rows, view_d, images
+
+    return seen
 
 
 def match_queries(
@@ -599,6 +685,7 @@ def match_queries(
     if rerank_n == 0:  # the signature order has no re-ranked candidates to snap among
         snap_r = 0.0
     rows, dists = index.search(signatures, max(first, wider_n), limit=limit, exclude=exclude)
+    with_views = rerank_n > 0 and makes_query_views(model) and hasattr(model, "rerank_distances")
     out: list[list[Match]] = []
     for i in range(len(rows)):
         keep = rows[i] >= 0
@@ -608,11 +695,14 @@ def match_queries(
             continue
         first_yaw, first_conf = None, float("nan")
         if rerank_n > 0:
-            r, stored, d_new, yaw = _reranked(
-                model, features[i], db, ids, r_all, first, wider_above
+            beside = None
+            if with_views:
+                beside = _beside(model, index, features[i], first, limit, exclude, i)
+            r, stored, d_new, yaw, sig_d = _reranked(
+                model, features[i], db, ids, r_all, d_all, first, wider_above, beside
             )
             # The signature distances of the re-ranked rows: they are a prefix of r_all.
-            order = rerank_order(r, d_new, d_all[: len(r)], sig_weight)
+            order = rerank_order(r, d_new, sig_d, sig_weight)
             if snap_r > 0:
                 order, first_yaw, first_conf = snap_to_nearest_conf(
                     model, features[i], stored, order, d_new, snap_r, snap_margin

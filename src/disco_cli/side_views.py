@@ -130,6 +130,26 @@ class ViewIndex:
         limit: Sequence[int] | np.ndarray | None = None,
         exclude: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
+        return self._search(self._index.search, queries, k, limit, exclude)
+
+    def approximate_search(
+        self,
+        queries: np.ndarray,
+        k: int,
+        limit: Sequence[int] | np.ndarray | None = None,
+        exclude: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`search` by the inner index's `approximate_search` (candidates only)."""
+        return self._search(self._index.approximate_search, queries, k, limit, exclude)
+
+    def _search(
+        self,
+        inner_search: Any,
+        queries: np.ndarray,
+        k: int,
+        limit: Sequence[int] | np.ndarray | None,
+        exclude: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(queries, dtype=np.float32)
         single = q.ndim == 1
         q = np.atleast_2d(q)
@@ -147,7 +167,7 @@ class ViewIndex:
         # Deep enough that k distinct scans survive even when every one of them
         # comes back with all its views.
         deep = max(k, 0) * (1 + self.most_views)
-        rows, dists = self._index.search(q, deep, exclude=mask)
+        rows, dists = inner_search(q, deep, exclude=mask)
         out_r = np.full((b, max(k, 0)), -1, dtype=np.int64)
         out_d = np.full((b, max(k, 0)), np.inf)
         for i in range(b):

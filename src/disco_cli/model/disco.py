@@ -18,10 +18,11 @@ from disco_cli.blas_threads import blas_threads
 from disco_cli.errors import ModelError
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet_numpy import FrozenUNet
-from disco_cli.model.verify import aligned_correlation
+from disco_cli.model.verify import aligned_correlations
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
 from disco_cli.model.yaw_refine import (
     query_in_match_frame_conf,
+    recentre_kept,
     refine_yaw_conf,
 )
 
@@ -54,6 +55,16 @@ RERANK_SIGNATURE_WEIGHT = 0.3
 # (docs/research/model-history.md, "Snapping to the nearest map scan").
 SNAP_RADIUS = 5.0
 SNAP_MARGIN = 0.1
+
+# Query-side views: the query's feature images re-centred QUERY_VIEW_OFFSETS m to either
+# side along its own y axis (a revisit 4-8 m beside the map's route), searched by their
+# signatures beside the query's own, each map scan at its nearest; a candidate then
+# re-ranks at its best over the query's U and the views' U, a view's distance plus
+# QUERY_VIEW_PENALTY (a view sees less than the scan: where both are alike, the scan's
+# own wins). Chosen on the selection worlds 5001-5008, 5101-5103
+# (docs/research/model-history.md, "Query-side views").
+QUERY_VIEW_OFFSETS = (4.0, 6.0)
+QUERY_VIEW_PENALTY = 0.03
 
 
 def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
@@ -135,6 +146,8 @@ class DiscoModel:
         self.rerank_signature_weight = RERANK_SIGNATURE_WEIGHT
         self.snap_radius = SNAP_RADIUS
         self.snap_margin = SNAP_MARGIN
+        self.query_view_offsets = QUERY_VIEW_OFFSETS
+        self.query_view_penalty = QUERY_VIEW_PENALTY
         # The name is left out: the same weights loaded as `default` or by path are one model.
         config = {k: v for k, v in self.config_dict().items() if k != "model"}
         self.fingerprint = weights_hash(state if self.frozen else self.net.state_dict(), config)
@@ -268,11 +281,36 @@ class DiscoModel:
         return self.rerank_distances(query_features, cands), self.yaw(query_features, cands)
 
     def rerank_distances(
-        self, query_features: np.ndarray, candidate_features: np.ndarray
+        self,
+        query_features: np.ndarray,
+        candidate_features: np.ndarray,
+        views: np.ndarray | None = None,
     ) -> np.ndarray:
-        """`rerank`'s distances alone (search works out the yaw of the rows it keeps)."""
+        """`rerank`'s distances alone (search works out the yaw of the rows it keeps);
+        with the query's `views` (`query_views`' re-rank images), each candidate's
+        smallest over the query and its views, a view's plus `query_view_penalty`."""
         cands = np.asarray(candidate_features)
         if len(cands) == 0:
             return np.zeros(0, np.float32)
-        score = aligned_correlation(self._u(query_features), self._u(cands))
-        return (1.0 - score).astype(np.float32)
+        q = self._u(query_features)[None]
+        if views is None or not len(views):
+            return (1.0 - aligned_correlations(q, self._u(cands))[0]).astype(np.float32)
+        score = aligned_correlations(np.concatenate([q, views]), self._u(cands))
+        d = np.minimum(1.0 - score[0], (1.0 + self.query_view_penalty - score[1:]).min(axis=0))
+        return d.astype(np.float32)
+
+    def query_views(self, query_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One query's side views: (signatures [V, D], re-rank images [V, R, S]) of its
+        feature images re-centred at +-`query_view_offsets` m along its y axis (V = 0
+        with none)."""
+        offsets = np.asarray(self.query_view_offsets, np.float32).reshape(-1)
+        if len(offsets) == 0:
+            none = np.zeros((0, *np.shape(self._u(query_features))), np.float32)
+            return signatures(none, self.crop), none
+        positions = np.stack(
+            [np.zeros(2 * len(offsets), np.float32), np.concatenate([offsets, -offsets])], 1
+        )
+        rng = self.bev_config.max_range
+        g = recentre_kept(self._g(query_features), positions, rng)
+        u = recentre_kept(self._u(query_features), positions, rng) if self.two_channel else g
+        return signatures(g, self.crop), u

@@ -18,24 +18,43 @@ from disco_cli.model import fft
 def aligned_correlation(query: np.ndarray, candidates: np.ndarray) -> np.ndarray:
     """Peak normalized circular cross-correlation [K] in [-1, 1] of query [R, S] with
     candidates [K, R, S], over all shifts along the last axis (each image centred first)."""
-    # float32 is plenty: the scores are compared among 10 candidates, not summed up.
     q = np.asarray(query, dtype=np.float32)
     c = np.asarray(candidates, dtype=np.float32)
     if c.ndim != 3 or c.shape[1:] != q.shape:
         raise ValueError(
             f"query [R, S] and candidates [K, R, S] must agree: {q.shape} vs {c.shape}"
         )
-    if len(c) == 0:
-        return np.zeros(0, np.float32)
-    q = q - q.mean()
+    return aligned_correlations(q[None], c)[0]
+
+
+def aligned_correlations(queries: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """`aligned_correlation` [V, K] of several query images [V, R, S] (a query and its
+    side views) with candidates [K, R, S]: each image's spectrum along sectors is taken
+    once, and each frequency's cross-power of all pairs is one small matrix product."""
+    # float32 is plenty: the scores are compared among a few dozen candidates.
+    q = np.asarray(queries, dtype=np.float32)
+    c = np.asarray(candidates, dtype=np.float32)
+    if q.ndim != 3 or c.ndim != 3 or c.shape[1:] != q.shape[1:]:
+        raise ValueError(
+            f"queries [V, R, S] and candidates [K, R, S] must agree: {q.shape} vs {c.shape}"
+        )
+    if len(q) == 0 or len(c) == 0:
+        return np.zeros((len(q), len(c)), np.float32)
+    q = q - q.mean(axis=(1, 2), keepdims=True)
     c = c - c.mean(axis=(1, 2), keepdims=True)
-    norms = np.linalg.norm(q) * np.linalg.norm(c.reshape(len(c), -1), axis=1)
-    fq = fft.rfft(q, axis=-1)
-    fc = fft.rfft(c, axis=-1)
-    curves = fft.irfft((fq[None] * np.conj(fc)).sum(axis=1), n=q.shape[-1], axis=-1)
+    norms = np.outer(
+        np.linalg.norm(q.reshape(len(q), -1), axis=1),
+        np.linalg.norm(c.reshape(len(c), -1), axis=1),
+    )
+    # Spectra laid out [F, V, R] and [F, R, K] (the transposed FFT writes that layout
+    # at no extra cost), so the products are one batched matrix multiply. conj(Q) C is
+    # the conjugate of Q conj(C): its curve runs backwards, and has the same peak.
+    fq = np.ascontiguousarray(np.conj(fft.rfft(q, axis=-1)).transpose(2, 0, 1))
+    fc = fft.rfft(c.transpose(2, 1, 0), axis=0)
+    curves = fft.irfft(np.matmul(fq, fc), n=q.shape[-1], axis=0)  # [S, V, K]
     # An empty image correlates with nothing: score it as unrelated rather than dividing by 0.
-    score = np.where(norms > 0, curves.max(axis=1) / np.where(norms > 0, norms, 1.0), 0.0)
-    return np.clip(score, -1.0, 1.0)  # rounding can step a hair past 1 for a copy
+    score = np.where(norms > 0, curves.max(axis=0) / np.where(norms > 0, norms, 1.0), 0.0)
+    return np.clip(score, -1.0, 1.0).astype(np.float32)  # rounding can step past 1 for a copy
 
 
 def aligned_correlation_torch(query, candidates):

@@ -144,6 +144,21 @@ def _places_at(
     return out
 
 
+def recentre_kept(image: np.ndarray, positions: np.ndarray, max_range: float) -> np.ndarray:
+    """`recentre` at lattice `positions` [M, 2] (multiples of LATTICE_STEP within
+    LATTICE_REACH), where each position reads kept as the searches' are."""
+    img = np.asarray(image, dtype=np.float32)
+    pos = np.asarray(positions, dtype=np.float32).reshape(-1, 2)
+    cells = np.rint((pos + LATTICE_REACH) / LATTICE_STEP).astype(np.int64)
+    if not (np.allclose(_metres(cells), pos) and ((cells >= 0) & (cells < _LATTICE_SIDE)).all()):
+        raise ValueError(
+            f"positions must lie on the {LATTICE_STEP} m lattice within {LATTICE_REACH} m"
+        )
+    rings, sectors = img.shape
+    places = _places_at(rings, sectors, float(max_range), _flat(cells), _metres(cells))
+    return _resample(_padded(img), places, img.shape)
+
+
 @lru_cache(maxsize=8)
 def _coarse_cells(reach: float = COARSE_REACH) -> np.ndarray:
     """The first search grid [M, 2] as lattice cells."""
