@@ -567,6 +567,7 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
 
         head["refine_version"] = VERSION
     from disco_cli.search import (
+        makes_query_views,
         rerank_depth,
         rerank_signature_weight,
         rerank_wider,
@@ -582,6 +583,10 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
     snap = snap_settings(model)
     if depth and snap[0]:  # likewise rows from before the snap
         head["snap"] = list(snap)
+        # likewise rows from before the snap carried the yaw by the map poses
+        head["snap_yaw"] = "map poses"
+    if depth and makes_query_views(model):  # likewise rows from before the query's views
+        head["query_views"] = [*map(float, model.query_view_offsets), model.query_view_penalty]
     if f.is_file():
         lines = f.read_text().splitlines()
         old = json.loads(lines[0])

@@ -38,8 +38,9 @@ from disco_cli.model.yaw import (
 )
 
 # Bumped whenever the refined yaw can change for the same weights (cached evaluations
-# key on it: benchmarks/ood_suite.py). 4: the second heading checked (`refine_checked`).
-VERSION = 4
+# key on it: benchmarks/ood_suite.py). 4: the second heading checked (`refine_checked`);
+# 5: the first grid reaching SIDE_REACH along the query's y axis.
+VERSION = 5
 # Below this yaw confidence the best other heading is searched for too, and the two are
 # told apart by the plain correlation of the images (`refine_checked`). A street alike on
 # both sides gives 0.1-0.55, an asymmetric one 0.8-0.95 (tests/test_yaw_flip.py).
@@ -50,6 +51,11 @@ CHECK_REACH = 6.0
 # Search schedule (m): the first grid's spacing and half width, then the finer steps.
 COARSE_STEP = 3.0
 COARSE_REACH = 3.0
+# Along the query's own y axis (to its sides) the first grid reaches further, as far as
+# the query's side views (`DiscoModel.query_views`): a revisit 6-8 m aside, found by a
+# view, peaks 0.3-0.45 where it was taken and 0.1-0.2 within 5 m, where the search
+# settled on a wrong heading (docs/research/model-history.md, "Query-side views").
+SIDE_REACH = 6.0
 FINE_STEPS = (1.5, 0.5)
 _NEIGHBOURS = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if (a, b) != (0, 0)])
 
@@ -99,7 +105,7 @@ def _places(rings: int, sectors: int, max_range: float, positions: np.ndarray) -
 # Every position a search visits lies on one lattice: the coarse grid's and the fine
 # steps' multiples of 0.5 m, out to the widest search's reach (33 x 33 positions).
 LATTICE_STEP = 0.5
-LATTICE_REACH = CHECK_REACH + sum(FINE_STEPS)
+LATTICE_REACH = max(CHECK_REACH, SIDE_REACH) + sum(FINE_STEPS)
 _LATTICE_SIDE = int(round(2 * LATTICE_REACH / LATTICE_STEP)) + 1
 
 
@@ -160,10 +166,13 @@ def recentre_kept(image: np.ndarray, positions: np.ndarray, max_range: float) ->
 
 
 @lru_cache(maxsize=8)
-def _coarse_cells(reach: float = COARSE_REACH) -> np.ndarray:
-    """The first search grid [M, 2] as lattice cells."""
-    k = np.arange(-reach, reach + 1e-6, COARSE_STEP)
-    metres = np.stack(np.meshgrid(k, k, indexing="ij"), -1).reshape(-1, 2)
+def _coarse_cells(reach: float = COARSE_REACH, side: float = SIDE_REACH) -> np.ndarray:
+    """The first search grid [M, 2] as lattice cells: `reach` m along x, and the larger
+    of that and `side` along y."""
+    kx = np.arange(-reach, reach + 1e-6, COARSE_STEP)
+    side = max(reach, side)
+    ky = np.arange(-side, side + 1e-6, COARSE_STEP)
+    metres = np.stack(np.meshgrid(kx, ky, indexing="ij"), -1).reshape(-1, 2)
     return np.rint((metres + LATTICE_REACH) / LATTICE_STEP).astype(np.int64)
 
 
