@@ -47,6 +47,10 @@ _FORMAT = 1
 _PCA_DIM = 256
 _PCA_MIN_ROWS = 8192
 _REFINE = ("SQ8", "SQfp16", "Flat")
+# A query's side views search half the clusters, re-measuring twice k: they only
+# propose candidates, which are re-ranked (`approximate_search`).
+VIEW_PROBE_DIVISOR = 2
+VIEW_K_FACTOR = 2.0
 
 
 class SidecarError(Exception):
@@ -160,6 +164,41 @@ class AnnIndex:
         limit: Sequence[int] | np.ndarray | None = None,
         exclude: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
+        return self._search(queries, k, limit, exclude, None)
+
+    def approximate_search(
+        self,
+        queries: np.ndarray,
+        k: int,
+        limit: Sequence[int] | np.ndarray | None = None,
+        exclude: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`search` for candidates only (a query's side views, `query_views.py`): half
+        the clusters probed and twice k re-measured, so that a query's four views cost
+        about what two of its own searches do."""
+        faiss = _faiss()
+        nprobe = max(1, faiss.extract_index_ivf(self._index).nprobe // VIEW_PROBE_DIVISOR)
+        params = faiss.IndexRefineSearchParameters(
+            k_factor=VIEW_K_FACTOR,
+            base_index_params=self._ivf_params(faiss, nprobe),
+        )
+        return self._search(queries, k, limit, exclude, params)
+
+    def _ivf_params(self, faiss: Any, nprobe: int) -> Any:
+        """Per-call IVF search parameters, wrapped for the PCA in front where there is one."""
+        ivf = faiss.SearchParametersIVF(nprobe=nprobe)
+        if self.params.pca:
+            return faiss.SearchParametersPreTransform(index_params=ivf)
+        return ivf
+
+    def _search(
+        self,
+        queries: np.ndarray,
+        k: int,
+        limit: Sequence[int] | np.ndarray | None,
+        exclude: np.ndarray | None,
+        params: Any,
+    ) -> tuple[np.ndarray, np.ndarray]:
         if limit is not None:
             raise ValueError("the approximate index searches a whole map (no limit)")
         q, single = checked_queries(queries, self._dim)
@@ -174,7 +213,7 @@ class AnnIndex:
         # excluded rows still leaves the k best allowed ones.
         extra = 0 if exclude is None else int(exclude.sum(axis=1).max())
         fetch = min(k + extra, self.n)
-        d2, found = self._index.search(q, fetch)
+        d2, found = self._index.search(q, fetch, params=params)
         for i in range(b):
             ok = found[i] >= 0
             if exclude is not None:
