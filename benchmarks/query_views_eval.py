@@ -1,0 +1,119 @@
+"""Issue 24: the query's side views as shipped, against the search before them.
+
+    SEL=out/sel   # the selection worlds (docs/research/model-history.md, "Seeds")
+    PYTHONPATH=src nice -n 5 .venv/bin/python benchmarks/query_views_eval.py \
+        $SEL/sel5103:8.5 $SEL/sel5101:5 $SEL/sel5102:5 $SEL/s5001:5 ... $SEL/s5008:5
+
+Each argument is WORLD:RADIUS, a `disco simulate` folder (sessions 00 and 01) and the
+radius (m) within which a match is true; worlds are embedded once by the shipped model
+and cached (--cache, as `query_side_views_probe.py` does). Every query goes through
+`search.match_queries` with the map in memory, three ways:
+
+- `before`: no side views of the query, the yaw search reaching 5 m, and the snap
+  searching the yaw to the scan it moves to (the search before issue 24's views);
+- `views`: the query's side views (`DiscoModel.query_views`), the snap carrying the
+  best match's yaw by the two map poses, the yaw search still reaching 5 m;
+- `shipped`: as `views`, with the yaw search reaching `yaw_refine.SIDE_REACH` to the
+  query's sides.
+
+`--offsets 5` (or 4,5,6, ...) tries other views than the model's +-4 and +-6 m.
+
+Prints Recall@1 per world (revisit worlds, radius over 5 m: by distance to the nearest
+map scan, 4-5 / 5-6 / 6-7 / 7-8 m), the correct top-1s whose yaw is off by more than 10
+degrees in brackets, and the mean yaw error of the correct top-1s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def searched_snap_yaw(snap):
+    """`search.snap_to_nearest_conf` as before: no yaw for a scan the snap moved to
+    (match_queries then searches it)."""
+
+    def snapped(model, query_features, stored, order, distances, radius, margin):
+        moved, yaw, conf = snap(model, query_features, stored, order, distances, radius, margin)
+        if moved[0] != order[0]:
+            return moved, None, float("nan")
+        return moved, yaw, conf
+
+    return snapped
+
+
+def set_side_reach(metres: float) -> None:
+    from disco_cli.model import yaw_refine
+
+    yaw_refine._coarse_cells.__wrapped__.__defaults__ = (yaw_refine.COARSE_REACH, metres)
+    yaw_refine._coarse_cells.cache_clear()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("worlds", nargs="+", help="WORLD:RADIUS")
+    ap.add_argument("--cache", type=Path, default=Path("out/qsv"))
+    ap.add_argument(
+        "--offsets",
+        default=None,
+        help="the views' offsets (m, comma-separated) instead of the model's, e.g. 5 or 4,5,6",
+    )
+    args = ap.parse_args()
+    from _common import print_header
+
+    print_header("query_views_eval")
+    import torch
+
+    torch.set_num_threads(1)
+    from query_side_views_probe import World
+
+    import disco_cli.search as search
+    from disco_cli.model import load_model, yaw_refine
+
+    model = load_model("default")
+    offsets, snap = model.query_view_offsets, search.snap_to_nearest_conf
+    if args.offsets:
+        offsets = tuple(float(x) for x in args.offsets.split(","))
+    ways = {
+        "before": ((), searched_snap_yaw(snap), 0.0),
+        "views": (offsets, snap, 0.0),
+        "shipped": (offsets, snap, yaw_refine.SIDE_REACH),
+    }
+    print("| world | queries | " + " | ".join(ways) + " |")
+    print("| --- | ---: | " + " | ".join("---:" for _ in ways) + " |")
+    for spec in args.worlds:
+        w = World(spec, args.cache, model)
+        cells, n = [], 0
+        for views, snap_fn, reach in ways.values():
+            model.query_view_offsets, search.snap_to_nearest_conf = views, snap_fn
+            set_side_reach(reach)
+            errors: list[float] = []
+            score = w._score
+
+            def scored(i, best, hits, near, score=score, errors=errors):
+                out = score(i, best, hits, near)
+                if hits[-1]:
+                    true = math.degrees(w.e["qxyyaw"][i, 2] - w.e["mpose"][best.row, 3])
+                    errors.append(abs((best.yaw_deg - true + 180.0) % 360.0 - 180.0))
+                return out
+
+            w._score = scored
+            r1, n, by, over10 = w.run(model, "none", None)
+            w._score = score
+            cell = f"{r1:.3f}"
+            if w.radius > 5:
+                cell += " (" + " / ".join(f"{b:.2f}" for b in by) + ")"
+            cell += (f" [{over10}]" if over10 else "") + f", {np.mean(errors):.2f} deg"
+            cells.append(cell)
+        print(f"| {w.path.name} | {n} | " + " | ".join(cells) + " |", flush=True)
+    set_side_reach(yaw_refine.SIDE_REACH)
+
+
+if __name__ == "__main__":
+    main()
