@@ -586,7 +586,11 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
         # likewise rows from before the snap carried the yaw by the map poses
         head["snap_yaw"] = "map poses"
     if depth and makes_query_views(model):  # likewise rows from before the query's views
-        head["query_views"] = [*map(float, model.query_view_offsets), model.query_view_penalty]
+        head["query_views"] = {
+            "offsets": [float(o) for o in model.query_view_offsets],
+            "penalty": float(model.query_view_penalty),
+            "first_pass": "own first kept",
+        }
     if f.is_file():
         lines = f.read_text().splitlines()
         old = json.loads(lines[0])

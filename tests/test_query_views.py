@@ -201,3 +201,55 @@ def test_the_approximate_index_proposes_the_views_candidates_cheaply() -> None:
     assert found >= 7 and found >= sum(w in r for w, r in zip(want, full)) - 1
     exact = np.linalg.norm(sigs[rows[:, 0]] - queries, axis=1)
     np.testing.assert_allclose(dists[:, 0], exact, atol=5e-3)
+
+
+class _ViewsStub:
+    """Re-ranks by each row's stored score (feature column 0, the views' images
+    ignored); its one side view's signatures are given."""
+
+    name = "stub"
+    rerank_candidates = 3
+    query_view_offsets = (5.0,)
+    query_view_penalty = 0.0
+
+    def __init__(self, view_signatures: np.ndarray):
+        self.view_signatures = view_signatures
+        self.calls: list[tuple[int, bool]] = []  # (candidates, with the views' images)
+
+    def query_views(self, query_features):
+        return self.view_signatures, np.zeros((len(self.view_signatures), 1))
+
+    def rerank_distances(self, query_features, candidate_features, views=None):
+        self.calls.append((len(candidate_features), views is not None))
+        return candidate_features[:, 0].copy()
+
+    def yaw(self, query_features, match_features):
+        return np.zeros(len(match_features))
+
+
+def test_the_views_add_candidates_and_never_push_out_the_query_s_own() -> None:
+    # Rows 0-2 are the query's own 3 nearest signatures; its view's signatures sit on
+    # rows 10-12, nearer than any. Row 0 re-ranks best (0.1), the views' rows 0.5-0.7:
+    # all six are re-ranked in the first pass of 3 (taking the 3 nearest over the query
+    # and its view alone would re-rank rows 10-12 only), and rows 0-2 come first.
+    rng = np.random.default_rng(6)
+    sigs = rng.random((30, 16)).astype(np.float32)
+    query = sigs[0] + 0.01
+    sigs[1], sigs[2] = query + 0.02, query - 0.02
+    scores = np.full(30, 0.9)
+    scores[[0, 1, 2, 10, 11, 12]] = [0.1, 0.3, 0.4, 0.5, 0.6, 0.7]
+    feats = np.c_[scores, np.zeros(30)].astype(np.float32)
+
+    class Rows:
+        def rows(self, ids):
+            ids = np.asarray(ids)
+            return MatchRows(
+                ids, [f"m{i}" for i in ids], np.full((len(ids), 4), np.nan), feats[ids]
+            )
+
+    model = _ViewsStub(sigs[10:13] + 0.001)
+    index = SignatureIndex(sigs)
+    found = match_queries(index, np.arange(30), Rows(), model, query[None], feats[:1], 3)[0]
+    assert [m.row for m in found] == [0, 1, 2]
+    assert [m.distance for m in found] == pytest.approx([0.1, 0.3, 0.4])
+    assert model.calls == [(6, True)]  # one pass of six, with the views' images

@@ -414,12 +414,21 @@ def _reranked(
     The candidates are `rows` (signature distances `sig_d`, nearest first) and, where
     the model makes side views of the query (`beside`: what they find, and their
     re-rank images), the scans those find among the `first` nearest over the query and
-    its views (`query_views.merged_rows`); each candidate then re-ranks at its best over
-    the query and its views."""
+    its views (`query_views.merged_rows`), which join the first pass; each candidate
+    then re-ranks at its best over the query and its views."""
     images = None
     if beside is not None:
         view_rows, view_d, images = beside()
+        own_first = rows[:first]
         rows, sig_d = merged_rows(rows, sig_d, view_rows, view_d, first)
+        # The first pass re-ranks the query's own first candidates and the views' finds
+        # among the first nearest over all: a view never pushes out a scan the query's
+        # own search put first.
+        in_first = np.isin(rows, own_first)
+        in_first[:first] = True
+        rows = np.concatenate([rows[in_first], rows[~in_first]])
+        sig_d = np.concatenate([sig_d[in_first], sig_d[~in_first]])
+        first = int(in_first.sum())
 
     def reranked(features: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         if hasattr(model, "rerank_distances"):
