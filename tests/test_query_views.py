@@ -219,9 +219,15 @@ class _ViewsStub:
     def query_views(self, query_features):
         return self.view_signatures, np.zeros((len(self.view_signatures), 1))
 
-    def rerank_distances(self, query_features, candidate_features, views=None):
-        self.calls.append((len(candidate_features), views is not None))
+    def rerank_distances(self, query_features, candidate_features):
+        self.calls.append((len(candidate_features), False))
         return candidate_features[:, 0].copy()
+
+    def rerank_distances_beside(self, query_features, candidate_features, views):
+        # The query's own distance is 0.05 worse than its best over the views.
+        self.calls.append((len(candidate_features), True))
+        best = candidate_features[:, 0].copy()
+        return best + 0.05, best
 
     def yaw(self, query_features, match_features):
         return np.zeros(len(match_features))
@@ -251,5 +257,6 @@ def test_the_views_add_candidates_and_never_push_out_the_query_s_own() -> None:
     index = SignatureIndex(sigs)
     found = match_queries(index, np.arange(30), Rows(), model, query[None], feats[:1], 3)[0]
     assert [m.row for m in found] == [0, 1, 2]
-    assert [m.distance for m in found] == pytest.approx([0.1, 0.3, 0.4])
+    # Ordered by the best over the query and its views; shown: the query's own.
+    assert [m.distance for m in found] == pytest.approx([0.15, 0.35, 0.45])
     assert model.calls == [(6, True)]  # one pass of six, with the views' images

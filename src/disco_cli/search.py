@@ -404,10 +404,11 @@ def _reranked(
     first: int,
     wider_above: float,
     beside: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
-) -> tuple[np.ndarray, Any, np.ndarray, np.ndarray | None, np.ndarray]:
+) -> tuple[np.ndarray, Any, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
     """The model's re-ranking of the `first` candidates, or of all when none of those
     re-ranks better than `wider_above`: (rows re-ranked, their stored data, re-rank
-    distances, yaw, signature distances), in one order. The yaw is None where the model
+    distances, yaw, signature distances, the query's own re-rank distances), in one
+    order. The yaw is None where the model
     re-ranks by distance alone (`rerank_distances`: its yaw is then worked out for the
     rows kept only).
 
@@ -430,25 +431,29 @@ def _reranked(
         sig_d = np.concatenate([sig_d[in_first], sig_d[~in_first]])
         first = int(in_first.sum())
 
-    def reranked(features: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    def reranked(features: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(the query's own re-rank distances, the best over it and its views, yaw)."""
+        if images is not None:
+            own, best = model.rerank_distances_beside(query_features, features, images)
+            return np.asarray(own, np.float64), np.asarray(best, np.float64), None
         if hasattr(model, "rerank_distances"):
-            extra = {} if images is None else {"views": images}
-            d = model.rerank_distances(query_features, features, **extra)
-            return np.asarray(d, np.float64), None
+            d = np.asarray(model.rerank_distances(query_features, features), np.float64)
+            return d, d, None
         d, yaw = model.rerank(query_features, features)
-        return np.asarray(d, np.float64), np.asarray(yaw, np.float64)
+        d = np.asarray(d, np.float64)
+        return d, d, np.asarray(yaw, np.float64)
 
     r = rows[:first]
     stored = db.rows(ids[r])
-    d, yaw = reranked(stored.features)
+    own, d, yaw = reranked(stored.features)
     if len(rows) > len(r) and d.min() > wider_above:
         # No candidate is a good match: re-rank the next ones too.
         more = db.rows(ids[rows[len(r) :]])
-        d_more, yaw_more = reranked(more.features)
+        own_more, d_more, yaw_more = reranked(more.features)
         r, stored = rows, _joined_rows(stored, more)
-        d = np.concatenate([d, d_more])
+        own, d = np.concatenate([own, own_more]), np.concatenate([d, d_more])
         yaw = None if yaw is None else np.concatenate([yaw, yaw_more])
-    return r, stored, d, yaw, sig_d[: len(r)]
+    return r, stored, d, yaw, sig_d[: len(r)], own
 
 
 def rerank_signature_weight(model: Any) -> float:
@@ -694,7 +699,9 @@ def match_queries(
     if rerank_n == 0:  # the signature order has no re-ranked candidates to snap among
         snap_r = 0.0
     rows, dists = index.search(signatures, max(first, wider_n), limit=limit, exclude=exclude)
-    with_views = rerank_n > 0 and makes_query_views(model) and hasattr(model, "rerank_distances")
+    with_views = (
+        rerank_n > 0 and makes_query_views(model) and hasattr(model, "rerank_distances_beside")
+    )
     out: list[list[Match]] = []
     for i in range(len(rows)):
         keep = rows[i] >= 0
@@ -707,7 +714,7 @@ def match_queries(
             beside = None
             if with_views:
                 beside = _beside(model, index, features[i], first, limit, exclude, i)
-            r, stored, d_new, yaw, sig_d = _reranked(
+            r, stored, d_new, yaw, sig_d, d_own = _reranked(
                 model, features[i], db, ids, r_all, d_all, first, wider_above, beside
             )
             # The signature distances of the re-ranked rows: they are a prefix of r_all.
@@ -717,7 +724,9 @@ def match_queries(
                     model, features[i], stored, order, d_new, snap_r, snap_margin
                 )
             order = order[:k]
-            r, d = r[order], d_new[order]
+            # Shown: how well the query itself matches (a view's match orders, and is
+            # not as sure as that).
+            r, d = r[order], d_own[order]
             yaw = None if yaw is None else yaw[order]
             sel = order
         else:  # the search returned `first` rows: no wider pass without re-ranking

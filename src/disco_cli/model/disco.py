@@ -281,23 +281,29 @@ class DiscoModel:
         return self.rerank_distances(query_features, cands), self.yaw(query_features, cands)
 
     def rerank_distances(
-        self,
-        query_features: np.ndarray,
-        candidate_features: np.ndarray,
-        views: np.ndarray | None = None,
+        self, query_features: np.ndarray, candidate_features: np.ndarray
     ) -> np.ndarray:
-        """`rerank`'s distances alone (search works out the yaw of the rows it keeps);
-        with the query's `views` (`query_views`' re-rank images), each candidate's
-        smallest over the query and its views, a view's plus `query_view_penalty`."""
+        """`rerank`'s distances alone (search works out the yaw of the rows it keeps)."""
         cands = np.asarray(candidate_features)
         if len(cands) == 0:
             return np.zeros(0, np.float32)
         q = self._u(query_features)[None]
-        if views is None or not len(views):
-            return (1.0 - aligned_correlations(q, self._u(cands))[0]).astype(np.float32)
+        return (1.0 - aligned_correlations(q, self._u(cands))[0]).astype(np.float32)
+
+    def rerank_distances_beside(
+        self, query_features: np.ndarray, candidate_features: np.ndarray, views: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(`rerank_distances` [K], each candidate's best [K] over the query and its
+        `views` (`query_views`' re-rank images), a view's plus `query_view_penalty`),
+        from one pass over the candidates' spectra."""
+        cands = np.asarray(candidate_features)
+        if len(cands) == 0:
+            return np.zeros(0, np.float32), np.zeros(0, np.float32)
+        q = self._u(query_features)[None]
         score = aligned_correlations(np.concatenate([q, views]), self._u(cands))
-        d = np.minimum(1.0 - score[0], (1.0 + self.query_view_penalty - score[1:]).min(axis=0))
-        return d.astype(np.float32)
+        own = 1.0 - score[0]
+        best = np.minimum(own, (1.0 + self.query_view_penalty - score[1:]).min(axis=0))
+        return own.astype(np.float32), best.astype(np.float32)
 
     def query_views(self, query_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One query's side views: (signatures [V, D], re-rank images [V, R, S]) of its
