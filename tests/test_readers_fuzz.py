@@ -763,3 +763,12 @@ def test_pcd_with_a_huge_count_and_pointcloud2_beyond_float32(fuzz_dir: Path) ->
     # One row and a row_step of 2^63 (a damaged header): its padding is never read.
     msg.data, msg.width, msg.row_step = struct.pack("<fdf", 3, 4, 5), 1, 2**63
     np.testing.assert_array_equal(decode_message(msg, "b#t@1"), [[3, 4, 5, 0]])
+
+
+def test_a_tum_quaternion_that_overflows_is_refused_in_one_line(tmp_path: Path) -> None:
+    # Found by the fuzz test above: qx = 1e308 overflowed the norm (a RuntimeWarning).
+    path = tmp_path / "traj.txt"
+    path.write_text("0.0 0 0 0 1e308 0 0 10\n0.1 0 0 0 0 0 0 1\n")
+    with pytest.raises(DiscoError) as info:
+        read_poses(path, "tum", calib="none")
+    _expect_pose_error(info.value, path)

@@ -20,7 +20,8 @@ from disco_cli.poses.geometry import matrix_to_quat, quat_to_matrix
 def read_tum_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(stamps [N] seconds, poses [N, 4, 4]) of a TUM file, in file order."""
     table, _ = numeric_table(path, 8, "poses")
-    norms = np.linalg.norm(table[:, 4:8], axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflowing one is refused below
+        norms = np.linalg.norm(table[:, 4:8], axis=1)
     bad = np.flatnonzero(~(norms > 1e-12) | ~np.isfinite(norms))
     if len(bad):
         raise PoseFileError(
