@@ -590,6 +590,7 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
             "offsets": [float(o) for o in model.query_view_offsets],
             "penalty": float(model.query_view_penalty),
             "first_pass": "own first kept",
+            "snap_margin_on": "own distance",
         }
     if f.is_file():
         lines = f.read_text().splitlines()

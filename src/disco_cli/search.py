@@ -720,8 +720,10 @@ def match_queries(
             # The signature distances of the re-ranked rows: they are a prefix of r_all.
             order = rerank_order(r, d_new, sig_d, sig_weight)
             if snap_r > 0:
+                # The margin compares how well the query itself matches each candidate:
+                # a view's match may stand far ahead of a nearer scan it cannot see.
                 order, first_yaw, first_conf = snap_to_nearest_conf(
-                    model, features[i], stored, order, d_new, snap_r, snap_margin
+                    model, features[i], stored, order, d_own, snap_r, snap_margin
                 )
             order = order[:k]
             # Shown: how well the query itself matches (a view's match orders, and is
