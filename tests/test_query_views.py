@@ -16,7 +16,7 @@ from disco_cli.model import load_model
 from disco_cli.model import yaw_refine as yr
 from disco_cli.model.signature import signatures
 from disco_cli.model.verify import aligned_correlation, aligned_correlations
-from disco_cli.query_views import ProjectedSignatures, merged_rows
+from disco_cli.query_views import ProjectedSignatures, candidates_with_views
 from disco_cli.search import SignatureIndex, brute_force_topk, match_queries
 
 
@@ -45,19 +45,31 @@ def test_aligned_correlations_match_a_plain_loop() -> None:
         aligned_correlations(queries, cands[:, :5])
 
 
-def test_merged_rows_keep_the_query_s_own_and_the_views_nearest() -> None:
+def test_candidates_keep_the_query_s_own_and_the_views_nearest() -> None:
     # Own candidates 3, 7, 1 (distances 0.5, 0.6, 0.9); the views found 7 nearer (0.2),
     # 4 (0.4), 8 (0.7) and 9 (0.95). With first = 3, the 3 nearest over all are 7, 4 and
-    # 3; every own row stays; 8 and 9 are not among the 3 nearest and are left out.
-    rows, d = merged_rows(
+    # 3; every own row stays; 8 and 9 are not among the 3 nearest and are left out. The
+    # first pass holds those 3 and the query's own 3 (1 too).
+    rows, d, first = candidates_with_views(
         np.array([3, 7, 1]),
         np.array([0.5, 0.6, 0.9]),
         np.array([[7, 4], [8, 9], [-1, -1]]),
         np.array([[0.2, 0.4], [0.7, 0.95], [np.inf, np.inf]]),
         first=3,
     )
-    assert rows.tolist() == [7, 4, 3, 1]
+    assert rows.tolist() == [7, 4, 3, 1] and first == 4
     np.testing.assert_allclose(d, [0.2, 0.4, 0.5, 0.9])
+
+
+def test_the_first_pass_keeps_the_query_s_own_first_ahead_of_the_rest() -> None:
+    # Own 3, 1, 2 (0.5, 0.6, 0.7), first = 1; a view found 4 (0.1) and 2 nearer (0.3).
+    # Nearest over all: 4, 2, 3, 1. The first pass is 4 (nearest over all) and 3 (the
+    # query's own first), though 2 comes nearer than 3; 2 and 1 follow.
+    rows, d, first = candidates_with_views(
+        np.array([3, 1, 2]), np.array([0.5, 0.6, 0.7]), np.array([4, 2]), np.array([0.1, 0.3]), 1
+    )
+    assert rows.tolist() == [4, 3, 2, 1] and first == 2
+    np.testing.assert_allclose(d, [0.1, 0.5, 0.3, 0.6])
 
 
 def _low_rank_signatures(n: int, dim: int, rank: int, seed: int) -> np.ndarray:

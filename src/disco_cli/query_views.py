@@ -3,10 +3,10 @@
 A revisit 4-8 m beside the map's route sees the street from a place no map scan was
 taken: its signature is far from all of them, and none of the nearest re-ranks well.
 The query's feature images re-centred a few metres to either side stand where the
-map's sensor may have stood. Where the search looks wider (none of the first
-candidates re-ranks well), their signatures are searched too, each map scan counting at
-its nearest over the query and its views; the query's own candidates all stay, so the
-views add places and never push one out of the re-ranking.
+map's sensor may have stood. On every query their signatures are searched beside the
+query's own, each map scan counting at its nearest over the query and its views; the
+query's own candidates all stay (its first ones in the first pass), so the views add
+places and never push one out of the re-ranking.
 """
 
 from __future__ import annotations
@@ -16,19 +16,23 @@ from typing import Any
 import numpy as np
 
 
-def merged_rows(
+def candidates_with_views(
     rows: np.ndarray,
     dists: np.ndarray,
     view_rows: np.ndarray,
     view_dists: np.ndarray,
     first: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """A query's candidate rows and signature distances [W] with its views' finds.
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """A query's candidate rows and signature distances [W] with its views' finds, and
+    how many of them the first re-ranking pass takes.
 
-    `rows`, `dists` [N]: the query's own nearest map scans; `view_rows`, `view_dists`:
-    what its views found (any shape, -1 for none). Each scan counts at its nearest over
-    the query and its views; the result holds every one of `rows` and the views' scans
-    among the `first` nearest so, ordered by that distance (ties by row)."""
+    `rows`, `dists` [N]: the query's own nearest map scans, nearest first; `view_rows`,
+    `view_dists`: what its views found (any shape, -1 for none). Each scan counts at its
+    nearest over the query and its views. The candidates are every one of `rows` and
+    the views' scans among the `first` nearest so. The first pass holds the `first`
+    nearest over all and the query's own `first`: a view never pushes out a scan the
+    query's own search put first. Rows come first pass first, each part ordered by
+    that nearest distance (ties by row)."""
     r = np.concatenate([np.ravel(rows), np.ravel(view_rows)]).astype(np.int64)
     d = np.concatenate([np.ravel(dists), np.ravel(view_dists)]).astype(np.float64)
     found = r >= 0
@@ -37,10 +41,12 @@ def merged_rows(
     _, at = np.unique(r[order], return_index=True)
     nearest = order[at]  # each scan once, at its nearest
     nearest = nearest[np.lexsort((r[nearest], d[nearest]))]
-    keep = np.isin(r[nearest], rows)
-    keep[:first] = True
-    kept = nearest[keep]
-    return r[kept], d[kept]
+    top = np.zeros(len(nearest), bool)
+    top[:first] = True
+    in_first = top | np.isin(r[nearest], rows[:first])
+    rest = ~in_first & np.isin(r[nearest], rows)
+    kept = np.concatenate([nearest[in_first], nearest[rest]])
+    return r[kept], d[kept], int(in_first.sum())
 
 
 def views_search(
@@ -49,12 +55,9 @@ def views_search(
     """The k nearest map scans [V, k] of each of one query's views [V, D], by the
     index's `approximate_search` where it has one (a view only proposes candidates,
     which are then re-ranked), else its exact `search`. `limit` and `exclude` are the
-    query's own (a row limit, a mask over rows)."""
-    views = np.asarray(view_signatures, np.float32)
+    query's own (a row limit, a mask over rows), which the indexes apply to every view."""
     search = getattr(index, "approximate_search", index.search)
-    if limit is not None:
-        limit = np.full(len(views), int(limit), np.int64)
-    return search(views, k, limit=limit, exclude=exclude)
+    return search(np.asarray(view_signatures, np.float32), k, limit=limit, exclude=exclude)
 
 
 # The views' first pass on large maps: the signatures projected on their leading

@@ -17,13 +17,13 @@ those are re-measured directly in float64:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from disco_cli.query_views import merged_rows, views_search
+from disco_cli.query_views import candidates_with_views, views_search
 from disco_cli.threads import get_threads
 
 __all__ = [
@@ -403,7 +403,7 @@ def _reranked(
     sig_d: np.ndarray,
     first: int,
     wider_above: float,
-    beside: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+    views: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, Any, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
     """The model's re-ranking of the `first` candidates, or of all when none of those
     re-ranks better than `wider_above`: (rows re-ranked, their stored data, re-rank
@@ -413,23 +413,15 @@ def _reranked(
     rows kept only).
 
     The candidates are `rows` (signature distances `sig_d`, nearest first) and, where
-    the model makes side views of the query (`beside`: what they find, and their
-    re-rank images), the scans those find among the `first` nearest over the query and
-    its views (`query_views.merged_rows`), which join the first pass; each candidate
-    then re-ranks at its best over the query and its views."""
+    the model makes side views of the query (`views`: what they found, their signature
+    distances and their re-rank images), the scans those find among the `first`
+    nearest over the query and its views, which join the first pass
+    (`query_views.candidates_with_views`); each candidate then re-ranks at its best over
+    the query and its views."""
     images = None
-    if beside is not None:
-        view_rows, view_d, images = beside()
-        own_first = rows[:first]
-        rows, sig_d = merged_rows(rows, sig_d, view_rows, view_d, first)
-        # The first pass re-ranks the query's own first candidates and the views' finds
-        # among the first nearest over all: a view never pushes out a scan the query's
-        # own search put first.
-        in_first = np.isin(rows, own_first)
-        in_first[:first] = True
-        rows = np.concatenate([rows[in_first], rows[~in_first]])
-        sig_d = np.concatenate([sig_d[in_first], sig_d[~in_first]])
-        first = int(in_first.sum())
+    if views is not None:
+        view_rows, view_d, images = views
+        rows, sig_d, first = candidates_with_views(rows, sig_d, view_rows, view_d, first)
 
     def reranked(features: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """(the query's own re-rank distances, the best over it and its views, yaw)."""
@@ -629,7 +621,7 @@ def makes_query_views(model: Any) -> bool:
     return hasattr(model, "query_views") and len(getattr(model, "query_view_offsets", ())) > 0
 
 
-def _beside(
+def _views_found(
     model: Any,
     index: Any,
     query_features: np.ndarray,
@@ -637,23 +629,17 @@ def _beside(
     limit: Any,
     exclude: Any,
     i: int,
-) -> Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """What query i's side views find, worked out when called: (rows [V, k], signature
-    distances [V, k], re-rank images [V, R, S]), within the query's `limit`/`exclude`."""
-
-    def seen() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        sigs, images = model.query_views(query_features)
-        lim = None
-        if limit is not None:
-            lim = int(limit) if np.ndim(limit) == 0 else int(np.asarray(limit)[i])
-        ex = None
-        if exclude is not None:
-            ex = np.asarray(exclude, dtype=bool)
-            ex = ex[i] if ex.ndim == 2 else ex
-        view_rows, view_d = views_search(index, sigs, k, limit=lim, exclude=ex)
-        return view_rows, view_d, images
-
-    return seen
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What query i's side views find: (rows [V, k], signature distances [V, k],
+    re-rank images [V, R, S]), within the query's `limit`/`exclude`."""
+    sigs, images = model.query_views(query_features)
+    lim = limit if np.ndim(limit) == 0 else int(np.asarray(limit)[i])  # None: ndim 0
+    ex = None
+    if exclude is not None:
+        ex = np.asarray(exclude, dtype=bool)
+        ex = ex[i] if ex.ndim == 2 else ex
+    view_rows, view_d = views_search(index, sigs, k, limit=lim, exclude=ex)
+    return view_rows, view_d, images
 
 
 def match_queries(
@@ -711,13 +697,12 @@ def match_queries(
             continue
         first_yaw, first_conf = None, float("nan")
         if rerank_n > 0:
-            beside = None
+            views = None
             if with_views:
-                beside = _beside(model, index, features[i], first, limit, exclude, i)
+                views = _views_found(model, index, features[i], first, limit, exclude, i)
             r, stored, d_new, yaw, sig_d, d_own = _reranked(
-                model, features[i], db, ids, r_all, d_all, first, wider_above, beside
+                model, features[i], db, ids, r_all, d_all, first, wider_above, views
             )
-            # The signature distances of the re-ranked rows: they are a prefix of r_all.
             order = rerank_order(r, d_new, sig_d, sig_weight)
             if snap_r > 0:
                 # The margin compares how well the query itself matches each candidate:
