@@ -18,7 +18,7 @@ from disco_cli.blas_threads import blas_threads
 from disco_cli.errors import ModelError
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet_numpy import FrozenUNet
-from disco_cli.model.verify import aligned_correlations
+from disco_cli.model.verify import aligned_correlation, aligned_correlations
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
 from disco_cli.model.yaw_refine import (
     query_in_match_frame_conf,
@@ -287,8 +287,8 @@ class DiscoModel:
         cands = np.asarray(candidate_features)
         if len(cands) == 0:
             return np.zeros(0, np.float32)
-        q = self._u(query_features)[None]
-        return (1.0 - aligned_correlations(q, self._u(cands))[0]).astype(np.float32)
+        score = aligned_correlation(self._u(query_features), self._u(cands))
+        return (1.0 - score).astype(np.float32)
 
     def rerank_distances_beside(
         self, query_features: np.ndarray, candidate_features: np.ndarray, views: np.ndarray
