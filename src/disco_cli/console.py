@@ -30,9 +30,9 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
-from rich.table import Table
 
 from disco_cli.errors import DiscoError
+from disco_cli.table_layout import print_table
 
 stderr = Console(stderr=True, highlight=False)
 # In a pipe or a log file, a message is one line however long: rich would wrap it at 80.
@@ -268,10 +268,6 @@ def _cell(value: Any, digits: int) -> str:
     return str(value)
 
 
-# Columns that hold text (paths, reasons) rather than numbers.
-_TEXT_COLUMNS = {"query", "match", "path", "query_seq", "match_seq", "reason"}
-
-
 class RowWriter:
     """Writes result rows in one format, flushing each batch as it comes.
 
@@ -299,16 +295,8 @@ class RowWriter:
     def write(self, rows: Iterable[dict[str, Any]], title: str | None = None) -> None:
         rows = list(rows)
         if self.fmt is OutputFormat.table:
-            table = Table(title=title or self.title, title_justify="left")
-            for col in self.table_columns:
-                if col in _TEXT_COLUMNS:
-                    # Paths are what a person reads first: wrap them, never cut them.
-                    table.add_column(col, justify="left", overflow="fold")
-                else:
-                    table.add_column(col, justify="right", no_wrap=True)
-            for row in rows:
-                table.add_row(*(_cell(row.get(c), self.digits) for c in self.table_columns))
-            self._out.print(table)
+            cells = [[_cell(row.get(c), self.digits) for c in self.table_columns] for row in rows]
+            print_table(self._out, self.table_columns, cells, title=title or self.title)
         elif self.fmt is OutputFormat.tsv:
             lines = []
             if not self._header_done:
