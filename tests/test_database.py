@@ -253,7 +253,9 @@ def test_a_cut_file_is_named_as_cut(tmp_path: Path) -> None:
             assert sorted(p.name for p in tmp_path.iterdir()) == ["m.db"]
 
 
-def test_damage_anywhere_is_found_on_opening_and_writing_leaves_it_alone(tmp_path: Path) -> None:
+def test_damage_is_found_by_the_check_by_writers_and_by_the_read_that_meets_it(
+    tmp_path: Path,
+) -> None:
     path = _made(tmp_path)
     data = bytearray(path.read_bytes())
     page = int.from_bytes(data[16:18], "big")
@@ -262,16 +264,21 @@ def test_damage_anywhere_is_found_on_opening_and_writing_leaves_it_alone(tmp_pat
         root = conn.execute("SELECT rootpage FROM sqlite_master WHERE name='scans'").fetchone()[0]
     data[(root - 1) * page] = 0xFF  # no b-tree page has this type
     path.write_bytes(bytes(data))
-    for writable in (False, True):
+    # The full check (asked for, and always before writing) refuses the file untouched.
+    for kwargs in ({"verify": True}, {"writable": True}):
         with pytest.raises(DatabaseError, match="corrupt database") as err:
-            Database.open(path, writable=writable)
+            Database.open(path, **kwargs)
         assert "\n" not in str(err.value)
         assert path.read_bytes() == bytes(data)
-    # Without the check, the damage surfaces on the first read: a DatabaseError still.
-    db = Database.open(path, verify=False)
+    # A plain open reads only the header, meta and schema (a cheap open): the damage
+    # surfaces on the first read of the scans, and in check(), as a DatabaseError.
+    db = Database.open(path)
     with pytest.raises(DatabaseError, match="corrupt or unreadable"):
         db.paths()
+    with pytest.raises(DatabaseError, match="corrupt or unreadable"):
+        db.check()
     db.close()
+    assert path.read_bytes() == bytes(data)
 
 
 def test_a_stray_sqlite_error_is_one_line() -> None:

@@ -25,18 +25,23 @@ that nothing uses it silently; `check()` lists every one (`disco info --check`),
 
 Format 1 (before checksums: float32 signatures and raw float16 features in `scans`)
 is read as it is, unverified; opening one for writing first migrates it to format 2
-(`migrate`), writing a new file and renaming it into place.
+(`migrate`), writing a new file and renaming it into place, and keeps the original file
+beside it as `map.db.v1` (the conversion rounds float32 to float16).
 
 Every append is one transaction, so a crash or Ctrl-C leaves every finished batch and
 nothing half-written; readers opened meanwhile see a consistent state (WAL). A new
 database is written to a hidden temporary file and renamed into place only when its
 first batch is committed, so no half-initialized file is ever left at the target.
 
-Opening checks the whole file before anything else touches it: the SQLite header and
-the file's size (a cut file is named as such), then `PRAGMA integrity_check` (every
-page, every b-tree, the index). A damaged file is refused with one `DatabaseError`
-naming it and the problem, and is left byte for byte as it was; any SQLite error met
-later is turned into a `DatabaseError` too, never passed on as `sqlite3.DatabaseError`.
+Opening is cheap: the SQLite header and the file's size (a cut file is named as such),
+the meta table and the schema; what a command then reads is verified row by row.
+SQLite's full `PRAGMA integrity_check` (every page, every b-tree, the index) runs
+before any write, and in `check()` (`disco info --check`). A damaged file is refused
+with one `DatabaseError` naming it and the problem, and is left byte for byte as it
+was; any SQLite error met later is turned into a `DatabaseError` too, never passed on
+as `sqlite3.DatabaseError`, and a permission problem is never called damage. A map this
+process may not write (its file or folder) opens read-only (`mode=ro`, or
+`immutable=1` where SQLite cannot put the WAL's -shm file beside it), with one note.
 """
 
 from __future__ import annotations
@@ -44,8 +49,11 @@ from __future__ import annotations
 import functools
 import json
 import os
+import shutil
 import sqlite3
+import stat
 import struct
+import sys
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -53,6 +61,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
+from urllib.parse import quote
 
 import numpy as np
 
@@ -327,7 +336,7 @@ def _sql_errors(func: _F) -> _F:
         try:
             return func(self, *args, **kwargs)
         except sqlite3.DatabaseError as exc:
-            raise DatabaseError(self.path, f"corrupt or unreadable database ({exc})") from None
+            raise _sqlite_error(self.path, exc, "corrupt or unreadable database") from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -361,12 +370,17 @@ class Database:
         sig_dtype = _SIG_DTYPE if self.format_version >= 2 else _SIG_DTYPE_V1
         self._nsig = self.signature_dim * sig_dtype.itemsize
         self._nfeat = int(np.prod(self.feature_shape)) * _FEAT_DTYPE.itemsize
-        # (bytes before, bytes after) when opening for writing migrated a format-1 file.
+        # (bytes before, bytes after) when opening for writing migrated a format-1 file,
+        # and where the original was kept.
         self.migrated: tuple[int, int] | None = None
+        self.migration_backup: Path | None = None
+        # Why the map was opened read-only (its file or folder is not writable here:
+        # the note `open` gives), or None.
+        self.read_only: str | None = None
         try:
             columns = {r[1] for r in conn.execute("PRAGMA table_info(scans)")}
         except sqlite3.DatabaseError as exc:
-            raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
+            raise _sqlite_error(path, exc, "corrupt or unreadable database") from None
         # Databases written before relative paths were stored lack the column.
         self._has_rel = "rel_path" in columns
         try:
@@ -377,7 +391,7 @@ class Database:
         try:
             tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
         except sqlite3.DatabaseError as exc:
-            raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
+            raise _sqlite_error(path, exc, "corrupt or unreadable database") from None
         if self.side_offsets and "side_views" not in tables:
             raise DatabaseError(path, "corrupt database: side views named but not stored")
         if self.checksummed and "features" not in tables:
@@ -391,32 +405,52 @@ class Database:
     # -- opening --------------------------------------------------------------
 
     @classmethod
-    def open(cls, path: str | Path, writable: bool = False, verify: bool = True) -> Database:
+    def open(
+        cls,
+        path: str | Path,
+        writable: bool = False,
+        verify: bool = False,
+        on_note: Callable[[str], None] | None = None,
+    ) -> Database:
         """Open an existing database; raise `DatabaseError` naming the problem otherwise.
 
-        `verify` (the default, and always for writing) runs SQLite's integrity check over
-        the whole file first, so that a damaged file is refused before it is read or
-        written; it reads every page once (about 0.5 s per 20,000 scans from the page
-        cache). A refused file is not modified. Opening a format-1 file for writing
-        migrates it to format 2 first (`migrated` says so).
+        Opening reads the header, the meta table and the schema: its cost does not grow
+        with the map. Every row is verified when it is read (its checksum), so damage
+        inside what a command reads is still found; SQLite's full `PRAGMA
+        integrity_check` (every page, about 12-18 ms per 1,000 scans from the page
+        cache) runs only with `verify=True`, for writing (a write onto a damaged b-tree
+        can spread the damage), and in `check()` (`disco info --check`). A refused file
+        is not modified.
+
+        A map this process may not write (its file or folder; a read-only volume) opens
+        read-only, and `on_note` hears one line saying so (default: `note: ...` on
+        stderr); `read_only` holds it. Opening a format-1 file for writing migrates it to
+        format 2 and keeps the original beside it (`migrated`, `migrated_line()`).
         """
         path = Path(path)
         db = cls._open(path, writable, verify)
         if writable and db.format_version < FORMAT_VERSION:
             db.close()
-            before, after = _migrate(path)
+            before, after, backup = _migrate(path)
             db = cls._open(path, writable, verify)
             db.migrated = (before, after)
+            db.migration_backup = backup
+        if db.read_only is not None:
+            (on_note or _note_on_stderr)(f"{path}: {db.read_only}")
         return db
 
     @classmethod
     def _open(cls, path: Path, writable: bool, verify: bool) -> Database:
-        if not path.exists():
-            raise DatabaseError(path, "no such database")
-        if not path.is_file():
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            raise DatabaseError(path, "no such database") from None
+        except OSError as exc:
+            raise DatabaseError(path, f"cannot read ({exc.strerror or exc})") from None
+        if not stat.S_ISREG(st.st_mode):
             raise DatabaseError(path, "not a file")
         _check_header(path)
-        conn = _connect(path, writable)
+        conn, read_only = _connect(path, writable)
         try:
             if verify or writable:
                 _check_integrity(path, conn)
@@ -424,10 +458,12 @@ class Database:
             _check_scans_table(path, conn, int(meta["format_version"]))
             if writable and int(meta["format_version"]) >= 2:
                 conn.execute("PRAGMA journal_mode=WAL")
-            return cls(path, conn, meta)
+            db = cls(path, conn, meta)
+            db.read_only = read_only
+            return db
         except sqlite3.DatabaseError as exc:
             conn.close()
-            raise DatabaseError(path, f"corrupt or unreadable database ({exc})") from None
+            raise _sqlite_error(path, exc, "corrupt or unreadable database") from None
         except BaseException:
             conn.close()
             raise
@@ -500,8 +536,9 @@ class Database:
             return ""
         before, after = self.migrated
         return (
-            f"{self.path}: migrated from format 1 to format 2 (checksummed rows): "
-            f"{before} -> {after} bytes"
+            f"{self.path}: migrated from format 1 to format 2 (checksummed rows; signatures "
+            f"rounded to float16): {before} -> {after} bytes; the format-1 file is kept as "
+            f"{self.migration_backup}"
         )
 
     def close(self) -> None:
@@ -525,7 +562,8 @@ class Database:
                 self.path,
                 f"built with model '{mine.name}' (fingerprint {mine.fingerprint[:12]}), "
                 f"not '{model.name}' (fingerprint {model.fingerprint[:12]}); "
-                "use the same model or build a new database",
+                f"pass --model {self.meta.get('model_source') or mine.name} (or no --model: "
+                "a map's own model is the default), or build a new database",
             )
         if model.bev_config != mine.bev_config:
             diff = sorted(
@@ -1104,19 +1142,37 @@ def _new_file(path: Path, meta: dict[str, str], side_views: bool) -> sqlite3.Con
     return conn
 
 
-def _migrate(path: Path) -> tuple[int, int]:
+def backup_path(path: str | Path) -> Path:
+    """Where migrating the format-1 map at `path` keeps the original: `map.db.v1`."""
+    path = Path(path)
+    return path.with_name(f"{path.name}.v1")
+
+
+def _migrate(path: Path) -> tuple[int, int, Path]:
     """Rewrite the format-1 map at `path` as format 2 (same ids, values and meta; rows
-    checksummed as they are now) and rename it into place: (bytes before, after). A
-    format-1 map with damaged rows is refused: it cannot be told what they were."""
-    # Fold its WAL into the file first, so that the file alone is the whole map and no
-    # WAL of the old file is left beside the new one.
-    conn = _connect(path, writable=True)
-    try:
-        conn.execute("PRAGMA journal_mode=DELETE")
-    except sqlite3.Error as exc:
-        raise DatabaseError(path, f"cannot migrate ({exc})") from None
-    finally:
-        conn.close()
+    checksummed as they are now) and rename it into place, keeping the original file as
+    `backup_path(path)` (the conversion is lossy: float32 signatures become float16):
+    (bytes before, after, the backup). A format-1 map with damaged rows is refused: it
+    cannot be told what they were; so is one whose backup name is taken."""
+    backup = backup_path(path)
+    if os.path.lexists(backup):
+        raise DatabaseError(
+            path,
+            f"cannot migrate from format 1: {backup} exists (the original of an earlier "
+            "migration?) and would be replaced; move it away first",
+        )
+    # Fold a pending WAL into the file first, so that the file alone is the whole map
+    # (the backup) and no WAL of the old file is left beside the new one. Without a
+    # pending WAL the file is left byte for byte as it is.
+    wal = Path(f"{path}-wal")
+    if wal.is_file() and wal.stat().st_size > 0:
+        conn = _connect(path, writable=True)[0]
+        try:
+            conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        except sqlite3.Error as exc:
+            raise DatabaseError(path, f"cannot migrate ({exc})") from None
+        finally:
+            conn.close()
     before = path.stat().st_size
     tmp = path.with_name(f".{path.name}.migrate-{os.getpid()}")
     old = Database._open(path, writable=False, verify=False)
@@ -1183,8 +1239,14 @@ def _migrate(path: Path) -> tuple[int, int]:
         raise
     finally:
         old.close()
+    # The original keeps its inode under the backup name (a copy where the file system
+    # has no hard links); `path` names a whole map at every moment.
+    try:
+        os.link(path, backup)
+    except OSError:
+        shutil.copy2(path, backup)
     os.replace(tmp, path)
-    return before, path.stat().st_size
+    return before, path.stat().st_size, backup
 
 
 def _locate(
@@ -1275,7 +1337,7 @@ def _check_integrity(path: Path, conn: sqlite3.Connection) -> None:
     try:
         rows = conn.execute(f"PRAGMA integrity_check({_PROBLEMS_SHOWN + 1})").fetchall()
     except sqlite3.DatabaseError as exc:
-        raise DatabaseError(path, f"corrupt database ({exc})") from None
+        raise _sqlite_error(path, exc) from None
     # SQLite may pack several problems into one row, one per line, under a heading.
     problems = [
         " ".join(line.split())
@@ -1290,29 +1352,104 @@ def _check_integrity(path: Path, conn: sqlite3.Connection) -> None:
         raise DatabaseError(path, f"corrupt database (integrity check: {shown}{more})")
 
 
-def _connect(path: Path, writable: bool) -> sqlite3.Connection:
-    mode = "rw" if writable or os.access(path, os.W_OK) else "ro"
+# SQLite's answers that mean "not allowed here" (permissions, a read-only volume), never
+# damage: a map that cannot be written is opened read-only, not called corrupt.
+_PERMISSION_ERRORS = ("SQLITE_READONLY", "SQLITE_CANTOPEN", "SQLITE_PERM", "SQLITE_AUTH")
+
+
+def _is_permission_error(exc: sqlite3.Error) -> bool:
+    return str(getattr(exc, "sqlite_errorname", "")).startswith(_PERMISSION_ERRORS)
+
+
+def _note_on_stderr(line: str) -> None:
+    print(f"note: {line}", file=sys.stderr, flush=True)
+
+
+def _sqlite_error(path: Path, exc: sqlite3.Error, what: str = "corrupt database") -> DatabaseError:
+    """One `DatabaseError` for an SQLite error: a permission problem said as such, any
+    other as `what` (damage)."""
+    if _is_permission_error(exc):
+        return DatabaseError(
+            path, f"cannot use the file ({exc}): check its and its folder's permissions"
+        )
+    return DatabaseError(path, f"{what} ({exc})")
+
+
+def read_only_reason(path: str | Path) -> str | None:
+    """Why this process cannot write the map at `path` (None when it can): the file, or
+    its folder, where SQLite keeps the WAL's `-wal` and `-shm` files beside it."""
+    path = Path(os.path.abspath(path))
+    file_ok = os.access(path, os.W_OK)
+    folder_ok = os.access(path.parent, os.W_OK | os.X_OK)
+    if file_ok and folder_ok:
+        return None
+    if not file_ok and not folder_ok:
+        return "neither the file nor its folder is writable here"
+    return "the file is not writable here" if not file_ok else "its folder is not writable here"
+
+
+def _sqlite_connect(path: Path, params: str) -> sqlite3.Connection:
+    # The path as a URI: quoted, so that '?', '#' or '%' in a name stay part of it.
+    uri = f"file:{quote(os.path.abspath(path), safe='/')}?{params}"
+    conn = sqlite3.connect(uri, uri=True, timeout=30.0)
     try:
-        conn = sqlite3.connect(f"file:{path}?mode={mode}", uri=True, timeout=30.0)
         # Damaged text reads as text (its checksum then fails) instead of raising.
         conn.text_factory = lambda b: b.decode("utf-8", "surrogateescape")
         conn.execute("PRAGMA busy_timeout=30000")
-    except sqlite3.Error as exc:
-        raise DatabaseError(path, f"cannot open ({exc})") from None
+        # The first read opens the file and, under WAL, its -shm: fails here if it cannot.
+        conn.execute("SELECT 1 FROM sqlite_master LIMIT 1").fetchall()
+    except BaseException:
+        conn.close()
+        raise
     return conn
+
+
+def _connect(path: Path, writable: bool) -> tuple[sqlite3.Connection, str | None]:
+    """A connection to the map at `path`, and the note to give when it had to be opened
+    read-only although the caller could have written (None otherwise).
+
+    Where this process may write the file and its folder, the connection is read-write
+    even for a reader (the last one to close folds the WAL in and removes -wal/-shm).
+    Elsewhere (a read-only volume, a map of another user) it is `mode=ro`; when SQLite
+    cannot even read that way (under WAL it needs a -shm file beside the map, which a
+    read-only folder cannot take), `immutable=1`, which reads the file alone: right when
+    nothing else writes it, and a pending WAL (writes not yet in the file) is refused."""
+    reason = read_only_reason(path)
+    if writable and reason is not None:
+        raise DatabaseError(path, f"cannot write: {reason} (permission denied)")
+    try:
+        if reason is None:
+            return _sqlite_connect(path, "mode=rw"), None
+        try:
+            return _sqlite_connect(path, "mode=ro"), f"opened read-only: {reason}"
+        except sqlite3.OperationalError as exc:
+            if not _is_permission_error(exc):
+                raise
+        wal = Path(f"{path}-wal")
+        if wal.is_file() and wal.stat().st_size > 0:
+            raise DatabaseError(
+                path,
+                f"cannot open read-only: {reason}, and its WAL ({wal.name}) holds writes that "
+                f"SQLite reads only with a {path.name}-shm file it cannot create there; open "
+                "it once where it can be written",
+            )
+        conn = _sqlite_connect(path, "mode=ro&immutable=1")
+        return conn, f"opened read-only: {reason}"
+    except sqlite3.Error as exc:
+        raise _sqlite_error(path, exc, "corrupt or not an SQLite database") from None
 
 
 def _read_meta(path: Path, conn: sqlite3.Connection) -> dict[str, str]:
     try:
         tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
     except sqlite3.DatabaseError as exc:
-        raise DatabaseError(path, f"corrupt or not an SQLite database ({exc})") from None
+        raise _sqlite_error(path, exc, "corrupt or not an SQLite database") from None
     if "meta" not in tables or "scans" not in tables:
         raise DatabaseError(path, "not a disco database (no meta/scans tables)")
     try:
         meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
     except sqlite3.DatabaseError as exc:
-        raise DatabaseError(path, f"corrupt database ({exc})") from None
+        raise _sqlite_error(path, exc) from None
     if "format_version" not in meta:
         raise DatabaseError(path, "not a disco database (no format version)")
     try:
@@ -1348,7 +1485,7 @@ def _check_scans_table(path: Path, conn: sqlite3.Connection, version: int) -> No
     try:
         cols = {r[1] for r in conn.execute("PRAGMA table_info(scans)")}
     except sqlite3.DatabaseError as exc:
-        raise DatabaseError(path, f"corrupt database ({exc})") from None
+        raise _sqlite_error(path, exc) from None
     missing = _SCAN_COLUMNS[min(max(version, 1), FORMAT_VERSION)] - cols
     if missing:
         lacks = ", ".join(sorted(missing))

@@ -321,19 +321,22 @@ class Map:
         device: str = "cpu",
         scan_root: str | Path | None = None,
         index: str = "auto",
+        on_note: Callable[[str], None] | None = None,
     ) -> Map:
         """An existing map. `model` defaults to the one that built it; another is refused.
         A stored scan (read for poses) is found at its stored path, else relative to the
         map's folder, else under `scan_root` (docs/database.md). `index`: the signature
         search, `exact`, `ann` (approximate, for maps of millions of scans; needs
         `pip install 'disco-cli[ann]'`) or `auto` (ann from 200,000 scans when installed;
-        `disco_cli.index`)."""
+        `disco_cli.index`). A map this process may not write opens read-only (unless
+        `writable`, which is then refused) and `on_note` hears one line saying so
+        (default: `note: ...` on stderr; `Database.open`)."""
         from disco_cli.index import check_index_kind
         from disco_cli.pipeline import check_device
 
         check_device(device)
         check_index_kind(index)
-        db = Database.open(path, writable=writable)
+        db = Database.open(path, writable=writable, on_note=on_note)
         try:
             net, source = model_for_database(db, model, device)
         except BaseException:
@@ -674,7 +677,7 @@ class Map:
         if not self.path.exists():
             return None
         try:
-            with Database.open(self.path, verify=False) as fresh:
+            with Database.open(self.path, on_note=lambda _line: None) as fresh:
                 return len(fresh)
         except DatabaseError:
             return 0
