@@ -133,6 +133,17 @@ def simulate(
             rich_help_panel="World",
         ),
     ] = None,
+    wobble: Annotated[
+        float,
+        typer.Option(
+            "--wobble",
+            min=0.0,
+            max=10.0,
+            help="Every session: the platform rolls and pitches from scan to scan, "
+            "within +-DEG (a smooth random walk, as a Segway's; docs/simulator.md).",
+            rich_help_panel="World",
+        ),
+    ] = 0.0,
     robot_height: Annotated[
         Optional[str],
         typer.Option(
@@ -259,6 +270,7 @@ def simulate(
             params=params,
             on_scan=report,
             robot=robot,
+            wobble_deg=float(wobble),
         )
     n = meta["sessions"][0]["frames"]
     stderr.print(

@@ -181,13 +181,15 @@ def plan_sessions(
     step_m: float,
     seed: int,
     robot: RobotParams | None = None,
+    wobble_deg: float = 0.0,
 ) -> list[SimulatedSession]:
     """Routes and sensor poses of every session (no ray casting yet).
 
     Session 00 drives a closed loop a little shorter than the session (so its last
     scans revisit its first ones); the others revisit part of that loop, odd ones in
     the opposite direction, then drive on into other streets. With `robot`, the later
-    sessions' robots differ from session 00's (sensor, mount, offset).
+    sessions' robots differ from session 00's (sensor, mount, offset). `wobble_deg`:
+    every session's platform rolls and pitches per scan (`wobble`).
     """
     graph = RoadGraph(town)
     target = frames * step_m
@@ -225,10 +227,33 @@ def plan_sessions(
 
             tilt = Rotation.from_euler("YX", [pitch, roll], degrees=True).as_matrix()
             poses[:, :3, :3] = poses[:, :3, :3] @ tilt
+        if wobble_deg:
+            poses[:, :3, :3] = poses[:, :3, :3] @ wobble(frames, wobble_deg, [seed, 31, k])
         times = np.arange(frames) / spec.rate_hz
         mount = None if robot is None else (float(height), roll, pitch)
         plans.append(SimulatedSession(f"{k:02d}", poses, times, route, closed, offset, spec, mount))
     return plans
+
+
+def wobble(frames: int, deg: float, seed: list[int]) -> np.ndarray:
+    """[frames, 3, 3]: a wobbling platform's per-scan tilt (roll and pitch, in the car's
+    frame), as NCLT's Segway pitches on every start, stop and kerb.
+
+    Roll and pitch each follow a smooth random walk (an AR(1) process, correlation 0.6
+    from one scan to the next) scaled so that about 95 % of scans lie within +-deg; they
+    are clipped there. Independent draws per scan would make every revisit differ the
+    same; a real platform leans the same way for a few scans in a row.
+    """
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    rho = 0.6
+    angles = np.empty((frames, 2))
+    angles[0] = rng.standard_normal(2)
+    for i in range(1, frames):
+        angles[i] = rho * angles[i - 1] + np.sqrt(1 - rho**2) * rng.standard_normal(2)
+    angles = np.clip(angles * (deg / 2.0), -deg, deg)
+    return Rotation.from_euler("YX", angles[:, ::-1], degrees=True).as_matrix()
 
 
 def simulate(
@@ -245,6 +270,7 @@ def simulate(
     params: TownParams | None = None,
     on_scan: Callable[[int, int], None] | None = None,
     robot: RobotParams | None = None,
+    wobble_deg: float = 0.0,
 ) -> dict:
     """Write `sessions` KITTI-style sessions of one town under `out`; returns world.json's dict.
 
@@ -253,7 +279,8 @@ def simulate(
     the sensor was when it fired (the pose is that of the forward ray); otherwise every
     ray leaves from the scan's pose, as after deskewing. `on_scan(done, total)` reports
     progress. `params` sets the town (its style, terrain and change model); `robot`, how
-    the robots of later sessions differ from session 00's.
+    the robots of later sessions differ from session 00's; `wobble_deg`, how far every
+    session's platform rolls and pitches from scan to scan (`wobble`).
     """
     from disco_cli.poses import write_kitti_poses, write_times
 
@@ -271,13 +298,15 @@ def simulate(
         params.check()
     if robot is not None:
         robot.check()
+    if not 0.0 <= wobble_deg <= 10.0:
+        raise DiscoError("--wobble must be within 0..10 degrees")
     spec = get_sensor(sensor)
     if azimuth_step_deg is not None:
         if not 0.01 <= azimuth_step_deg <= 5.0:
             raise DiscoError("--azimuth-step must be within 0.01..5 degrees")
         spec = replace(spec, azimuth_step_deg=float(azimuth_step_deg))
     town = Town(seed, params)
-    plans = plan_sessions(town, spec, sessions, frames, step_m, seed, robot)
+    plans = plan_sessions(town, spec, sessions, frames, step_m, seed, robot, wobble_deg)
     for plan in plans:  # every session's sensor, with the azimuth step asked for
         if plan.sensor is None or plan.sensor is spec:
             plan.sensor = spec
@@ -344,6 +373,7 @@ def simulate(
             motion_distortion,
             params,
             robot,
+            wobble_deg,
         ),
         "seed": int(seed),
         "sessions": [_session_meta(p, frames) for p in plans],
@@ -355,6 +385,8 @@ def simulate(
     }
     if robot is not None:
         meta["robot"] = robot.to_dict()
+    if wobble_deg:
+        meta["wobble_deg"] = float(wobble_deg)
     (out / "world.json").write_text(json.dumps(meta, indent=2) + "\n")
     return meta
 
@@ -369,6 +401,7 @@ def _command(
     motion_distortion: bool,
     params: TownParams | None,
     robot: RobotParams | None,
+    wobble_deg: float = 0.0,
 ) -> str:
     cmd = (
         f"disco simulate OUT --sessions {sessions} --frames {frames} --step-m {step_m:g} "
@@ -401,6 +434,8 @@ def _command(
             cmd += f" --robot-jitter {robot.jitter_m:g}"
         if robot.side_m is not None:
             cmd += f" --robot-side {robot.side_m[0]:g},{robot.side_m[1]:g}"
+    if wobble_deg:
+        cmd += f" --wobble {wobble_deg:g}"
     return cmd + (" --motion-distortion" if motion_distortion else "")
 
 
