@@ -7,14 +7,31 @@ core are imported inside the command functions so that `disco --help` is instant
 
 from __future__ import annotations
 
-import os
+import signal
 import sys
-from typing import Annotated
 
-import typer
+
+def _interrupted_while_loading(signum: int, frame: object) -> None:
+    # Ctrl-C while the modules below load: Python would print a KeyboardInterrupt
+    # traceback from deep inside an import, before main() can catch anything.
+    sys.stderr.write("error: interrupted\n")
+    raise SystemExit(130)
+
+
+# Until the end of this module (where the previous handler comes back); only the main
+# thread may set one (a program importing this module from another keeps its own).
+try:
+    _sigint_before = signal.signal(signal.SIGINT, _interrupted_while_loading)
+except ValueError:
+    _sigint_before = None
+
+import os  # noqa: E402
+from typing import Annotated  # noqa: E402
+
+import typer  # noqa: E402
 
 # from disco_cli.commands import <name>   (one import per command)
-from disco_cli.commands import (
+from disco_cli.commands import (  # noqa: E402
     bev,
     build_db,
     eval_loops,
@@ -27,7 +44,7 @@ from disco_cli.commands import (
     simulate,
     train,
 )
-from disco_cli.commands.usage import DiscoGroup
+from disco_cli.commands.usage import DiscoGroup  # noqa: E402
 
 app = typer.Typer(
     name="disco",
@@ -87,12 +104,10 @@ def _root(
 
 def main() -> None:
     """Console entry point: clean exits on Ctrl-C and on a closed pipe (`| head`)."""
-    from disco_cli.console import error
-    from disco_cli.errors import DiscoError
-    from disco_cli.malloc_tuning import keep_freed_memory
-
-    keep_freed_memory()  # a query's arrays reuse mapped pages (malloc_tuning.py)
     try:
+        from disco_cli.malloc_tuning import keep_freed_memory
+
+        keep_freed_memory()  # a query's arrays reuse mapped pages (malloc_tuning.py)
         app()
     except DiscoError as exc:  # commands catch these; this is the safety net
         error(str(exc))
@@ -106,6 +121,13 @@ def main() -> None:
         os.dup2(devnull, sys.stdout.fileno())
         sys.exit(0)
 
+
+from disco_cli.console import error  # noqa: E402
+from disco_cli.errors import DiscoError  # noqa: E402
+
+# Loaded: Ctrl-C is a KeyboardInterrupt again, which main() and the commands handle.
+if _sigint_before is not None:
+    signal.signal(signal.SIGINT, _sigint_before)
 
 if __name__ == "__main__":
     main()

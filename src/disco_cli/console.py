@@ -69,6 +69,18 @@ def note(message: str) -> None:
     stderr.print(f"note: {escape(message)}", soft_wrap=True, highlight=False)
 
 
+def say(message: str) -> None:
+    """One line on stderr that only informs (a summary, a count): `-q` silences it, as it
+    does progress; results, warnings and errors print all the same."""
+    if not _quiet:
+        stderr.print(message, soft_wrap=True, markup=False, highlight=False)
+
+
+def plural(n: int, word: str) -> str:
+    """`1 scan`, `2 scans`."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
 def fail(message: str, code: int = 1) -> typer.Exit:
     """Print one error line and return the Exit to raise: `raise fail("...")`."""
     error(message)
@@ -123,11 +135,22 @@ def set_quiet(value: bool) -> bool:
     return value
 
 
+_bad_progress_seconds_told = False
+
+
 def _progress_seconds() -> float:
+    global _bad_progress_seconds_told
+    text = os.environ.get(PROGRESS_SECONDS_ENV, "5")
     try:
-        return max(float(os.environ.get(PROGRESS_SECONDS_ENV, "5")), 0.0)
+        seconds = float(text)
     except ValueError:
-        return 5.0
+        seconds = math.nan
+    if math.isfinite(seconds) and seconds >= 0:
+        return seconds
+    if not _bad_progress_seconds_told:  # once, not at every progress bar
+        _bad_progress_seconds_told = True
+        warn(f"{PROGRESS_SECONDS_ENV}={text!r} is not a number of seconds >= 0; using 5")
+    return 5.0
 
 
 def _duration(seconds: float) -> str:

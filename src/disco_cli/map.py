@@ -197,7 +197,8 @@ class AddResult:
         """The line "wrote N scans in S s (R scans/s)" for a build that took `seconds`,
         and how many scans the map held already."""
         rate = self.written / max(seconds, 1e-9)
-        text = f"wrote {self.written} scans in {seconds:.1f} s ({rate:.1f} scans/s)"
+        scans = "scan" if self.written == 1 else "scans"
+        text = f"wrote {self.written} {scans} in {seconds:.1f} s ({rate:.1f} scans/s)"
         return text + (f", {self.already} were in it already" if self.already else "")
 
 

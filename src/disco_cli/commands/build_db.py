@@ -14,7 +14,6 @@ from typing import Annotated, Optional
 import typer
 
 from disco_cli.commands.options import (
-    MODEL_NAMES,
     PANEL_IN,
     PANEL_POSES,
     PANEL_RUN,
@@ -38,7 +37,12 @@ from disco_cli.commands.options import (
     poses_option,
     times_option,
 )
-from disco_cli.console import fail, handle_errors, rate_bar, stderr, warn
+from disco_cli.console import fail, handle_errors, plural, rate_bar, say, stderr, warn
+
+MODEL_OF_NEW_MAP = (
+    "default, spectral, scancontext or a checkpoint path; default: 'default' for a new "
+    "database, the one that built it for an existing one (resumed, --append, --repair)."
+)
 
 
 @handle_errors
@@ -54,7 +58,7 @@ def build_db(
     output: Annotated[
         Path, output_option("The database file to write (map.db).", panel=PANEL_IN)
     ] = Path("map.db"),
-    model: Annotated[str, model_option(MODEL_NAMES, panel=PANEL_IN)] = "default",
+    model: Annotated[Optional[str], model_option(MODEL_OF_NEW_MAP, panel=PANEL_IN)] = None,
     poses: Annotated[Optional[Path], poses_option(PANEL_POSES)] = None,
     poses_format: PosesFormatOpt = None,
     calib: CalibOpt = None,
@@ -110,14 +114,16 @@ def build_db(
 
         done = repair_files(output, scans, model, fmt, batch, threads, device)
         return stderr.print(done, soft_wrap=True)
+    # An existing map (resumed or --append) keeps its own model unless --model names one.
+    chosen = model if model is not None or output.exists() else "default"
     m, given, held = open_for_adding(
-        output, scans.paths, model, append=append, device=device, side_views=side_views
+        output, scans.paths, chosen, append=append, device=device, side_views=side_views
     )
     if m.database is not None and m.database.migrated is not None:
         stderr.print(m.database.migrated_line(), soft_wrap=True)
     if held == given:
         m.close()
-        stderr.print(f"{output}: all {given} scans are in it already")
+        say(f"{output}: all {plural(given, 'scan')} are in it already")
         return
 
     start = time.perf_counter()
@@ -141,8 +147,8 @@ def build_db(
     msg = f"{output}: {result.summary(time.perf_counter() - start)}"
     if scans.no_pose:
         msg += f", {scans.no_pose} without a pose"
-    stderr.print(msg)
+    say(msg)
     if result.bad:
-        warn(f"{len(result.bad)} unreadable scans skipped")
+        warn(f"{plural(len(result.bad), 'unreadable scan')} skipped")
     if result.written == 0 and not created:
         raise fail(f"{output}: no readable scans; nothing written")

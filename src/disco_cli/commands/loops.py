@@ -8,12 +8,11 @@ it, as a robot would when it reaches that scan. The work is `LoopDetector.add_fi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import typer
 
 from disco_cli.commands.options import (
-    MODEL_NAMES,
     BatchOpt,
     DeviceOpt,
     ExcludeFramesOpt,
@@ -37,7 +36,12 @@ from disco_cli.commands.options import (
     model_option,
     topk_option,
 )
-from disco_cli.console import error, fail, handle_errors, stderr, warn
+from disco_cli.console import error, fail, handle_errors, plural, say, warn
+
+MODEL_OF_SEQUENCE = (
+    "default, spectral, scancontext or a checkpoint path; default: the one that built "
+    "the --db map when one is given, else 'default'."
+)
 
 
 @handle_errors
@@ -54,7 +58,7 @@ def loops(
     exclude_seconds: ExcludeSecondsOpt = None,
     max_distance: MaxDistanceOpt = None,
     topk: Annotated[int, topk_option("Candidates per query scan.")] = 1,
-    model: Annotated[str, model_option(MODEL_NAMES, panel=None)] = "default",
+    model: Annotated[Optional[str], model_option(MODEL_OF_SEQUENCE, panel=None)] = None,
     fmt: OutputFormatOpt = None,
     verify: VerifyLoopsOpt = False,
     verbose: VerboseLoopsOpt = False,
@@ -72,7 +76,11 @@ def loops(
     side_views: SideViewsOpt = None,
     quiet: QuietOpt = False,
 ) -> None:
-    """Detect loop closures along one sequence of scans (by default each scan searches the scans at least 50 frames before it)."""  # noqa: E501
+    """Detect loop closures along one sequence of scans (by default each scan searches the scans at least 50 frames before it).
+
+    query_index and match_index are the scans' positions in the sequence, from 0 (KITTI's
+    000000.bin is 0), unlike query's match_id, a map's id from 1.
+    """  # noqa: E501
     from disco_cli.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
@@ -82,7 +90,7 @@ def loops(
     from disco_cli.console import RowWriter, in_blocks, steps
     from disco_cli.loop_detector import LoopDetector, loop_columns
     from disco_cli.loop_export import check_loop_file, write_loops
-    from disco_cli.map import stored_embeddings
+    from disco_cli.map import Map, stored_embeddings
     from disco_cli.pipeline import sequence_times
     from disco_cli.readers import list_scans
 
@@ -100,8 +108,11 @@ def loops(
         if np.any(np.diff(stamps) < 0):
             warn(f"{sequence}: timestamps are not increasing; frames are taken in file order")
     pose_failures, found = [], []
+    if model is None and db_path is not None:  # the map's own model, as every command
+        with Map.open(db_path, device=device, scan_root=scan_root) as reused:
+            model = reused.model
     detector = LoopDetector(
-        model,
+        model or "default",
         exclude_frames=None if exclude_seconds is not None else (exclude_frames or 50),
         exclude_seconds=exclude_seconds,
         threshold=max_distance,
@@ -136,8 +147,8 @@ def loops(
             writer.write([{k: lp.as_dict()[k] for k in keys} for lp in block])
     if not found:
         writer.write([])  # the header (an empty table), so that "no loop" reads as an answer
-    stderr.print(f"{sequence}: {len(found)} loop candidates among {len(paths)} scans")
+    say(f"{sequence}: {plural(len(found), 'loop candidate')} among {plural(len(paths), 'scan')}")
     if output is not None:
-        stderr.print(f"{output}: {write_loops(output, found)} loops written")
+        say(f"{output}: {plural(write_loops(output, found), 'loop')} written")
     if pose_failures:
         raise typer.Exit(1)

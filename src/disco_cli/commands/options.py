@@ -140,7 +140,8 @@ QuietOpt = Annotated[
         "--quiet",
         "-q",
         callback=set_quiet,
-        help="No progress bar or progress lines (warnings and results still print).",
+        help="No progress and no summary lines (wrote N scans, ...): only results, "
+        "warnings and errors print.",
         rich_help_panel=PANEL_OUT,
     ),
 ]
@@ -211,7 +212,7 @@ IndexOpt = Annotated[
         metavar="auto|exact|ann",
         help="The signature search: exact, ann (approximate, for maps of millions of scans; "
         "kept beside the map as MAP.ann and rebuilt when the map changed; needs "
-        "pip install 'disco-cli[ann]') or auto (ann from 200,000 scans when installed).",
+        "pip install 'disco-cli\\[ann]') or auto (ann from 200,000 scans when installed).",
         rich_help_panel=PANEL_RUN,
     ),
 ]

@@ -90,7 +90,12 @@ def query(
     snap_radius: SnapRadiusOpt = None,
     index: IndexOpt = "auto",
 ) -> None:
-    """Find the places in a map database that scans were taken at, and the yaw to each."""
+    """Find the places in a map database that scans were taken at, and the yaw to each.
+
+    match_id is the scan's id in the map: 1 for the first scan stored, in the order
+    build-db stored them (info and --repair count the same way). disco loops instead
+    numbers a sequence's scans by position, from 0.
+    """
     from disco_cli.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load

@@ -160,11 +160,21 @@ class DiscoGroup(TyperGroup):
         **extra: Any,
     ) -> Any:
         from typer._click import exceptions as ce
+        from typer._click.utils import PacifyFlushWrapper
 
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode, **extra)
         try:
             rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except SystemExit as exc:
+            # On a closed stdout (`disco --help | head -1`) rich (printing the help) and
+            # Typer exit 1: for us a reader that had enough is a normal end, exit 0.
+            closed = isinstance(exc.__context__, BrokenPipeError)
+            if exc.code == 1 and (closed or isinstance(sys.stdout, PacifyFlushWrapper)):
+                from disco_cli.console import stdout_closed
+
+                raise SystemExit(stdout_closed().exit_code) from None
+            raise
         except ce.NoArgsIsHelpError:
             sys.exit(2)  # the help is printed already
         except ce.ClickException as exc:
