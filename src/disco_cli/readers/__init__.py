@@ -88,6 +88,8 @@ FORMATS: dict[str, ScanFormat] = {
 # The format names as a str Enum, for a command's `--format` choices.
 FormatName = Enum("FormatName", {name: name for name in FORMATS}, type=str)  # type: ignore[misc]
 
+# The .bin layouts, which have no header (readers/plausible.py checks what they read).
+_HEADERLESS = ("kitti", "nclt", "oxford")
 # The folder name that marks a .bin as NCLT rather than KITTI.
 _NCLT_FOLDER = "velodyne_sync"
 # The folders of PointNetVLAD's Oxford submaps (test and training).
@@ -186,7 +188,12 @@ def read_scan(path: str | Path, format: str | None = None) -> np.ndarray:
         raise ScanReadError(path, "no such file")
     if not path.is_file():
         raise ScanReadError(path, "not a file")
-    return fmt.reader()(path)
+    points = fmt.reader()(path)
+    if fmt.name in _HEADERLESS:  # any bytes read in these layouts: check they made a scan
+        from disco_cli.readers.plausible import check_layout
+
+        check_layout(path, points, fmt.name)
+    return points
 
 
 def natural_key(path: str | Path) -> tuple:

@@ -1,0 +1,84 @@
+"""Is a headerless .bin really in the layout it was read with?
+
+KITTI, NCLT and Oxford `.bin` files carry no header: any file whose size is a multiple
+of the record reads without error in the wrong layout, and the scan that comes out is
+noise that a search still matches (with a confident yaw). These checks refuse such a
+read, naming --scan-format. They are built from what the three layouts give on correct
+scans and on each other's bytes (tests/test_scan_format_check.py measures both on the
+bundled samples written in each layout):
+
+- correct scans: no point beyond 500 m or not a number, 99 % or more of the points within
+  80 m of the sensor across the ground, 55 % or more within 10 m;
+- a KITTI scan read as NCLT: 16-18 % within 80 m, none within 10 m; an Oxford submap
+  read as NCLT: 18-21 % within 80 m, under 0.5 % within 10 m;
+- an NCLT scan or an Oxford submap read as KITTI, or a KITTI scan read as Oxford: 65-99 %
+  of the points beyond 500 m or not numbers;
+- an NCLT scan read as Oxford: every point within a micrometre of the sensor.
+
+A real scan always holds the ground and objects close by (the lowest beams of a car's or
+robot's LiDAR reach the ground within a few metres), so the thresholds below sit far from
+correct scans: each is at least twice what a wrong read gives, and at most a twentieth of
+what a correct one does.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from disco_cli.errors import ScanReadError
+
+# The layouts checked: the headerless ones (npy, pcd, ply and bags describe themselves).
+CHECKED = ("kitti", "nclt", "oxford")
+
+FAR_M = 500.0  # no LiDAR scan reaches this far
+MOST = 0.5  # more than this share of points beyond FAR_M (or NaN) is not a scan
+BEV_M = 80.0  # the default BEV's radius
+IN_BEV = 0.5  # a scan has at least this share of its points within BEV_M...
+NEAR_M = 10.0
+NEAR = 0.02  # ...or at least this share within NEAR_M (either is enough)
+AT_SENSOR_M = 1e-3  # a point this close to the sensor is the sensor itself
+# Shares of a handful of points say nothing; the smallest real scans here are Oxford's
+# 4096-point submaps (a test's few-point file is left alone).
+MIN_POINTS = 1000
+
+
+def layout_problem(points: np.ndarray) -> str | None:
+    """Why `points` (N x 4, from a layout in CHECKED) cannot be a LiDAR scan, or None
+    (always None under MIN_POINTS points)."""
+    if len(points) < MIN_POINTS:
+        return None
+    xyz = points[:, :3]
+    with np.errstate(invalid="ignore", over="ignore"):
+        finite = np.isfinite(xyz).all(axis=1)
+        far = ~finite | (np.abs(xyz).max(axis=1, initial=0.0) > FAR_M)
+        if far.mean() > MOST:
+            return f"{far.mean():.0%} of its points lie beyond {FAR_M:g} m or are not numbers"
+        r = np.hypot(xyz[:, 0], xyz[:, 1])
+        r = np.where(finite, r, np.inf)
+        in_bev, near = (r <= BEV_M).mean(), (r <= NEAR_M).mean()
+        if in_bev < IN_BEV and near < NEAR:
+            return (
+                f"only {in_bev:.0%} of its points lie within {BEV_M:g} m of the sensor "
+                f"and {near:.1%} within {NEAR_M:g} m"
+            )
+        at_sensor = (np.abs(xyz).max(axis=1, initial=0.0) < AT_SENSOR_M) & finite
+        if at_sensor.mean() > MOST:
+            return f"{at_sensor.mean():.0%} of its points lie at the sensor (within 1 mm)"
+    return None
+
+
+def check_layout(path: Path, points: np.ndarray, fmt: str) -> None:
+    """Refuse, as one `ScanReadError` line naming --scan-format, a scan whose points
+    show that its bytes are not in the `fmt` layout."""
+    problem = layout_problem(points)
+    if problem is not None:
+        raise ScanReadError(
+            path,
+            f"read as {_NAMES.get(fmt, fmt)} it is no LiDAR scan ({problem}); "
+            f"pass the right --scan-format (kitti, nclt, oxford)",
+        )
+
+
+_NAMES = {"kitti": "KITTI", "nclt": "NCLT", "oxford": "Oxford"}
