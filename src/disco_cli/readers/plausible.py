@@ -16,9 +16,11 @@ bundled samples written in each layout):
 - an NCLT scan read as Oxford: every point within a micrometre of the sensor.
 
 A real scan always holds the ground and objects close by (the lowest beams of a car's or
-robot's LiDAR reach the ground within a few metres), so the thresholds below sit far from
-correct scans: each is at least twice what a wrong read gives, and at most a twentieth of
-what a correct one does.
+robot's LiDAR reach the ground within a few metres). The thresholds below sit between
+the two: a refusal needs more than half the points beyond 500 m (wrong reads: 65 % or
+more; correct: none), or fewer than half within 80 m (wrong: 21 % at most; correct:
+99 %) together with fewer than 2 % within 10 m (wrong: under 0.5 %; correct: 55 % or
+more), or more than half at the sensor.
 """
 
 from __future__ import annotations
