@@ -17,6 +17,7 @@ import os
 import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,21 @@ __all__ = [
     "open_for_adding",
     "stored_embeddings",
 ]
+
+
+def _address(path: Any) -> Any:
+    """A map's address: a `milvus:` one (`disco_cli.milvus_store`), else a file path."""
+    from disco_cli.milvus_address import parse_address
+
+    return parse_address(path) or Path(path)
+
+
+def _database_class(path: Any) -> type[Database]:
+    """`Database`, or `MilvusDatabase` for a `milvus:` address."""
+    from disco_cli.milvus_address import parse_address
+    from disco_cli.milvus_store import MilvusDatabase
+
+    return MilvusDatabase if parse_address(path) is not None else Database
 
 
 def model_for_database(db: Database, model: Any = None, device: str = "cpu") -> tuple[Any, str]:
@@ -92,7 +108,7 @@ def open_for_adding(
     so that a resumed build never mixes in another. `side_views` (metres, None: the
     map's own setting, 0 for a new map) must agree with an existing map's."""
     given = {os.path.abspath(p) for p in names}
-    if not Path(path).exists():
+    if not _address(path).exists():
         return Map.create(path, model, device=device, side_views=side_views or 0.0), len(given), 0
     m = Map.open(path, writable=True, model=model, device=device)
     if side_views is not None and side_offsets(side_views) != m.side_offsets:
@@ -125,7 +141,7 @@ def repair_files(
     """`disco build-db --repair`: `Map.repair` of the map at `path` from `scans` (a
     `collect_scans` result: paths, poses, times). The line that says what was done;
     one `DatabaseError` line when something could not be repaired."""
-    if not Path(path).exists():
+    if not _address(path).exists():
         raise DatabaseError(path, "no such database to repair")
     # The map's own model unless another was named (build-db's default names "default").
     named = None if model == "default" else model
@@ -300,7 +316,7 @@ class Map:
         `side_views` (metres, 0 = none) also stores each scan's signatures seen from that
         far to its left and right, for queries that drive beside the map's line
         (`side_views.py`; about 3x the embedding time when adding)."""
-        path = Path(path)
+        path = _address(path)
         if path.exists() and not overwrite:
             raise DatabaseError(path, "already exists; use Map.open to add to it")
         try:
@@ -337,13 +353,13 @@ class Map:
 
         check_device(device)
         check_index_kind(index)
-        db = Database.open(path, writable=writable, on_note=on_note)
+        db = _database_class(path).open(path, writable=writable, on_note=on_note)
         try:
             net, source = model_for_database(db, model, device)
         except BaseException:
             db.close()
             raise
-        m = cls(Path(path), db, net, source, writable)
+        m = cls(_address(path), db, net, source, writable)
         m.scan_root = scan_root
         m.index_kind = index
         return m
@@ -678,7 +694,7 @@ class Map:
         if not self.path.exists():
             return None
         try:
-            with Database.open(self.path, on_note=lambda _line: None) as fresh:
+            with _database_class(self.path).open(self.path, on_note=lambda _line: None) as fresh:
                 return len(fresh)
         except DatabaseError:
             return 0
@@ -717,15 +733,18 @@ class Map:
         from disco_cli import __version__
 
         if self._db is None:
-            if self._overwrite:
+            store = _database_class(self.path)
+            extra = {} if store is Database else {"overwrite": self._overwrite}
+            if self._overwrite and store is Database:
                 for suffix in ("", "-wal", "-shm"):
                     Path(str(self.path) + suffix).unlink(missing_ok=True)
-            self._db = Database.create(
+            self._db = store.create(
                 self.path,
                 ModelInfo.of(self._model),
                 part,
                 disco_version=__version__,
                 extra_meta={"model_source": self._source},
+                **extra,
             )
             ids = list(range(1, len(part.paths) + 1))
         else:
@@ -748,7 +767,9 @@ class Map:
         if self._db is None:
             raise DatabaseError(self.path, "the database is empty")
         if self._snapshot is None:
-            self._snapshot = index_for_database(self._db, self.index_kind, self.on_index_note)
+            # A Milvus map searches in Milvus (milvus_store.MilvusDatabase.index_for).
+            find = getattr(self._db, "index_for", None) or partial(index_for_database, self._db)
+            self._snapshot = find(self.index_kind, self.on_index_note)
             self._xy = self._real = None
             self._tell_damaged()
         return self._snapshot

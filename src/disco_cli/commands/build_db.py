@@ -48,13 +48,13 @@ MODEL_OF_NEW_MAP = (
 @handle_errors
 def build_db(
     inputs: Annotated[
-        list[str],
+        Optional[list[str]],
         typer.Argument(
             help="Scan folders (KITTI-style DIR/velodyne/ or a folder of scans), scan files, "
             "or - to read scan paths from stdin, one per line.",
             show_default=False,
         ),
-    ],
+    ] = None,
     output: Annotated[
         Path, output_option("The database file to write (map.db).", panel=PANEL_IN)
     ] = Path("map.db"),
@@ -76,6 +76,16 @@ def build_db(
             help="Add these scans to an existing database built from other scans (same model).",
         ),
     ] = False,
+    copy_from: Annotated[
+        Optional[str],
+        opt(
+            "--from",
+            panel=PANEL_IN,
+            help="Copy the map MAP (a file, milvus:PATH or milvus://HOST:PORT/NAME) into a new "
+            "--output without embedding again; no scans are given (docs/scaling.md).",
+            metavar="MAP",
+        ),
+    ] = None,
     repair: RepairOpt = False,
     side_views: SideViewsOpt = None,
     batch: Annotated[int, batch_option("Scans per network batch and per transaction.")] = 32,
@@ -101,7 +111,16 @@ def build_db(
     from disco_cli.pipeline import check_device, collect_scans
 
     check_device(device)
-    check_output_file(output, what="the database")  # before any scan is embedded
+    from disco_cli.milvus_address import parse_address
+    from disco_cli.milvus_copy import copy_command
+
+    if copy_from is not None:  # a copy between stores: nothing is embedded
+        return say(copy_command(copy_from, output, inputs, warn))
+    inputs = inputs or []
+    if parse_address(output) is not None:
+        output = parse_address(output)  # type: ignore[assignment]
+    else:
+        check_output_file(output, what="the database")  # before any scan is embedded
     fmt = scan_format.value if scan_format is not None else None
     if pose_topic is not None and poses is not None:
         raise fail("give --poses or --pose-topic, not both")

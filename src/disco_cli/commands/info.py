@@ -36,10 +36,10 @@ def info(
     import json
 
     from disco_cli.console import OutputFormat, RowWriter, resolve_format
-    from disco_cli.database import Database
+    from disco_cli.milvus_copy import open_database  # a file, or a milvus: address
     from disco_cli.side_views import side_views_m
 
-    with Database.open(db_path) as db:
+    with open_database(db_path) as db:
         rows = [
             ("scans", len(db)),
             ("model", db.model.name),
