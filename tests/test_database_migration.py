@@ -203,7 +203,9 @@ def test_build_db_migrates_a_real_format1_map_and_says_where_the_original_is(
         return [json.loads(line) for line in res.stdout.splitlines()]
 
     before = answers()
-    res = CliRunner().invoke(app, ["build-db", str(samples / "00"), "-o", str(db), "-m", "spectral"])
+    res = CliRunner().invoke(
+        app, ["build-db", str(samples / "00"), "-o", str(db), "-m", "spectral"]
+    )
     assert res.exit_code == 0, res.output
     said = [ln for ln in res.stderr.splitlines() if "migrated" in ln]
     assert len(said) == 1 and said[0].endswith(f"the format-1 file is kept as {db}.v1")

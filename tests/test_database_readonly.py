@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
 import sqlite3
 import stat
 import subprocess
@@ -23,9 +22,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from conftest import package_path
 from typer.testing import CliRunner
 
-from conftest import package_path
 from disco_cli.cli import app
 
 NOBODY = 65534
@@ -200,8 +199,7 @@ def test_writing_a_read_only_map_is_refused_as_a_permission_problem(site: Path) 
     cmd = _nobody_cmd() + ["-c", script, str(db)]
     got = subprocess.run(cmd, cwd=site / "work", env=_env(), capture_output=True, text=True)
     assert got.stdout.strip() == (
-        f"{db}: cannot write: neither the file nor its folder is writable here "
-        "(permission denied)"
+        f"{db}: cannot write: neither the file nor its folder is writable here (permission denied)"
     ), got.stderr
 
 
