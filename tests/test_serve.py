@@ -29,17 +29,25 @@ def cli(*args) -> str:
     return res.stdout
 
 
-def start_server(db: Path, sock: Path, *extra: str) -> subprocess.Popen:
+def start_server(
+    db: Path, sock: Path, *extra: str, wait_for: Path | None = None
+) -> subprocess.Popen:
+    """A server of `db` on `sock` (or on the `--port` in `extra`) that may read the
+    sample scans, once `wait_for` (default: the socket) exists."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    root = Path(__file__).resolve().parent.parent / "data" / "samples"
+    where = [] if "--port" in extra else ["--socket", str(sock)]
+    if "--scan-root" not in extra:
+        where += ["--scan-root", str(root)]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "disco_cli.cli", "serve", "--db", str(db), "--socket", str(sock)]
-        + list(extra),
+        [sys.executable, "-m", "disco_cli.cli", "serve", "--db", str(db), *where, *extra],
         stderr=subprocess.PIPE,
         text=True,
         env=env,
     )
+    wait_for = wait_for or sock
     deadline = time.monotonic() + 120
-    while not sock.exists():
+    while not wait_for.exists():
         if proc.poll() is not None or time.monotonic() > deadline:
             proc.kill()
             raise AssertionError(f"the server did not start: {proc.stderr.read()}")
@@ -145,7 +153,7 @@ def test_bad_requests_get_one_error_each_and_the_server_goes_on(served, samples:
     assert replies[-1]["ok"] is True and replies[-1]["id"] == "last" and replies[-1]["rows"]
     with Client(sock) as c:
         with pytest.raises(ServerError, match="no such file"):
-            c.query("/nonexistent/y.bin")
+            c.query(samples / "00" / "velodyne" / "missing.bin")
         assert c.ping()  # the same connection still works
 
 

@@ -1,10 +1,12 @@
 """`disco serve`: keep one map and its model loaded and answer queries over a local
 socket (JSON lines, docs/serve.md), for programs that ask many times over their life.
-The work is `disco_cli/serve.py`; the client is `disco_cli/client.py`."""
+The requests are `disco_cli/serve.py`, the connections `disco_cli/serve_net.py`; the
+client is `disco_cli/client.py`."""
 
 from __future__ import annotations
 
 import ipaddress
+import os
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -18,6 +20,8 @@ from disco_cli.commands.options import (
     topk_option,
 )
 from disco_cli.console import handle_errors, stderr, warn
+
+PANEL_LIMITS = "Limits"
 
 
 def _loopback(host: str) -> bool:
@@ -43,7 +47,12 @@ def serve(
     ] = None,
     port: Annotated[
         Optional[int],
-        typer.Option("--port", min=1, max=65535, help="Listen on this TCP port instead."),
+        typer.Option(
+            "--port",
+            min=1,
+            max=65535,
+            help="Listen on this TCP port instead; clients must show the token of --token-file.",
+        ),
     ] = None,
     host: Annotated[
         str,
@@ -53,6 +62,25 @@ def serve(
             "exposes the map to the network.",
         ),
     ] = "127.0.0.1",
+    token_file: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--token-file",
+            metavar="PATH",
+            help="With --port: write a new random token here at start (mode 0600; "
+            "removed at exit). Default: disco-PORT.token in the current folder.",
+        ),
+    ] = None,
+    scan_root: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--scan-root",
+            file_okay=False,
+            help="Read requests' scan files only under this folder (relative paths "
+            "from it); also where the map's own scans are looked for, as in disco "
+            "query. Default: the map's folder.",
+        ),
+    ] = None,
     topk: Annotated[int, topk_option("Matches per query when a request does not say.")] = 10,
     max_request_mb: Annotated[
         float,
@@ -62,8 +90,50 @@ def serve(
             max=4096,
             help="Longest request line accepted (MiB); a longer one is refused and its "
             "connection closed.",
+            rich_help_panel=PANEL_LIMITS,
         ),
     ] = 64.0,
+    max_buffer_mb: Annotated[
+        float,
+        typer.Option(
+            "--max-buffer-mb",
+            min=0.1,
+            max=65536,
+            help="Request bytes held at once across all connections (MiB); a "
+            "connection that needs more is refused and closed.",
+            rich_help_panel=PANEL_LIMITS,
+        ),
+    ] = 256.0,
+    max_clients: Annotated[
+        int,
+        typer.Option(
+            "--max-clients",
+            min=1,
+            max=10000,
+            help="Connections open at once; one more is turned away.",
+            rich_help_panel=PANEL_LIMITS,
+        ),
+    ] = 64,
+    read_timeout: Annotated[
+        float,
+        typer.Option(
+            "--read-timeout",
+            min=0.1,
+            help="Seconds a request line (or a reply) may take to cross; a slower "
+            "connection is closed.",
+            rich_help_panel=PANEL_LIMITS,
+        ),
+    ] = 30.0,
+    idle_timeout: Annotated[
+        float,
+        typer.Option(
+            "--idle-timeout",
+            min=0,
+            help="Seconds a connection may sit without a request before it is closed "
+            "(disco_cli.client reconnects by itself); 0: never.",
+            rich_help_panel=PANEL_LIMITS,
+        ),
+    ] = 600.0,
     model: Annotated[Optional[str], model_option(MODEL_OF_MAP)] = None,
     threads: ThreadsOpt = None,
 ) -> None:
@@ -72,27 +142,64 @@ def serve(
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
+    from disco_cli.errors import DiscoError
     from disco_cli.map import Map
-    from disco_cli.serve import QueryService, ServeOptions, make_server, serve_forever
+    from disco_cli.serve import QueryService, ServeOptions
+    from disco_cli.serve_net import NetOptions, make_server, serve_forever, write_token
 
     if port is None and socket_path is None:
         socket_path = Path("disco.sock")
     if port is not None and socket_path is not None:
         raise typer.BadParameter("give --socket or --port, not both", param_hint="--port")
+    if token_file is not None and port is None:
+        raise typer.BadParameter("a token is for --port only", param_hint="--token-file")
+    if max_request_mb > max_buffer_mb:
+        raise typer.BadParameter(
+            f"{max_request_mb:g} MiB requests cannot fit in {max_buffer_mb:g} MiB",
+            param_hint="--max-buffer-mb",
+        )
+    root = scan_root if scan_root is not None else Path(db_path).absolute().parent
+    if not root.is_dir():
+        raise DiscoError(f"{root}: --scan-root is not a folder")
     if port is not None and not _loopback(host):
-        warn(f"listening on {host}:{port}: any host that reaches it can query this map")
-    options = ServeOptions(topk=topk, max_request_bytes=int(max_request_mb * 1024 * 1024))
-    with Map.open(db_path, model=model) as m:
+        warn(f"listening on {host}:{port}: any host that reaches it and has the token can query")
+    options = ServeOptions(
+        topk=topk, max_request_bytes=int(max_request_mb * 1024 * 1024), scan_root=root
+    )
+    net = NetOptions(
+        max_clients=max_clients,
+        max_buffer_bytes=int(max_buffer_mb * 1024 * 1024),
+        read_timeout=read_timeout,
+        idle_timeout=idle_timeout or None,
+    )
+    with Map.open(db_path, model=model, scan_root=scan_root) as m:
         m.on_missing_scan = warn
         m.on_damaged = warn
         service = QueryService(m, options)
-        server = make_server(service, socket_path=socket_path, host=host, port=port)
+        if port is not None:
+            token_file = token_file or Path(f"disco-{port}.token")
+            net.token = write_token(token_file)
+        try:
+            server = make_server(service, socket_path=socket_path, host=host, port=port, net=net)
+        except DiscoError:
+            if token_file is not None:
+                token_file.unlink(missing_ok=True)
+            raise
         where = str(socket_path) if socket_path is not None else f"{host}:{port}"
+        if token_file is not None:
+            where += f", token in {token_file}"
 
         def ready() -> None:
-            stderr.print(f"{db_path}: {len(m)} scans; listening on {where} (Ctrl-C stops)")
+            stderr.print(
+                f"{db_path}: {len(m)} scans; listening on {where}; scans read under "
+                f"{os.path.realpath(root)} (Ctrl-C stops)",
+                soft_wrap=True,
+                highlight=False,
+            )
 
         try:
-            serve_forever(server, ready)
+            serve_forever(server, ready, token_file)
         except KeyboardInterrupt:
-            stderr.print(f"stopped after {service.answered} queries")
+            pass
+        # Ctrl-C and SIGTERM (a service manager's stop) end the same way.
+        stderr.print(f"stopped after {service.answered} queries")
