@@ -111,6 +111,21 @@ def _cli(*args: str) -> tuple[int, str, str]:
     return res.exit_code, res.stdout, res.stderr
 
 
+def _library_error(db: Path, writable: bool) -> subprocess.CompletedProcess:
+    """`Database.open(db, writable)` as uid 65534; its DatabaseError printed on stdout."""
+    script = (
+        "import sys\n"
+        "from disco_cli.database import Database\n"
+        "from disco_cli.errors import DatabaseError\n"
+        "try:\n"
+        f"    Database.open(sys.argv[1], writable={writable})\n"
+        "except DatabaseError as exc:\n"
+        "    print(exc)\n"
+    )
+    cmd = _nobody_cmd() + ["-c", script, str(db)]
+    return subprocess.run(cmd, cwd="/", env=_env(), capture_output=True, text=True, timeout=120)
+
+
 def _one_note(err: str, db: Path) -> None:
     """Exactly one line about the read-only open, and no word of damage."""
     notes = [ln for ln in err.splitlines() if "opened read-only" in ln]
@@ -187,17 +202,7 @@ def test_serve_on_a_read_only_map(site: Path, samples: Path) -> None:
 
 def test_writing_a_read_only_map_is_refused_as_a_permission_problem(site: Path) -> None:
     db = _read_only_map(site, "folder")
-    script = (
-        "import sys\n"
-        "from disco_cli.database import Database\n"
-        "from disco_cli.errors import DatabaseError\n"
-        "try:\n"
-        "    Database.open(sys.argv[1], writable=True)\n"
-        "except DatabaseError as exc:\n"
-        "    print(exc)\n"
-    )
-    cmd = _nobody_cmd() + ["-c", script, str(db)]
-    got = subprocess.run(cmd, cwd=site / "work", env=_env(), capture_output=True, text=True)
+    got = _library_error(db, writable=True)
     assert got.stdout.strip() == (
         f"{db}: cannot write: neither the file nor its folder is writable here (permission denied)"
     ), got.stderr
@@ -232,3 +237,19 @@ def test_a_pending_wal_in_a_read_only_folder_is_named_not_called_corrupt(site: P
         got.stderr
     )
     assert "map.db-wal" in lines[0] and "corrupt" not in lines[0]
+
+
+@pytest.mark.parametrize("hidden", ["file", "folder"])
+def test_a_map_this_user_may_not_read_is_named_so(site: Path, samples: Path, hidden: str) -> None:
+    db = _read_only_map(site, "owner")
+    os.chmod(db if hidden == "file" else db.parent, 0o600 if hidden == "file" else 0o700)
+    for command in (["info", str(db)], ["query", str(samples / QUERY), "--db", str(db)]):
+        got = as_nobody(*command)
+        lines = got.stderr.strip().splitlines()
+        assert got.returncode in (1, 2) and len(lines) == 1, got.stderr
+        assert lines[0].startswith("error: ") and str(db) in lines[0], got.stderr
+        assert "not readable" in lines[0] or "Permission denied" in lines[0], got.stderr
+        assert "corrupt" not in lines[0]
+    # The library says the same (the command line may refuse it before).
+    got = _library_error(db, writable=False)
+    assert got.stdout.strip() == f"{db}: cannot read (Permission denied)", got.stderr
