@@ -55,7 +55,9 @@ def _format1(db: Path, rel_paths: bool = True) -> None:
     """Rewrite the map at `db` in place as disco's format 1 (before checksums), as that
     version wrote it: one `scans` table with float32 signatures and raw float16 features
     beside them, `side_views` with float32 signatures, and no row checksums. Written
-    here with sqlite3 and NumPy alone, not by disco's code."""
+    here with sqlite3 and NumPy alone, not by disco's code. Its values are the format-2
+    map's (float16 signatures widened to float32), so migrating it back loses nothing:
+    tests/test_database_migration.py writes format-1 maps from float32 values instead."""
     import json
     import os
     import sqlite3

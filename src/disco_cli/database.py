@@ -182,10 +182,10 @@ class Database(RowReader):
         Opening reads the header, the meta table and the schema: its cost does not grow
         with the map. Every row is verified when it is read (its checksum), so damage
         inside what a command reads is still found; SQLite's full `PRAGMA
-        integrity_check` (every page, about 12-18 ms per 1,000 scans from the page
-        cache) runs only with `verify=True`, for writing (a write onto a damaged b-tree
-        can spread the damage), and in `check()` (`disco info --check`). A refused file
-        is not modified.
+        integrity_check` (every page: about 0.7 ms per MB of file from the page cache,
+        docs/benchmarks.md) runs only with `verify=True`, for writing (a write onto a
+        damaged b-tree can spread the damage), and in `check()` (`disco info --check`).
+        A refused file is not modified.
 
         A map this process may not write (its file or folder; a read-only volume) opens
         read-only, and `on_note` hears one line saying so (default: `note: ...` on
