@@ -521,7 +521,8 @@ def test_default_model_reranks_the_nearest_signatures(
     near = np.argsort(d_sig, kind="stable")[:4]
     # The query's side views (its feature images re-centred to either side): each map
     # scan counts at its nearest signature over the query and its views.
-    view_sigs, view_images = model.query_views(feat[0])
+    policy = model.query_policy
+    view_sigs, view_images = model.query_views(feat[0], policy.view_offsets)
     d_views = ((sigs[:, None].astype(np.float64) - view_sigs[None]) ** 2).sum(2).min(1)
     d_best = np.sqrt(np.minimum(d_sig, d_views))
     near_views = np.argsort(d_best, kind="stable")[:4]
@@ -544,23 +545,26 @@ def test_default_model_reranks_the_nearest_signatures(
             min(
                 [1 - corr(feat[0, 1], stored.features[i, 1])]
                 + [
-                    1 + model.query_view_penalty - corr(v, stored.features[i, 1])
+                    1 + policy.view_penalty - corr(v, stored.features[i, 1])
                     for v in view_images
                 ]
             )
             for i in cand
         ]
     )
-    assert rerank.min() <= model.rerank_wider_above  # no wider pass
-    order = np.lexsort((cand, rerank - 0.3 / d_best[cand]))[:4]
+    assert rerank.min() <= policy.rerank_wider_above  # no wider pass
+    score = rerank - 0.3 / d_best[cand]
+    order = np.lexsort((cand, score))[:4]
     args = ["query", str(queries / "q3.bin"), "--db", str(out), "--format", "jsonl"]
     code, text, err = run(*args, "--topk", "4", "--rerank", "4")
     assert code == 0, err
     rows = jsonl(text)
     assert [r["match_id"] for r in rows] == [int(ids[i]) for i in cand[order]]
-    # The distance shown is the query's own (how well it matches from where it stands).
+    # The distance shown is that score, shifted so that the first row shows the query's
+    # own re-rank distance to it (how well it matches from where it stands).
     own = np.array([1 - corr(feat[0, 1], stored.features[i, 1]) for i in cand])
-    np.testing.assert_allclose([r["distance"] for r in rows], own[order], atol=2e-3)
+    shown = score[order] - score[order[0]] + own[order[0]]
+    np.testing.assert_allclose([r["distance"] for r in rows], shown, atol=2e-3)
     # --rerank 0: the signature order of the paper.
     code, text, err = run(*args, "--topk", "4", "--rerank", "0")
     assert [r["match_id"] for r in jsonl(text)] == [int(ids[i]) for i in near]

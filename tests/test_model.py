@@ -41,7 +41,7 @@ def tiny_model(width: int = 4, seed: int = 0) -> DiscoModel:
 
 def test_spectral_model_follows_the_protocol():
     model = load_model("spectral")
-    assert model.name == "spectral" and model.rerank_candidates == 0
+    assert model.name == "spectral" and model.query_policy.rerank_candidates == 0
     assert len(model.fingerprint) >= 8
     json.dumps(model.config_dict())  # stored inside databases: must be plain JSON
     bevs = random_bevs(3)
@@ -245,7 +245,7 @@ def test_authors_layout_with_a_missing_block_is_refused(tmp_path):
 def test_scancontext_name_maps_to_its_model():
     model = load_model("scancontext")
     assert type(model).__name__ == "ScanContextModel"
-    assert model.rerank_candidates > 0
+    assert model.query_policy.rerank_candidates > 0
 
 
 def test_default_without_shipped_weights_says_so(tmp_path, monkeypatch):

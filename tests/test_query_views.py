@@ -1,14 +1,17 @@
-"""Looking beside the query (issue 24): revisits 4-8 m to the side of the map's route.
+"""Query views (issue 24): revisits 4-8 m to the side of the map's route.
 
-The query's feature images re-centred a few metres to either side (`query_views`) join
-the signature search and the re-ranking (`search.match_queries`), the views' search on a
-large map runs on projected signatures (`ProjectedSignatures`), and the yaw search
-reaches as far to the side (`yaw_refine.SIDE_REACH`)."""
+The query's feature images re-centred a few metres to either side (`model.query_views`)
+join the signature search and the re-ranking (`search.match_queries`), the views' search
+on a large map runs on projected signatures (`signature_index.ProjectedSignatures`), and
+the yaw search reaches as far to the side (`yaw_refine.SIDE_REACH`)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from query_stubs import StubModel
 from test_yaw_flip import _features, pose, street, wrap
 
 from disco_cli.database import MatchRows
@@ -16,8 +19,10 @@ from disco_cli.model import load_model
 from disco_cli.model import yaw_refine as yr
 from disco_cli.model.signature import signatures
 from disco_cli.model.verify import aligned_correlation, aligned_correlations
-from disco_cli.query_views import ProjectedSignatures, candidates_with_views
-from disco_cli.search import SignatureIndex, brute_force_topk, match_queries
+from disco_cli.model.interface import Abilities
+from disco_cli.query_views import candidates_with_views, views_search
+from disco_cli.search import match_queries
+from disco_cli.signature_index import ProjectedSignatures, SignatureIndex, brute_force_topk
 
 
 def _plain_corr(a: np.ndarray, b: np.ndarray) -> float:
@@ -102,11 +107,28 @@ def test_projected_search_finds_the_exact_neighbours_with_exact_distances() -> N
     assert (rows[0] < 1000).all() and (rows[1] < 2000).all() and (rows[:, :] % 2 == 1).all()
 
 
-def test_a_small_map_searches_its_views_exactly() -> None:
-    sigs = _low_rank_signatures(300, 64, 8, seed=3)  # below the int8 pass's size
+def test_the_views_search_is_exact_unless_asked_to_approximate() -> None:
+    both = _low_rank_signatures(1220, 256, 24, seed=3)
+    sigs, q = both[:1200], both[1200:]
     index = SignatureIndex(sigs)
-    q = sigs[:4] + 0.01
-    np.testing.assert_array_equal(index.approximate_search(q, 5)[0], index.search(q, 5)[0])
+    exact_rows, exact_d = views_search(index, q, 5, approximate=False)
+    approx_rows, approx_d = views_search(index, q, 5, approximate=True)
+    hits = 0
+    for qi, er, ed, ar, ad in zip(q, exact_rows, exact_d, approx_rows, approx_d):
+        want_r, want_d = brute_force_topk(sigs, qi, 5)
+        assert er.tolist() == want_r.tolist()  # exact: the brute force's rows
+        np.testing.assert_allclose(ed, want_d, rtol=1e-5)
+        # Approximate: the exact distances of the rows it returns, most of them the same.
+        true_d = np.linalg.norm(sigs[ar].astype(np.float64) - qi.astype(np.float64), axis=1)
+        np.testing.assert_allclose(ad, true_d, rtol=1e-5)
+        hits += len(set(ar.tolist()) & set(want_r.tolist()))
+    assert hits >= 0.9 * len(q) * 5
+    # An index grown row by row (loop detection) would re-project on every row: it
+    # answers exactly.
+    grown = SignatureIndex(sigs[:0])
+    grown.append(sigs)
+    rows, _ = views_search(grown, q, 5, approximate=True)
+    np.testing.assert_array_equal(rows, exact_rows)
 
 
 @pytest.fixture(scope="module")
@@ -117,8 +139,8 @@ def model():
 def test_query_views_are_the_query_re_centred_to_its_sides(model) -> None:
     rng = np.random.default_rng(4)
     f = rng.random((2, 40, 120)).astype(np.float32)
-    sigs, images = model.query_views(f)
-    offsets = model.query_view_offsets
+    offsets = model.query_policy.view_offsets
+    sigs, images = model.query_views(f, offsets)
     assert sigs.shape[0] == images.shape[0] == 2 * len(offsets)
     positions = np.array([(0.0, s * o) for s in (1, -1) for o in offsets], np.float32)
     positions = positions[
@@ -137,7 +159,7 @@ def test_query_views_are_the_query_re_centred_to_its_sides(model) -> None:
         yr.recentre_kept(f[0], np.array([[0.0, 0.3]]), 80.0)
 
 
-def _revisits(model, s: int, alike: bool):
+def _revisits(model, s: int, alike: bool, policy=None):
     """A map along a street (every 4 m at y = 0, headed 0) and eight queries 5.5-7.5 m
     to either side, headed along the street either way: their matches and true poses."""
     w = street(s, alike)
@@ -162,9 +184,9 @@ def _revisits(model, s: int, alike: bool):
 
     index = SignatureIndex(msig)
     found = [
-        match_queries(index, np.arange(len(xs)), Rows(), model, qsig[i : i + 1], qf[i : i + 1], 1)[
-            0
-        ][0]
+        match_queries(
+            index, np.arange(len(xs)), Rows(), model, qsig[i : i + 1], qf[i : i + 1], 1, policy
+        )[0][0]
         for i in range(len(qp))
     ]
     # A hit: the match lies within 2 m of the nearest map scan's distance (4 m apart).
@@ -180,12 +202,10 @@ def test_revisits_beside_the_route_are_found_with_their_yaw(model, monkeypatch) 
     hits, errors = _revisits(model, 1, alike=False)
     assert hits.all() and errors.max() <= 2.0, (hits, errors.round(1))
     # Without the views, half of them are missed...
-    monkeypatch.setattr(model, "query_view_offsets", ())
-    hits_plain, _ = _revisits(model, 1, alike=False)
+    hits_plain, _ = _revisits(model, 1, False, replace(model.query_policy, view_offsets=()))
     assert hits_plain.sum() <= 5
     # ...and with the views but the yaw search reaching 5 m as before, the yaw of some
     # is off by over 2 degrees (the parallax of a sensor 6-8 m away left in it).
-    monkeypatch.undo()
     monkeypatch.setattr(yr._coarse_cells.__wrapped__, "__defaults__", (yr.COARSE_REACH, 0.0))
     yr._coarse_cells.cache_clear()
     try:
@@ -215,34 +235,29 @@ def test_the_approximate_index_proposes_the_views_candidates_cheaply() -> None:
     np.testing.assert_allclose(dists[:, 0], exact, atol=5e-3)
 
 
-class _ViewsStub:
+class _ViewsStub(StubModel):
     """Re-ranks by each row's stored score (feature column 0, the views' images
     ignored); its one side view's signatures are given."""
 
-    name = "stub"
-    rerank_candidates = 3
-    query_view_offsets = (5.0,)
-    query_view_penalty = 0.0
+    abilities = Abilities(rerank=True, query_views=True)
 
     def __init__(self, view_signatures: np.ndarray):
+        super().__init__(rerank=3, view_offsets=(5.0,), view_penalty=0.0)
         self.view_signatures = view_signatures
         self.calls: list[tuple[int, bool]] = []  # (candidates, with the views' images)
 
-    def query_views(self, query_features):
+    def query_views(self, query_features, offsets):
         return self.view_signatures, np.zeros((len(self.view_signatures), 1))
 
     def rerank_distances(self, query_features, candidate_features):
         self.calls.append((len(candidate_features), False))
         return candidate_features[:, 0].copy()
 
-    def rerank_distances_beside(self, query_features, candidate_features, views):
-        # The query's own distance is 0.05 worse than its best over the views.
+    def rerank_distances_views(self, query_features, candidate_features, views):
+        # The query's own distance is 0.05 worse than the view's.
         self.calls.append((len(candidate_features), True))
-        best = candidate_features[:, 0].copy()
-        return best + 0.05, best
-
-    def yaw(self, query_features, match_features):
-        return np.zeros(len(match_features))
+        best = candidate_features[:, 0].astype(np.float64)
+        return np.stack([best + 0.05, best])
 
 
 def test_the_views_add_candidates_and_never_push_out_the_query_s_own() -> None:
@@ -269,6 +284,7 @@ def test_the_views_add_candidates_and_never_push_out_the_query_s_own() -> None:
     index = SignatureIndex(sigs)
     found = match_queries(index, np.arange(30), Rows(), model, query[None], feats[:1], 3)[0]
     assert [m.row for m in found] == [0, 1, 2]
-    # Ordered by the best over the query and its views; shown: the query's own.
+    # Ranked by the best over the query and its views (0.1, 0.3, 0.4); shown: that
+    # score shifted so that the first row shows the query's own distance to it (0.15).
     assert [m.distance for m in found] == pytest.approx([0.15, 0.35, 0.45])
     assert model.calls == [(6, True)]  # one pass of six, with the views' images

@@ -1,39 +1,44 @@
-"""Re-ranking with the signature (search.rerank_order): the candidates are ordered by
-their re-rank distance less the model's `rerank_signature_weight` over their signature
+"""Re-ranking with the signature (search.ranking_score): the candidates are ranked by
+their re-rank distance less the policy's `signature_weight` over their signature
 distance, so a side view that finds the place is not undone by re-rank distances that
 are all alike, while far signatures (heavy change) leave the order to the re-ranking."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from query_stubs import StubModel
 
 from disco_cli.database import MatchRows
 from disco_cli.readers import list_scans, read_scan
-from disco_cli.search import match_queries, rerank_order, rerank_signature_weight
+from disco_cli.search import match_queries, ranking_score
 from disco_cli.side_views import ViewIndex
 
 
-def test_rerank_order_by_hand() -> None:
+def _order(rows, rerank_d, sig_d, weight):
+    return np.lexsort((rows, ranking_score(rerank_d, sig_d, weight))).tolist()
+
+
+def test_ranking_score_by_hand() -> None:
     rows = np.array([5, 7, 9, 11])
     rerank_d = np.array([0.70, 0.72, 0.71, 0.70])
     sig_d = np.array([0.50, 0.30, 0.45, 0.50])
     # 0.70 - 0.3 / 0.50 = 0.10, 0.72 - 1.00 = -0.28, 0.71 - 0.667 = 0.043, 0.10 (tie:
     # row 5 first)
-    assert rerank_order(rows, rerank_d, sig_d, 0.3).tolist() == [1, 2, 0, 3]
+    assert ranking_score(rerank_d, sig_d, 0.3) == pytest.approx([0.1, -0.28, 0.71 - 0.3 / 0.45, 0.1])
+    assert _order(rows, rerank_d, sig_d, 0.3) == [1, 2, 0, 3]
     # Weight 0: the re-rank distance alone, ties by row.
-    assert rerank_order(rows, rerank_d, sig_d, 0.0).tolist() == [0, 3, 2, 1]
+    assert _order(rows, rerank_d, sig_d, 0.0) == [0, 3, 2, 1]
     # Far signatures, as under heavy change: 0.75 - 0.3 / 0.60 = 0.250 against
     # 0.82 - 0.545 = 0.275, 0.80 - 0.526 = 0.274, 0.85 - 0.536 = 0.314: the re-ranking's
     # best stays first although its signature is the farthest.
     far = np.array([0.60, 0.55, 0.57, 0.56])
-    assert rerank_order(rows, np.array([0.75, 0.82, 0.80, 0.85]), far, 0.3).tolist() == [
-        0, 2, 1, 3,
-    ]  # fmt: skip
+    assert _order(rows, np.array([0.75, 0.82, 0.80, 0.85]), far, 0.3) == [0, 2, 1, 3]
     # A signature at distance 0 (a copy of the query) comes first.
-    assert rerank_order(rows, rerank_d, np.array([0.5, 0.5, 0.0, 0.5]), 0.3)[0] == 2
+    assert _order(rows, rerank_d, np.array([0.5, 0.5, 0.0, 0.5]), 0.3)[0] == 2
 
 
 class _Db:
@@ -44,21 +49,8 @@ class _Db:
 
     def rows(self, ids: np.ndarray) -> MatchRows:
         ids = np.asarray(ids)
-        return MatchRows(ids, [f"scan{i}" for i in ids], np.zeros((len(ids), 4)), self.scores[ids])
-
-
-class _Model:
-    name = "stub"
-    rerank_candidates = 4
-
-    def __init__(self, weight: float):
-        self.rerank_signature_weight = weight
-
-    def rerank(self, query_features: np.ndarray, features: np.ndarray):
-        return features.copy(), np.zeros(len(features))
-
-    def yaw(self, query_features: np.ndarray, features: np.ndarray) -> np.ndarray:
-        return np.zeros(len(features))
+        feats = self.scores[ids][:, None]
+        return MatchRows(ids, [f"scan{i}" for i in ids], np.zeros((len(ids), 4)), feats)
 
 
 @pytest.mark.parametrize("weight", [0.0, 0.3])
@@ -69,37 +61,42 @@ def test_a_side_view_match_stays_first_through_re_ranking(weight: float) -> None
     index = ViewIndex(sigs, np.array([2]), np.array([[0.2]], np.float32))
     # Re-rank distances all alike, scan 2's a hair worse than scan 0's.
     scores = np.array([0.70, 0.73, 0.72, 0.74, 0.75, 0.76])
+    model = StubModel(rerank=4, signature_weight=weight)
     (found,) = match_queries(
-        index, np.arange(6), _Db(scores), _Model(weight), np.zeros((1, 1), np.float32),
+        index, np.arange(6), _Db(scores), model, np.zeros((1, 1), np.float32),
         np.zeros((1, 1)), 3,
     )  # fmt: skip
-    # The truth by hand: the 4 re-ranked are scans 0-3 (scan 2 by its view), ordered by
-    # scores - weight / (0.2 for scan 2, else 1 + 0.1 i).
+    # The truth by hand: the 4 re-ranked are scans 0-3 (scan 2 by its view), ranked by
+    # score = scores - weight / (0.2 for scan 2, else 1 + 0.1 i).
     sig_d = np.where(np.arange(6) == 2, 0.2, 1.0 + 0.1 * np.arange(6))[:4]
-    want = np.lexsort((np.arange(4), scores[:4] - weight / sig_d))[:3].tolist()
+    score = scores[:4] - weight / sig_d
+    want = np.lexsort((np.arange(4), score))[:3].tolist()
     assert [m.row for m in found] == want
     assert want[0] == (2 if weight else 0)
-    # The reported distance stays the re-rank distance.
-    assert [m.distance for m in found] == pytest.approx(scores[want].tolist())
+    # Shown: the score, shifted so that the first row shows the query's own re-rank
+    # distance to it; the rows are sorted by it.
+    shown = score[want] - score[want[0]] + scores[want[0]]
+    assert [m.distance for m in found] == pytest.approx(shown.tolist())
 
 
-def test_shipped_model_weighs_the_signature() -> None:
-    from disco_cli.model import load_model
-
-    assert rerank_signature_weight(load_model("default")) == 0.3
-    assert rerank_signature_weight(load_model("spectral")) == 0.0  # it does not re-rank
-    assert rerank_signature_weight(object()) == 0.0
-
-
-def test_the_weight_reaches_the_report_run() -> None:
+def test_the_policy_reaches_the_report_run() -> None:
     from disco_cli.evaluation.report import model_run
     from disco_cli.model import load_model
+    from disco_cli.query_policy import policy_for
 
     model = load_model("default")
-    assert model_run(model)["rerank_signature_weight"] == 0.3
-    model.rerank_candidates = 0  # --rerank 0: the signature order, no weight
-    assert "rerank_signature_weight" not in model_run(model)
-    assert "rerank_signature_weight" not in model_run(load_model("spectral"))
+    run = model_run(model)
+    assert run["rerank_signature_weight"] == run["policy"]["signature_weight"] > 0
+    assert run["policy"] == model.query_policy.report()
+    lighter = replace(model.query_policy, signature_weight=0.1, view_offsets=(5.0,))
+    run = model_run(model, lighter)
+    assert run["policy"]["signature_weight"] == 0.1 and run["policy"]["view_offsets"] == [5.0]
+    run = model_run(model, policy_for(model, rerank=0))  # --rerank 0: the signature order
+    assert "rerank_signature_weight" not in run and run["policy"]["rerank_candidates"] == 0
+    # What a model cannot do is left out of the policy it reports.
+    spectral = model_run(load_model("spectral"), model.query_policy)
+    assert "rerank_signature_weight" not in spectral
+    assert spectral["policy"]["rerank_candidates"] == 0 and spectral["policy"]["view_offsets"] == []
 
 
 def test_query_from_5_to_6_m_beside_a_map_scan_finds_it_in_a_map_with_side_views(

@@ -1,13 +1,17 @@
 """The second re-ranking pass: when none of the first candidates matches well, the search
-re-ranks the next ones down to the model's `rerank_wider` (search.match_queries)."""
+re-ranks the next ones down to the policy's `rerank_wider` (search.match_queries)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from query_stubs import StubModel
 
 from disco_cli.database import MatchRows
-from disco_cli.search import SignatureIndex, match_queries, rerank_wider
+from disco_cli.query_policy import policy_for
+from disco_cli.search import SignatureIndex, match_queries
 
 N = 12
 
@@ -22,27 +26,21 @@ class _Db:
     def rows(self, ids: np.ndarray) -> MatchRows:
         ids = np.asarray(ids)
         self.fetched = [int(i) for i in ids]
-        return MatchRows(ids, [f"scan{i}" for i in ids], np.zeros((len(ids), 4)), self.scores[ids])
+        feats = self.scores[ids][:, None]
+        return MatchRows(ids, [f"scan{i}" for i in ids], np.zeros((len(ids), 4)), feats)
 
 
-class _Model:
+class _Model(StubModel):
     """Re-ranks by the stored score; yaw = 10 x the row's score (to see it follow the row)."""
 
-    name = "stub"
-
     def __init__(self, first: int, wider: int, above: float):
-        self.rerank_candidates, self.rerank_wider, self.rerank_wider_above = first, wider, above
-        self.reranked = 0
-
-    def rerank(self, query_features: np.ndarray, features: np.ndarray):
-        self.reranked += len(features)
-        return features.copy(), 10.0 * features
+        super().__init__(rerank=first, rerank_wider=wider, rerank_wider_above=above)
 
     def yaw(self, query_features: np.ndarray, features: np.ndarray) -> np.ndarray:
-        return np.zeros(len(features))
+        return 10.0 * np.asarray(features)[:, 0]
 
 
-def _search(scores, k=1, first=3, wider=6, above=0.5, rerank=None):
+def _search(scores, k=1, first=3, wider=6, above=0.5, rerank=None, rerank_wider=None):
     # Signature i sits at distance i from the query: the signature order is 0, 1, 2, ...
     sigs = np.arange(N, dtype=np.float32)[:, None]
     model, db = _Model(first, wider, above), _Db(scores)
@@ -54,7 +52,7 @@ def _search(scores, k=1, first=3, wider=6, above=0.5, rerank=None):
         np.zeros((1, 1), np.float32),
         np.zeros((1, 1)),
         k,
-        rerank=rerank,
+        policy_for(model, rerank=rerank, rerank_wider=rerank_wider),
     )
     return found, model
 
@@ -93,15 +91,26 @@ def test_explicit_rerank_sets_the_first_pass_and_zero_turns_both_off() -> None:
     assert [m.row for m in found] == [0, 1, 2] and model.reranked == 0
 
 
-def test_rerank_wider_settings() -> None:
-    assert rerank_wider(_Model(10, 40, 0.7), 10) == (40, 0.7)
-    assert rerank_wider(_Model(10, 40, 0.7), 40) == (0, float("inf"))  # first pass as deep
-    assert rerank_wider(_Model(10, 40, 0.7), 0) == (0, float("inf"))  # no re-ranking
-    assert rerank_wider(object(), 10) == (0, float("inf"))  # a model without the setting
+def test_the_second_pass_runs_only_deeper_than_the_first() -> None:
+    scores = np.array([0.9, 0.8, 0.6, 0.7, 0.1, 0.3, 0.05, 0.9, 0.9, 0.9, 0.9, 0.9])
+    # A second pass no deeper than the first (3) adds nothing: rows 0-2 alone.
+    found, model = _search(scores, wider=3)
+    assert [m.row for m in found] == [2] and model.reranked == 3
+    # --rerank-wider 0 switches it off.
+    found, model = _search(scores, rerank_wider=0)
+    assert [m.row for m in found] == [2] and model.reranked == 3
+    # A threshold no distance exceeds never triggers it; one below every distance always.
+    found, model = _search(scores, above=1.0)
+    assert model.reranked == 3
+    found, model = _search(np.full(N, 0.2), above=0.1, wider=N)
+    assert model.reranked == N
 
 
-def test_shipped_model_goes_wider() -> None:
-    from disco_cli.model import load_model
+def test_a_wider_pass_on_a_model_without_one_is_refused() -> None:
+    from disco_cli.errors import DiscoError
 
-    model = load_model("default")
-    assert rerank_wider(model, model.rerank_candidates) == (40, 0.7)
+    model = StubModel(rerank=3)  # re-ranks, but its policy has no second pass
+    assert policy_for(model, rerank_wider=0).wider == 0  # asking for none is fine
+    with pytest.raises(DiscoError, match="stub has no wider re-ranking pass"):
+        policy_for(model, rerank_wider=5)
+    assert replace(model.query_policy, rerank_wider=8).wider == 8

@@ -118,7 +118,7 @@ def test_model_protocol(model):
     from disco_cli.bev import polar_bev
 
     assert model.name == "scancontext"
-    assert model.rerank_candidates > 0
+    assert model.query_policy.rerank_candidates > 0
     bev = polar_bev(street_scan(), model.bev_config)
     assert bev.shape == (1, 20, 60)
     sig, feats = model.embed(bev[None])

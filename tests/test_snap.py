@@ -1,6 +1,7 @@
-"""Snapping the best match to the map scan nearest the query (search.snap_to_nearest):
-the rule against hand-placed poses, its place in match_queries, and end to end on a tiny
-world where the truth is the map scan nearest each query's true position."""
+"""Snapping the best match to the map scan nearest the query (search.snap_first): the
+rule against hand-placed poses, its place in match_queries (a tie-break of the ranking
+score), and end to end on a tiny world where the truth is the map scan nearest each
+query's true position."""
 
 from __future__ import annotations
 
@@ -10,45 +11,35 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from query_stubs import StubModel
 
 from disco_cli.database import MatchRows
 from disco_cli.errors import DiscoError
-from disco_cli.search import (
-    SignatureIndex,
-    check_snap_radius,
-    match_queries,
-    snap_settings,
-    snap_to_nearest,
-)
+from disco_cli.model.interface import Abilities
+from disco_cli.query_policy import policy_for
+from disco_cli.search import SignatureIndex, match_queries, snap_first
 
 
-class _Model:
+class _Model(StubModel):
     """Re-ranks by the stored score (feature column 0); its position estimate puts the
     query at `at` in the frame of whichever match it is asked about (feature column 1 is
     that match's row), headed `yaw` from it."""
 
-    name = "stub"
+    abilities = Abilities(rerank=True, refine_yaw=True, locate=True)
 
     def __init__(self, at=(0.0, 0.0), yaw=30.0, radius=5.0, margin=0.1):
-        self.rerank_candidates = 4
-        self.snap_radius, self.snap_margin = radius, margin
+        super().__init__(rerank=4, snap_radius=radius, snap_margin=margin, refine_yaw=1)
         self.at, self.heading = np.asarray(at, np.float64), yaw
         self.asked: list[int] = []  # rows whose position was estimated
         self.refined: list[int] = []  # rows whose yaw was refined
 
-    def rerank(self, query_features, features):
-        return features[:, 0].copy(), np.zeros(len(features))
-
-    def yaw(self, query_features, features):
-        return np.zeros(len(features))
-
-    def query_position(self, query_features, match_features):
+    def query_position_conf(self, query_features, match_features):
         self.asked.append(int(match_features[1]))
-        return self.heading, self.at
+        return self.heading, self.at, float("nan")
 
-    def refine_yaw(self, query_features, match_features):
+    def refine_yaw_conf(self, query_features, match_features):
         self.refined += [int(f[1]) for f in match_features]
-        return np.full(len(match_features), -1.0)
+        return np.full(len(match_features), -1.0), np.full(len(match_features), np.nan)
 
 
 def _stored(poses, scores) -> MatchRows:
@@ -57,6 +48,10 @@ def _stored(poses, scores) -> MatchRows:
     return MatchRows(
         np.arange(n), [f"s{i}" for i in range(n)], np.asarray(poses, np.float64), feats
     )
+
+
+def _snap(model, stored, best=0, radius=5.0, margin=0.1):
+    return snap_first(model, None, stored, best, stored.features[:, 0], radius, margin)
 
 
 def test_the_candidate_nearest_the_estimate_goes_first() -> None:
@@ -71,9 +66,8 @@ def test_the_candidate_nearest_the_estimate_goes_first() -> None:
     ]
     stored = _stored(poses, [0.40, 0.42, 0.45, 0.70, 0.41])
     model = _Model(at=(2.0, 0.0))
-    order = np.array([0, 4, 1, 2, 3])
-    got, yaw = snap_to_nearest(model, None, stored, order, stored.features[:, 0], 5.0, 0.1)
-    assert list(got) == [2, 0, 4, 1, 3]
+    first, yaw, _ = _snap(model, stored)
+    assert first == 2
     # The query heads 90 + 30 = 120 degrees on the map (row 0's heading and the yaw to
     # it); row 2 heads 0 degrees: the yaw to row 2 is 120, with no second search.
     assert yaw == pytest.approx(120.0)
@@ -84,38 +78,29 @@ def test_the_yaw_to_the_scan_snapped_to_wraps_and_needs_its_heading() -> None:
     # The query heads 90 + 30 = 120 degrees; row 1 heads -100: the yaw to it is 220,
     # that is -140. Without row 1's heading the yaw is left to be searched for.
     poses = [[10.0, 0.0, 0.0, math.pi / 2], [10.0, 2.0, 0.0, math.radians(-100.0)]]
-    stored = _stored(poses, [0.40, 0.42])
-    got, yaw = snap_to_nearest(
-        _Model(at=(2.0, 0.0)), None, stored, np.array([0, 1]), stored.features[:, 0], 5, 0.1
-    )
-    assert list(got) == [1, 0] and yaw == pytest.approx(-140.0)
+    first, yaw, _ = _snap(_Model(at=(2.0, 0.0)), _stored(poses, [0.40, 0.42]))
+    assert first == 1 and yaw == pytest.approx(-140.0)
     poses[1][3] = np.nan
-    stored = _stored(poses, [0.40, 0.42])
-    got, yaw = snap_to_nearest(
-        _Model(at=(2.0, 0.0)), None, stored, np.array([0, 1]), stored.features[:, 0], 5, 0.1
-    )
-    assert list(got) == [1, 0] and yaw is None
+    first, yaw, _ = _snap(_Model(at=(2.0, 0.0)), _stored(poses, [0.40, 0.42]))
+    assert first == 1 and yaw is None
 
 
 def test_radius_and_margin_bound_the_candidates() -> None:
     poses = [[0.0, 0.0, 0.0, 0.0], [6.0, 0.0, 0.0, 0.0], [3.0, 0.0, 0.0, 0.0]]
     stored = _stored(poses, [0.50, 0.50, 0.65])
     model = _Model(at=(6.0, 0.0))  # the query is at row 1, 6 m from row 0
-    order = np.array([0, 1, 2])
-    d = stored.features[:, 0]
-    # Row 1 lies beyond the radius, row 2 beyond the margin: the order stays.
-    got, yaw = snap_to_nearest(model, None, stored, order, d, 5.0, 0.1)
-    assert list(got) == [0, 1, 2] and yaw == 30.0
+    # Row 1 lies beyond the radius, row 2 beyond the margin: the best stays.
+    assert _snap(model, stored)[:2] == (0, 30.0)
     # A wider radius lets row 1 in; a wider margin alone lets row 2 in.
-    assert list(snap_to_nearest(model, None, stored, order, d, 6.5, 0.1)[0]) == [1, 0, 2]
-    assert list(snap_to_nearest(model, None, stored, order, d, 5.0, 0.2)[0]) == [2, 0, 1]
+    assert _snap(model, stored, radius=6.5)[0] == 1
+    assert _snap(model, stored, margin=0.2)[0] == 2
 
 
 def test_a_best_match_without_a_pose_is_left_alone() -> None:
     stored = _stored([[np.nan] * 4, [1.0, 0.0, 0.0, 0.0]], [0.3, 0.3])
     model = _Model(at=(1.0, 0.0))
-    got, yaw = snap_to_nearest(model, None, stored, np.array([0, 1]), np.array([0.3, 0.3]), 5, 1)
-    assert list(got) == [0, 1] and yaw is None and model.asked == []
+    first, yaw, _ = _snap(model, stored, margin=1.0)
+    assert first == 0 and yaw is None and model.asked == []
 
 
 class _Db:
@@ -128,7 +113,7 @@ class _Db:
         return MatchRows(ids, [s.paths[i] for i in ids], s.poses[ids], s.features[ids])
 
 
-def _match(model, db, k=2, refine_yaw=1):
+def _match(model, db, k=2, **options):
     n = len(db.stored.ids)
     (found,) = match_queries(
         SignatureIndex(np.arange(n, dtype=np.float32)[:, None]),
@@ -138,7 +123,7 @@ def _match(model, db, k=2, refine_yaw=1):
         np.zeros((1, 1), np.float32),
         np.zeros((1, 2)),
         k,
-        refine_yaw=refine_yaw,
+        policy_for(model, **options),
     )
     return found
 
@@ -153,7 +138,9 @@ def test_match_queries_snaps_and_carries_the_yaw_to_the_new_first() -> None:
     model = _Model(at=(1.8, 0.0))
     found = _match(model, db)
     assert [m.row for m in found] == [3, 1]
-    assert [m.distance for m in found] == [0.45, 0.40]
+    # The tie-break: row 3 takes row 1's score and the first row shows the query's own
+    # re-rank distance to it, so row 1 shows the same and the rows stay sorted.
+    assert [m.distance for m in found] == pytest.approx([0.45, 0.45])
     assert model.asked == [1] and model.refined == []
     assert [m.yaw_deg for m in found] == [30.0, 0.0]
 
@@ -164,35 +151,26 @@ def test_match_queries_reuses_the_yaw_when_the_best_stays() -> None:
     model = _Model(at=(0.2, 0.0))  # the query is at row 1 itself
     found = _match(model, db)
     assert [m.row for m in found] == [1, 3]
+    assert [m.distance for m in found] == pytest.approx([0.40, 0.45])
     assert model.asked == [1] and model.refined == []  # no second estimate
     assert found[0].yaw_deg == 30.0
     # --snap-radius 0: no estimate at all, the refined yaw as before.
-    model = _Model(at=(1.8, 0.0), radius=0.0)
-    assert [m.row for m in _match(model, db)] == [1, 3]
+    model = _Model(at=(1.8, 0.0))
+    assert [m.row for m in _match(model, db, snap_radius=0)] == [1, 3]
     assert model.asked == [] and model.refined == [1]
     # --rerank 0: the signature order, never snapped.
     model = _Model(at=(1.8, 0.0))
-    model.rerank_candidates = 0
-    assert [m.row for m in _match(model, db)] == [0, 1] and model.asked == []
+    assert [m.row for m in _match(model, db, rerank=0)] == [0, 1] and model.asked == []
 
 
-def test_snap_settings_and_checks() -> None:
-    assert snap_settings(_Model(radius=5.0, margin=0.1)) == (5.0, 0.1)
-    assert snap_settings(_Model(radius=0.0)) == (0.0, 0.0)
-    assert snap_settings(object()) == (0.0, 0.0)
-    assert check_snap_radius(_Model(), 2.5) == 2.5
-    assert check_snap_radius(object(), 0) == 0.0  # 0 asks for nothing a model must do
-    with pytest.raises(DiscoError, match="cannot estimate the query's position"):
-        check_snap_radius(object(), 5)
+def test_snap_radius_checks() -> None:
+    assert policy_for(_Model(), snap_radius=2.5).snap_radius == 2.5
+    assert policy_for(StubModel(), snap_radius=0).snap_radius == 0.0  # asks for nothing
+    with pytest.raises(DiscoError, match="stub cannot estimate the query's position"):
+        policy_for(StubModel(), snap_radius=5)
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(DiscoError, match="snap radius"):
-            check_snap_radius(_Model(), bad)
-
-
-def test_shipped_model_snaps() -> None:
-    from disco_cli.model import load_model
-
-    assert snap_settings(load_model("default")) == (5.0, 0.1)
+            policy_for(_Model(), snap_radius=bad)
 
 
 # --- end to end ------------------------------------------------------------------------

@@ -180,7 +180,7 @@ def test_training_with_the_verify_loss_records_it_and_reranks(world, tmp_path, o
     history = train(data, BEVConfig(), opts, out, command="test", log=lambda s: None)
     assert history[0]["verify"] > 0 and np.isfinite(history[0]["loss"])
     model = load_model(str(out))
-    assert model.rerank_candidates > 0
+    assert model.query_policy.rerank_candidates > 0
 
 
 def test_training_without_poses_needs_self_supervised(tmp_path):

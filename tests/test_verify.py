@@ -75,7 +75,7 @@ def test_model_reranks_by_its_learned_image_and_keeps_the_yaw():
     from test_model import random_bevs, tiny_model
 
     model = tiny_model()
-    assert model.rerank_candidates > 0
+    assert model.abilities.rerank and model.query_policy.rerank_candidates > 0
     bevs = random_bevs(4, seed=11)
     _, feats = model.embed(bevs)
     # Channel 0 is F_cnn's output, channel 1 its learned part: G - (BEV summed over heights).

@@ -14,10 +14,11 @@ Frames and units, for `Match` here and `Loop` in `loop_detector.py`:
   heading's correlation peak / the yaw's own (`model/yaw_refine.py`). Low where the place
   looks alike both ways (a street alike on both sides); None for a model without one.
   With a pose it still rates the place-recognition yaw that seeded it.
-- `distance`: 1 - the aligned correlation of the feature images after re-ranking, or
-  the signature distance for models that do not re-rank; smaller is closer. The first
-  match may re-rank a little worse than the second where it lies nearer the query
-  (`search.snap_to_nearest`).
+- `distance`: the score that ranks the matches, smaller is closer, so rows come sorted
+  by it (`search.ranking_score`): the re-rank distance (1 - the aligned correlation of
+  the feature images, at its best over the query and its views) less 0.3 over the
+  signature distance; the signature distance for models that do not re-rank. The snap
+  gives the map scan nearest the query the best one's distance (a tie it wins).
 """
 
 from __future__ import annotations
@@ -167,8 +168,7 @@ def as_match(m: Any) -> Match:
 
 def conf_or_none(m: Any) -> float | None:
     """A search match's `yaw_conf`, None where it has none (NaN)."""
-    conf = getattr(m, "yaw_conf", float("nan"))
-    return float(conf) if math.isfinite(conf) else None
+    return float(m.yaw_conf) if math.isfinite(m.yaw_conf) else None
 
 
 def pose_columns(x: Any) -> dict[str, Any]:

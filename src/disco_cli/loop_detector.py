@@ -142,7 +142,9 @@ class LoopDetector:
     pose cannot be estimated (that pair is left out); by default it is a warning.
     `side_views`: also search each earlier scan as seen from that many metres to its
     left and right (`side_views.py`), for revisits in another lane (a map's stored
-    embeddings are then not reused: it holds no views of the sequence).
+    embeddings are then not reused: it holds no views of the sequence). `policy`: the
+    query stage's `QueryPolicy` (default: the model's; `rerank` changes it); the
+    `policy` attribute may be replaced before the first scan.
     """
 
     def __init__(
@@ -161,9 +163,10 @@ class LoopDetector:
         pose_config: Any = None,
         on_pose_error: Callable[[str], None] | None = None,
         side_views: float = 0.0,
+        policy: Any = None,
     ):
         from disco_cli.map import _load_model
-        from disco_cli.search import check_rerank
+        from disco_cli.query_policy import policy_for
         from disco_cli.side_views import side_offsets
 
         if exclude_frames is not None and (
@@ -185,7 +188,8 @@ class LoopDetector:
         self.estimate_pose = bool(verify or pose)
         self.pose_config = pose_config
         self._model = _load_model(model, device)
-        self._rerank = None if rerank is None else check_rerank(self._model, rerank)
+        # The query stage's settings (`QueryPolicy`; default: the model's).
+        self.policy = policy_for(self._model, policy, rerank=rerank)
         self._on_pose_error = on_pose_error or (lambda msg: warnings.warn(msg, stacklevel=3))
         self._index: Any = None  # SignatureIndex, created with the first scan
         self._store = _Features()
@@ -240,7 +244,8 @@ class LoopDetector:
         """`add` for a scan embedded already (by `model.embed`); `points` is its point
         array or a function that reads it (needed when poses are estimated);
         `side_signatures` `[V, D]` its side views' (when the detector has side views)."""
-        from disco_cli.search import SignatureIndex, match_queries
+        from disco_cli.search import match_queries
+        from disco_cli.signature_index import SignatureIndex
         from disco_cli.side_views import ViewIndex
 
         i = len(self)
@@ -268,9 +273,9 @@ class LoopDetector:
                 sig[None],
                 np.asarray(features, dtype=np.float32)[None],
                 self.topk,
+                self.policy,
                 limit=[limit],
                 max_distance=self.threshold,
-                rerank=self._rerank,
             )[0]
             loops = [lp for m in found if (lp := self._loop(i, label, t, m)) is not None]
         # Only now is the scan searchable: never by itself.

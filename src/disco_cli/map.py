@@ -26,6 +26,7 @@ import numpy as np
 from disco_cli.database import DamagedRows, Database, ModelInfo, ScanBatch, damaged_line
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.localize import Match, PointCache, as_match, refine_matches
+from disco_cli.query_policy import policy_for
 from disco_cli.side_views import side_offsets, side_views_m
 
 __all__ = [
@@ -824,11 +825,9 @@ class Map:
         signature: np.ndarray,
         features: np.ndarray,
         topk: int,
-        rerank: int | None,
+        policy: Any,
         exclude: Any,
         max_distance: float | None,
-        refine_yaw: int | None = None,
-        snap_radius: float | None = None,
     ) -> list:
         from disco_cli.search import match_queries
 
@@ -847,11 +846,9 @@ class Map:
                     signature[None],
                     features[None],
                     topk,
+                    policy,
                     exclude=mask,
                     max_distance=max_distance,
-                    rerank=rerank,
-                    refine_yaw=refine_yaw,
-                    snap_radius=snap_radius,
                 )[0]
             except DamagedRows as exc:
                 if set(exc.ids) <= self._skipped:
@@ -871,6 +868,7 @@ class Map:
         name: str = "points",
         refine_yaw: int | None = None,
         snap_radius: float | None = None,
+        policy: Any = None,
     ) -> list[Match]:
         """The `topk` best matches of one scan (an N x 3 or N x 4 array), best first.
 
@@ -884,15 +882,18 @@ class Map:
         `snap_radius`: where the map has poses, the first match is the one nearest the
         query's estimated position among those within this many metres of the best
         (default: the model's, 5 m for DiSCO; 0: the best re-ranked).
+        `policy`: a `QueryPolicy` for all of the query stage's settings (default: the
+        model's); `rerank`, `refine_yaw` and `snap_radius` change it.
         """
         from disco_cli.pipeline import array_points, embed_one
 
         self._check_open()
         pts = array_points(points, name)
         sig, feat = embed_one(pts, self._model, name)
-        found = self._search(
-            sig, feat, topk, rerank, exclude, max_distance, refine_yaw, snap_radius
+        policy = policy_for(
+            self._model, policy, rerank=rerank, refine_yaw=refine_yaw, snap_radius=snap_radius
         )
+        found = self._search(sig, feat, topk, policy, exclude, max_distance)
         if not (pose or verify):
             return [as_match(m) for m in found]
         return refine_matches(found, pts, self._points.get, verify=verify)
@@ -915,6 +916,7 @@ class Map:
         scan_format: str | None = None,
         refine_yaw: int | None = None,
         snap_radius: float | None = None,
+        policy: Any = None,
     ) -> Iterator[QueryResult]:
         """Query scan files, streamed: reading and voxelizing run ahead on `threads`
         threads (None: `disco_cli.get_threads()`), and each result is yielded as soon as
@@ -926,6 +928,9 @@ class Map:
         from disco_cli.threads import get_threads
 
         self._check_open()
+        policy = policy_for(
+            self._model, policy, rerank=rerank, refine_yaw=refine_yaw, snap_radius=snap_radius
+        )
         threads = get_threads() if threads is None else threads
         with embedded(
             paths, self._model, 1, threads, scan_format, prefetch=2 * threads, keep_points=pose
@@ -940,11 +945,9 @@ class Map:
                             chunk.signatures[j],
                             chunk.features[j],
                             topk,
-                            rerank,
+                            policy,
                             ex,
                             max_distance,
-                            refine_yaw,
-                            snap_radius,
                         )
                     except DiscoError as exc:
                         yield QueryResult(item.index, item.path, [], exc)

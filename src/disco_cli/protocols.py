@@ -274,10 +274,11 @@ def evaluate_sessions(
     radius: float,
     topk: int,
     query_mask: np.ndarray | None = None,
+    policy: Any = None,
 ) -> dict[str, Any]:
     """`disco eval`'s figures for one query session against one map session: the same
-    search (`match_queries`, with the model's re-ranking), ground truth within `radius`
-    metres in x, y, and `retrieval_evaluation`. `query_mask` picks the queries."""
+    search (`match_queries` under `policy`, None: the model's), ground truth within
+    `radius` metres in x, y, and `retrieval_evaluation`. `query_mask` picks the queries."""
     from disco_cli.database import MatchRows
     from disco_cli.evaluation.metrics import one_percent_n
     from disco_cli.evaluation.runs import score_retrieval
@@ -305,7 +306,14 @@ def evaluate_sessions(
     depth = max(topk, one_percent_n(n_map))
     ids = np.arange(n_map)
     matches = match_queries(
-        SignatureIndex(map_session.signatures), ids, _Memory(), model, q_sigs, q_feats, depth
+        SignatureIndex(map_session.signatures),
+        ids,
+        _Memory(),
+        model,
+        q_sigs,
+        q_feats,
+        depth,
+        policy,
     )
     ev = score_retrieval(matches, depth, topk, query_session.poses[sel], map_rows, radius)
     return ev.metrics
@@ -337,14 +345,16 @@ def run_protocol(
     warn: Callable[[str], None] | None = None,
     progress: Callable[[str], None] | None = None,
     oxford_scale: float | None = None,
+    policy: Any = None,
 ) -> tuple[Protocol, list[SessionResult]]:
     """Evaluate `model` on a dataset folder by the paper's protocol: one result per
     (map session, query session) pair. `oxford_scale`: metres per unit of PointNetVLAD's
-    normalized submaps (None: `disco_cli.readers.oxford.DEFAULT_SCALE`)."""
+    normalized submaps (None: `disco_cli.readers.oxford.DEFAULT_SCALE`). `policy`: the
+    query stage's `QueryPolicy` (None: the model's)."""
     from disco_cli.readers import oxford
 
     with oxford.scale(oxford_scale):
-        return _run_protocol(name, root, model, warn, progress)
+        return _run_protocol(name, root, model, warn, progress, policy)
 
 
 def _run_protocol(
@@ -353,6 +363,7 @@ def _run_protocol(
     model: Any,
     warn: Callable[[str], None] | None,
     progress: Callable[[str], None] | None,
+    policy: Any = None,
 ) -> tuple[Protocol, list[SessionResult]]:
     p = _protocol(name)
     root = Path(root)
@@ -378,7 +389,9 @@ def _run_protocol(
                 mask = oxford_in_test_squares(qs.poses[:, 0, 3], qs.poses[:, 1, 3])
                 if not mask.any():
                     continue
-                met = evaluate_sessions(sessions[m], qs, model, p.radius, p.topk, mask)
+                met = evaluate_sessions(
+                    sessions[m], qs, model, p.radius, p.topk, mask, policy
+                )
                 results.append(SessionResult(m, q, met))
         return p, results
     for m in p.map_sessions:
@@ -396,7 +409,8 @@ def _run_protocol(
             say(f"embedding the queries {q}")
             qs = load_session(p, root, q, p.query_spacing, warn)
             embed_session(qs, model, p)
-            results.append(SessionResult(m, q, evaluate_sessions(ms, qs, model, p.radius, p.topk)))
+            met = evaluate_sessions(ms, qs, model, p.radius, p.topk, policy=policy)
+            results.append(SessionResult(m, q, met))
     if not results:
         raise DiscoError(f"{root}: none of the query sessions {', '.join(p.query_sessions)}")
     return p, results

@@ -29,9 +29,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
+
+from disco_cli.model.interface import Abilities, Unable
+from disco_cli.query_policy import NO_RERANKING
 
 RINGS = 20
 SECTORS = 60
@@ -121,10 +125,11 @@ def _shift_to_yaw(shift: np.ndarray, sectors: int) -> np.ndarray:
     return np.where(wrapped == -180.0, 180.0, wrapped)
 
 
-class ScanContextModel:
-    """The Scan Context baseline behind the model protocol of docs/architecture.md."""
+class ScanContextModel(Unable):
+    """The Scan Context baseline behind `model.interface.QueryModel`: ring-key search,
+    then the column-shift distance re-ranks (no wider pass, snap or views)."""
 
-    rerank_candidates = CANDIDATES
+    abilities = Abilities(rerank=True)
 
     def __init__(
         self, bev_config: Any = None, rerank_candidates: int = CANDIDATES, ring_key: str = "mean"
@@ -136,6 +141,7 @@ class ScanContextModel:
         if ring_key not in RING_KEYS:
             raise ValueError(f"unknown ring key {ring_key!r} (known: {', '.join(RING_KEYS)})")
         self.rerank_candidates = int(rerank_candidates)
+        self.query_policy = replace(NO_RERANKING, rerank_candidates=self.rerank_candidates)
         self.ring_key = ring_key
         blob = json.dumps(self.config_dict(), sort_keys=True).encode()
         self.fingerprint = hashlib.sha256(blob).hexdigest()[:16]
@@ -168,6 +174,19 @@ class ScanContextModel:
         dist, shift = best_shift(shift_distances(query_features, candidates))
         return dist.astype(np.float32), _shift_to_yaw(shift, candidates.shape[-1])
 
+    def rerank_distances(
+        self, query_features: np.ndarray, candidate_features: np.ndarray
+    ) -> np.ndarray:
+        """`rerank`'s distances alone."""
+        return self.rerank(query_features, candidate_features)[0]
+
     def yaw(self, query_features: np.ndarray, match_features: np.ndarray) -> np.ndarray:
         """[K] degrees in (-180, 180]: the yaw of T_match<-query for each match."""
         return self.rerank(query_features, match_features)[1]
+
+    def yaw_conf(
+        self, query_features: np.ndarray, match_features: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(`yaw`, NaN: the column shift gives no confidence)."""
+        yaw = self.yaw(query_features, match_features)
+        return yaw, np.full(len(yaw), np.nan)

@@ -71,7 +71,7 @@ class ViewIndex:
     """
 
     def __init__(self, signatures: np.ndarray, view_owner: np.ndarray, view_signatures: np.ndarray):
-        from disco_cli.search import SignatureIndex
+        from disco_cli.signature_index import SignatureIndex
 
         self.n_scans = len(signatures)
         owner = np.asarray(view_owner, dtype=np.int64).reshape(-1)
@@ -183,7 +183,7 @@ class ViewIndex:
 def index_for(db: Any) -> tuple[np.ndarray, Any]:
     """`(ids, index)` to search a database with: a `ViewIndex` when it stores side
     views, else a plain `SignatureIndex`."""
-    from disco_cli.search import SignatureIndex
+    from disco_cli.signature_index import SignatureIndex
 
     ids, sigs = db.signatures()
     if not db.side_offsets:

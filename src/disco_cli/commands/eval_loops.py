@@ -31,13 +31,13 @@ from disco_cli.commands.options import (
     ScanFormatOpt,
     ThreadsOpt,
     TopicOpt,
-    apply_rerank,
     model_option,
     opt,
     pose_options,
     poses_option,
 )
 from disco_cli.console import handle_errors
+from disco_cli.query_policy import policy_for
 
 
 @handle_errors
@@ -130,12 +130,13 @@ def evaluate_loops(
     limit = exclusion_limits(len(paths), exclude_frames, t, seconds)
     advice = exclusion_advice(len(paths), exclude_frames, t, seconds)
     check_loop_queries(T, limit, radius, advice, warn)  # before the work: blank figures otherwise
-    model = apply_rerank(load_model(model_name, device=device), rerank, rerank_wider)
+    model = load_model(model_name, device=device)
+    policy = policy_for(model, rerank=rerank, rerank_wider=rerank_wider)
     with steps("embedding", len(paths)) as step:
-        ev = loop_closure(paths, T, limit, model, radius, scan_format, step)
+        ev = loop_closure(paths, T, limit, model, radius, scan_format, step, policy=policy)
     run = {
         "protocol": "loop-closure",
-        **model_run(model),
+        **model_run(model, policy),
         "sequence": " ".join(map(str, sequence)),
         "poses": str(poses_file) if pose_topic is None else pose_topic,
         "radius_m": radius,

@@ -36,9 +36,6 @@ from disco_cli.commands.options import (
     SnapRadiusOpt,
     ThreadsOpt,
     TopicOpt,
-    apply_refine_yaw,
-    apply_rerank,
-    apply_snap,
     db_option,
     model_option,
     pose_options,
@@ -46,6 +43,7 @@ from disco_cli.commands.options import (
     topk_option,
 )
 from disco_cli.console import handle_errors
+from disco_cli.query_policy import policy_for
 
 
 @handle_errors
@@ -107,17 +105,16 @@ def evaluate(
     from disco_cli.protocols import TABLE_COLUMNS, run_protocol, table_rows
 
     check_output_folder(report, what="the report")  # before the work it would lose
+    settings = dict(rerank=rerank, rerank_wider=rerank_wider, snap_radius=snap_radius)
+    settings["refine_yaw"] = refine_yaw  # the query stage's (QueryPolicy)
     if protocol is not None:  # the paper's sessions and thresholds, printed as its table
         if len(queries) != 1:
             raise DiscoError("--protocol takes one dataset folder")
-        model = apply_rerank(
-            load_model(model_name or "default", device=device), rerank, rerank_wider
-        )
-        apply_refine_yaw(model, refine_yaw)
-        apply_snap(model, snap_radius)
+        model = load_model(model_name or "default", device=device)
+        policy = policy_for(model, **settings)
         say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
         proto, results = run_protocol(
-            protocol, queries[0], model, warn=warn, progress=say, oxford_scale=oxford_scale
+            protocol, queries[0], model, warn, say, oxford_scale, policy
         )
         rows = table_rows(proto, results, approach=f"disco ({model.name})")
         title = f"{proto.dataset}: {model.name}"
@@ -134,13 +131,13 @@ def evaluate(
         Map.open(db_path, model=model_name, device=device) as m,
         steps("embedding", len(paths)) as step,
     ):
-        apply_rerank(m.model, rerank, rerank_wider)
-        apply_refine_yaw(m.model, refine_yaw)
-        apply_snap(m.model, snap_radius)
-        ev = multi_session(paths, q_poses, m.database, m.model, radius, topk, scan_format, step)
+        policy = policy_for(m.model, **settings)
+        ev = multi_session(
+            paths, q_poses, m.database, m.model, radius, topk, scan_format, step, policy=policy
+        )
     run = {
         "protocol": "multi-session",
-        **model_run(m.model),
+        **model_run(m.model, policy),
         "database": str(db_path),
         "queries": " ".join(map(str, queries)),
         "query_poses": str(poses_file) if pose_topic is None else pose_topic,

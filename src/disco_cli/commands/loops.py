@@ -32,11 +32,11 @@ from disco_cli.commands.options import (
     TopicOpt,
     VerboseLoopsOpt,
     VerifyLoopsOpt,
-    apply_rerank,
     model_option,
     topk_option,
 )
 from disco_cli.console import error, fail, handle_errors, plural, say, warn
+from disco_cli.query_policy import policy_for
 
 MODEL_OF_SEQUENCE = (
     "default, spectral, scancontext or a checkpoint path; default: the one that built "
@@ -124,7 +124,7 @@ def loops(
         on_pose_error=lambda msg: (error(msg), pose_failures.append(msg)),
         side_views=side_views or 0.0,
     )
-    apply_rerank(detector.model, None, rerank_wider)
+    detector.policy = policy_for(detector.model, detector.policy, rerank_wider=rerank_wider)
     columns, keys = loop_columns(with_pose, verbose)
     writer = RowWriter(columns, fmt, title=f"loops in {sequence}")
     reuse = None

@@ -174,23 +174,6 @@ RerankWiderOpt = Annotated[
 ]
 
 
-def apply_rerank(model: Any, rerank: int | None, wider: int | None = None) -> Any:
-    """Set the model's re-ranking depth when --rerank was given, and its wider pass when
-    --rerank-wider was; returns the model."""
-    from disco_cli.search import check_rerank
-
-    if rerank is not None:
-        model.rerank_candidates = check_rerank(model, rerank)
-    if wider is not None and hasattr(model, "rerank_wider"):
-        model.rerank_wider = int(wider)
-    elif wider:  # 0 asks for no wider pass, which a model without one already does
-        from disco_cli.errors import DiscoError
-
-        name = getattr(model, "name", "?")
-        raise DiscoError(f"model {name} has no wider re-ranking pass; leave out --rerank-wider")
-    return model
-
-
 SnapRadiusOpt = Annotated[
     Optional[float],
     typer.Option(
@@ -218,15 +201,6 @@ IndexOpt = Annotated[
 ]
 
 
-def apply_snap(model: Any, radius: float | None) -> Any:
-    """Set the model's snap radius when --snap-radius was given; returns the model."""
-    if radius is not None:
-        from disco_cli.search import check_snap_radius
-
-        model.snap_radius = check_snap_radius(model, radius)
-    return model
-
-
 RefineYawOpt = Annotated[
     Optional[int],
     typer.Option(
@@ -238,15 +212,6 @@ RefineYawOpt = Annotated[
         rich_help_panel=PANEL_RUN,
     ),
 ]
-
-
-def apply_refine_yaw(model: Any, n: int | None) -> Any:
-    """Set how many matches get the parallax-free yaw when --refine-yaw was given."""
-    if n is not None:
-        from disco_cli.search import check_refine_yaw
-
-        model.refine_yaw_top = check_refine_yaw(n)
-    return model
 
 
 RepairOpt = Annotated[

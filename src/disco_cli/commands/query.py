@@ -37,9 +37,6 @@ from disco_cli.commands.options import (
     ThreadsOpt,
     TopicOpt,
     VerifyMatchesOpt,
-    apply_refine_yaw,
-    apply_rerank,
-    apply_snap,
     db_option,
     model_option,
     pose_options,
@@ -47,6 +44,7 @@ from disco_cli.commands.options import (
     topk_option,
 )
 from disco_cli.console import error, fail, handle_errors, note, warn
+from disco_cli.query_policy import policy_for
 
 
 @handle_errors
@@ -118,9 +116,8 @@ def query(
         m.on_missing_scan = warn
         m.on_index_note = note
         m.on_damaged = warn
-        apply_rerank(m.model, rerank, rerank_wider)
-        apply_refine_yaw(m.model, refine_yaw)
-        apply_snap(m.model, snap_radius)
+        settings = dict(rerank=rerank, rerank_wider=rerank_wider, snap_radius=snap_radius)
+        policy = policy_for(m.model, **settings, refine_yaw=refine_yaw)
         if exclude_radius is not None:  # the query's own scan, and those near its pose
             opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
             poses_of = QueryPoses(query_poses, opts, known, warn=error)
@@ -133,6 +130,7 @@ def query(
             max_distance=max_distance,
             threads=threads,
             scan_format=fmt_name,
+            policy=policy,
         )
         for res in results:
             rows, errors = res.rows(m.shown, keys, verify=verify)

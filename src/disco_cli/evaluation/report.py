@@ -136,29 +136,25 @@ def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
     sys.stdout.flush()
 
 
-def model_run(model: Any) -> dict[str, Any]:
-    """What a report's "run" says about the model: its name, fingerprint, re-ranking (and
-    the signature's weight in its order), the snap to the nearest map scan and how many
-    matches per query got the parallax-free yaw."""
-    from disco_cli.search import (
-        refine_yaw_count,
-        rerank_depth,
-        rerank_signature_weight,
-        rerank_wider,
-        snap_settings,
-    )
+def model_run(model: Any, policy: Any = None) -> dict[str, Any]:
+    """What a report's "run" says about the model and the query stage: its name,
+    fingerprint, re-ranking (the wider pass, the signature's weight in the score), the
+    snap, how many matches per query got the parallax-free yaw, and the whole
+    `QueryPolicy` it ran under (`policy`, None: the model's; less what the model cannot
+    do)."""
+    from disco_cli.search import effective_policy
 
-    depth = rerank_depth(model)
-    wider, above = rerank_wider(model, depth)
+    p = effective_policy(model, policy)
+    depth = p.rerank_candidates
     run = {"model": model.name, "fingerprint": model.fingerprint, "rerank": depth}
-    if wider:
-        run["rerank_wider"] = {"depth": wider, "above": above}
-    if depth and rerank_signature_weight(model):
-        run["rerank_signature_weight"] = rerank_signature_weight(model)
-    radius, margin = snap_settings(model)
-    if depth and radius:
-        run["snap"] = {"radius_m": radius, "margin": margin}
-    run["refine_yaw"] = refine_yaw_count(model)
+    if p.wider:
+        run["rerank_wider"] = {"depth": p.wider, "above": p.rerank_wider_above}
+    if depth and p.signature_weight:
+        run["rerank_signature_weight"] = p.signature_weight
+    if p.snaps:
+        run["snap"] = {"radius_m": p.snap_radius, "margin": p.snap_margin}
+    run["refine_yaw"] = p.refine_yaw
+    run["policy"] = p.report()
     return run
 
 

@@ -97,10 +97,12 @@ def multi_session(
     source: str = "query poses",
     index: str = "auto",
     note: Callable[[str], None] | None = None,
+    policy: Any = None,
 ) -> Any:
     """Recall@1..topk, Recall@1%, PR AUC, F1max and yaw error of `paths` (with their
     `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`, searched
-    with the `index` kind (`disco_cli.index`; `note` hears of an index being built)."""
+    with the `index` kind (`disco_cli.index`; `note` hears of an index being built),
+    under the query stage's `policy` (None: the model's)."""
     from disco_cli.evaluation.metrics import one_percent_n
     from disco_cli.index import index_for_database
     from disco_cli.pipeline import embed_paths
@@ -124,7 +126,7 @@ def multi_session(
     refuse_damaged()
     sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
     depth = max(topk, one_percent_n(len(ids)))
-    matches = match_queries(searched, ids, db, model, sigs, feats, depth)
+    matches = match_queries(searched, ids, db, model, sigs, feats, depth, policy)
     return score_retrieval(matches, depth, topk, query_poses, db_poses, radius)
 
 
@@ -243,9 +245,11 @@ def loop_closure(
     scan_format: str | None = None,
     on_progress: Callable[[int], None] | None = None,
     source: str = "poses",
+    policy: Any = None,
 ) -> Any:
     """Precision-recall, F1max and recall at 100% precision of loop closure along one
-    sequence (`[N, 4, 4]` poses; scan i searches scans [0, limit[i]))."""
+    sequence (`[N, 4, 4]` poses; scan i searches scans [0, limit[i])), under the query
+    stage's `policy` (None: the model's)."""
     from disco_cli.database import MatchRows
     from disco_cli.evaluation.metrics import loop_evaluation, within_radius
     from disco_cli.pipeline import embed_paths
@@ -275,6 +279,7 @@ def loop_closure(
         sigs[queries],
         feats[queries],
         1,
+        policy,
         limit=limit[queries],
     )
     xy = poses[:, :2, 3]

@@ -37,7 +37,7 @@ import numpy as np
 
 from disco_cli.errors import DiscoError
 from disco_cli.output_paths import atomic_path
-from disco_cli.search import checked_queries
+from disco_cli.signature_index import checked_queries
 
 __all__ = ["AnnParams", "AnnIndex", "default_params", "open_or_build", "SidecarError"]
 

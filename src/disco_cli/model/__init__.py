@@ -1,8 +1,9 @@
 """The DiSCO network, signatures, yaw, checkpoints and the model registry.
 
-`load_model(name_or_path)` returns an object with the protocol of docs/architecture.md:
-`name`, `bev_config`, `fingerprint`, `config_dict()`, `embed(bevs) -> (signatures,
-features)`, `yaw(query_features, match_features) -> degrees`, `rerank_candidates`.
+`load_model(name_or_path)` returns a `model.interface.QueryModel`: `name`, `bev_config`,
+`fingerprint`, `config_dict()`, `embed(bevs) -> (signatures, features)`, the yaw,
+re-ranking and position hooks of the query stage, `abilities` (which of those it has)
+and `query_policy` (the settings it was tuned with).
 
 Names: `default` (the shipped weights), `spectral` (training-free, no torch needed),
 `scancontext` (the Scan Context baseline); anything else is a checkpoint path, in this

@@ -16,6 +16,7 @@ import numpy as np
 
 from disco_cli.blas_threads import blas_threads
 from disco_cli.errors import ModelError
+from disco_cli.model.interface import Abilities
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.unet_numpy import FrozenUNet
 from disco_cli.model.verify import aligned_correlation, aligned_correlations
@@ -25,46 +26,13 @@ from disco_cli.model.yaw_refine import (
     recentre_kept,
     refine_yaw_conf,
 )
+from disco_cli.query_policy import QueryPolicy
 
 # Scans per forward pass at inference: large enough to amortize, small enough for memory.
 _BATCH = 64
 # The NumPy U-Net's activations of 4 scans stay in cache: 4.8 ms per scan against 9.6
 # in batches of 64 (and a sixteenth of the memory), minimum of 12 batches at load 11.
 _FROZEN_BATCH = 4
-# Nearest signatures re-ranked by the aligned correlation of their features (verify.py).
-RERANK_CANDIDATES = 10
-# Where even the best of those re-ranks worse than RERANK_WIDER_ABOVE, the place may have
-# changed more than the signature tolerates: the search re-ranks down to RERANK_WIDER.
-# Chosen on the selection worlds 5001-5008 (docs/research/model-history.md, "Re-ranking
-# wider when unsure").
-RERANK_WIDER = 40
-RERANK_WIDER_ABOVE = 0.7
-# The candidates are ordered by their re-rank distance minus RERANK_SIGNATURE_WEIGHT
-# over their signature distance (a scan's nearest signature, its side views' included;
-# search.rerank_order). A near signature (a side view that finds a revisit 4-8 m aside,
-# whose feature images share little with any map scan's) then outweighs re-rank
-# distances that are all alike; far ones (heavy change: all 0.55-0.6 away) differ by
-# little, and the re-ranking decides. The largest weight of 0.1-0.4 with which no
-# selection world (5001-5008, 5101-5103) falls below re-ranking alone
-# (docs/research/model-history.md, "Re-ranking with the signature").
-RERANK_SIGNATURE_WEIGHT = 0.3
-# The best match is then snapped to the map scan nearest the query's position estimated
-# from it (search.snap_to_nearest): among the candidates within SNAP_RADIUS m of it on
-# the map that re-rank within SNAP_MARGIN of its distance. 5 m is as far as the position
-# estimate reaches. Checked on the selection worlds 5001-5008
-# (docs/research/model-history.md, "Snapping to the nearest map scan").
-SNAP_RADIUS = 5.0
-SNAP_MARGIN = 0.1
-
-# Query-side views: the query's feature images re-centred QUERY_VIEW_OFFSETS m to either
-# side along its own y axis (a revisit 4-8 m beside the map's route), searched by their
-# signatures beside the query's own, each map scan at its nearest; a candidate then
-# re-ranks at its best over the query's U and the views' U, a view's distance plus
-# QUERY_VIEW_PENALTY (a view sees less than the scan: where both are alike, the scan's
-# own wins). Chosen on the selection worlds 5001-5008, 5101-5103
-# (docs/research/model-history.md, "Query-side views").
-QUERY_VIEW_OFFSETS = (4.0, 6.0)
-QUERY_VIEW_PENALTY = 0.03
 
 
 def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
@@ -111,7 +79,8 @@ def to_numpy(value: Any) -> np.ndarray:
 
 
 class DiscoModel:
-    """Model protocol of docs/architecture.md over a DiscoNet.
+    """`model.interface.QueryModel` over a DiscoNet: it does everything the query stage
+    can ask, with the settings it was tuned with (`QueryPolicy`'s defaults).
 
     Features: a residual network keeps two images per scan, [2, R, S]: F_cnn's output G
     (signature and yaw) and the U-Net's learned correction U (re-ranking, see verify.py);
@@ -120,6 +89,9 @@ class DiscoModel:
     `net` is a torch DiscoNet, or a `FrozenUNet` with `state` (the state dict as NumPy
     arrays, which the fingerprint is taken of).
     """
+
+    abilities = Abilities(rerank=True, refine_yaw=True, locate=True, query_views=True)
+    query_policy = QueryPolicy()
 
     def __init__(
         self,
@@ -140,14 +112,6 @@ class DiscoModel:
         self.crop = tuple(int(c) for c in self.model_config.get("crop", DEFAULT_CROP))
         self.name = name
         self.two_channel = bool(self.model_config.get("residual", False))
-        self.rerank_candidates = RERANK_CANDIDATES
-        self.rerank_wider = RERANK_WIDER
-        self.rerank_wider_above = RERANK_WIDER_ABOVE
-        self.rerank_signature_weight = RERANK_SIGNATURE_WEIGHT
-        self.snap_radius = SNAP_RADIUS
-        self.snap_margin = SNAP_MARGIN
-        self.query_view_offsets = QUERY_VIEW_OFFSETS
-        self.query_view_penalty = QUERY_VIEW_PENALTY
         # The name is left out: the same weights loaded as `default` or by path are one model.
         config = {k: v for k, v in self.config_dict().items() if k != "model"}
         self.fingerprint = weights_hash(state if self.frozen else self.net.state_dict(), config)
@@ -290,31 +254,29 @@ class DiscoModel:
         score = aligned_correlation(self._u(query_features), self._u(cands))
         return (1.0 - score).astype(np.float32)
 
-    def rerank_distances_beside(
+    def rerank_distances_views(
         self, query_features: np.ndarray, candidate_features: np.ndarray, views: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(`rerank_distances` [K], each candidate's best [K] over the query and its
-        `views` (`query_views`' re-rank images), a view's plus `query_view_penalty`),
-        from one pass over the candidates' spectra."""
+    ) -> np.ndarray:
+        """[1 + V, K]: `rerank_distances` of the query, then of each of its `views`
+        (`query_views`' re-rank images), from one pass over the candidates' spectra."""
         cands = np.asarray(candidate_features)
         if len(cands) == 0:
-            return np.zeros(0, np.float32), np.zeros(0, np.float32)
+            return np.zeros((1 + len(views), 0), np.float32)
         q = self._u(query_features)[None]
         score = aligned_correlations(np.concatenate([q, views]), self._u(cands))
-        own = 1.0 - score[0]
-        best = np.minimum(own, (1.0 + self.query_view_penalty - score[1:]).min(axis=0))
-        return own.astype(np.float32), best.astype(np.float32)
+        return (1.0 - score).astype(np.float32)
 
-    def query_views(self, query_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One query's side views: (signatures [V, D], re-rank images [V, R, S]) of its
-        feature images re-centred at +-`query_view_offsets` m along its y axis (V = 0
-        with none)."""
-        offsets = np.asarray(self.query_view_offsets, np.float32).reshape(-1)
-        if len(offsets) == 0:
+    def query_views(
+        self, query_features: np.ndarray, offsets: tuple[float, ...]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One query's views: (signatures [V, D], re-rank images [V, R, S]) of its feature
+        images re-centred at +-`offsets` m along its y axis (V = 0 with none)."""
+        offsets_a = np.asarray(offsets, np.float32).reshape(-1)
+        if len(offsets_a) == 0:
             none = np.zeros((0, *np.shape(self._u(query_features))), np.float32)
             return signatures(none, self.crop), none
         positions = np.stack(
-            [np.zeros(2 * len(offsets), np.float32), np.concatenate([offsets, -offsets])], 1
+            [np.zeros(2 * len(offsets_a), np.float32), np.concatenate([offsets_a, -offsets_a])], 1
         )
         rng = self.bev_config.max_range
         g = recentre_kept(self._g(query_features), positions, rng)

@@ -9,19 +9,24 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
+from disco_cli.model.interface import Abilities, Unable
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
 from disco_cli.model.yaw_refine import refine_yaw_conf
+from disco_cli.query_policy import NO_RERANKING, QueryPolicy
 
 
-class SpectralModel:
-    """The identity-CNN DiSCO model (see the module docstring)."""
+class SpectralModel(Unable):
+    """The identity-CNN DiSCO model (see the module docstring): signatures and the yaw,
+    plain or parallax-free; no re-ranking."""
 
-    rerank_candidates = 0
+    abilities = Abilities(refine_yaw=True)
+    query_policy: QueryPolicy = replace(NO_RERANKING, refine_yaw=1)
 
     def __init__(self, bev_config: Any = None, crop: tuple[int, int] = DEFAULT_CROP):
         if bev_config is None:

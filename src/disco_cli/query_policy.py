@@ -1,0 +1,154 @@
+"""Every setting of the query stage, in one frozen value passed to it (`search.match_queries`).
+
+A query goes: the signature search (the query's own, and its views' beside it), the
+re-ranking of the nearest candidates by their feature images, one score that orders the
+rows and is the `distance` they show, the snap (a tie-break of that score), and the yaw.
+Each number that steers those steps is a field here, with why it has its value and
+where that was measured; each rule can be switched off through its field (0 or ()), so
+that an ablation is `dataclasses.replace(policy, field=0)`.
+
+A model carries the policy it was tuned with (`model.query_policy`: DiSCO's is the
+defaults below, Scan Context's and the spectral floor's switch off what they cannot
+do). Command-line options and `Map.query`'s keywords make a new one with `policy_for`;
+nothing changes a model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+from disco_cli.errors import DiscoError
+
+__all__ = ["QueryPolicy", "NO_RERANKING", "policy_for"]
+
+
+@dataclass(frozen=True)
+class QueryPolicy:
+    # Nearest signatures re-ranked by the aligned correlation of their feature images
+    # (model/verify.py); 0: rows in signature order, nothing below applies but the yaw.
+    rerank_candidates: int = 10
+    # Where even the best of those re-ranks worse than `rerank_wider_above`, the place may
+    # have changed more than the signature tolerates: re-rank down to `rerank_wider`
+    # (0: never). The fewest misses on the selection worlds 5001-5008 of the thresholds
+    # 0.3-0.9 (docs/research/model-history.md, "Re-ranking wider when unsure").
+    rerank_wider: int = 40
+    rerank_wider_above: float = 0.7
+    # The score subtracts this over the candidate's signature distance (its nearest, the
+    # query's views included): a near signature outweighs re-rank distances that are all
+    # alike; far ones differ by little. The largest of 0.1-0.4 with which no selection
+    # world (5001-5008, 5101-5103) fell below re-ranking alone (model-history.md,
+    # "Re-ranking with the signature"). 0: the re-rank distance alone.
+    signature_weight: float = 0.3
+    # The query's views: its feature images re-centred this many metres to either side
+    # along its own y axis (a revisit 4-8 m beside the map's route), searched beside the
+    # query and re-ranked at their best. +-4/6 m gave what +-4..6 m did on every
+    # selection world, one view a side lost queries on 5102/5103 (model-history.md,
+    # "Query-side views, built"). (): no views.
+    view_offsets: tuple[float, ...] = (4.0, 6.0)
+    # Added to a view's re-rank distance: a view sees less than the scan, so where both
+    # re-rank alike the scan's own wins (chosen with the offsets, same worlds).
+    view_penalty: float = 0.03
+    # From this many map scans the views search the map's projected signatures (96 axes,
+    # 4x widened, re-measured exactly; query_views.ProjectedSignatures): four more exact
+    # passes over 10,000 scans cost 0.37 ms each; 0.94 of the views' nearest rows are the
+    # exact ones ("Query-side views, built"). The query's own search stays exact.
+    approximate_views_from: int = 4096
+    # The snap, a tie-break of the score: among candidates within `snap_radius` m of the
+    # best on the map whose own re-rank distance is within `snap_margin` of the best's,
+    # the one nearest the query's position (estimated from the best match) takes the
+    # best's score and goes first. 5 m is as far as the position estimate reaches
+    # (3 + 1.5 + 0.5 m); it found all 27 "a metre past the true scan" misses of the
+    # suite's 47 and lost none (model-history.md, "Snapping to the nearest map scan").
+    # 0: no snap.
+    snap_radius: float = 5.0
+    snap_margin: float = 0.1
+    # How many best matches get the parallax-free yaw (model/yaw_refine.py): about 1.5 ms
+    # each, so only the best by default; 0: plain phase correlation.
+    refine_yaw: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("rerank_candidates", "rerank_wider", "refine_yaw", "approximate_views_from"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < 0:
+                raise DiscoError(f"{name} must be an integer >= 0, not {value!r}")
+        for name in ("rerank_wider_above", "signature_weight", "view_penalty", "snap_margin"):
+            if not math.isfinite(float(getattr(self, name))):
+                raise DiscoError(f"{name} must be finite, not {getattr(self, name)!r}")
+        radius = float(self.snap_radius)
+        if not math.isfinite(radius) or radius < 0:
+            raise DiscoError(f"snap radius must be a finite distance >= 0 m, not {radius}")
+        offsets = tuple(float(o) for o in self.view_offsets)
+        if any(not math.isfinite(o) or o <= 0 for o in offsets):
+            raise DiscoError(f"view offsets must be distances > 0 m, not {self.view_offsets!r}")
+        object.__setattr__(self, "view_offsets", offsets)
+
+    @property
+    def wider(self) -> int:
+        """The second pass's depth, 0 where there is none (no re-ranking, or a first
+        pass as deep)."""
+        if self.rerank_candidates == 0 or self.rerank_wider <= self.rerank_candidates:
+            return 0
+        return self.rerank_wider
+
+    @property
+    def snaps(self) -> bool:
+        """Whether the snap runs: it moves among re-ranked candidates only."""
+        return self.rerank_candidates > 0 and self.snap_radius > 0
+
+    def report(self) -> dict[str, Any]:
+        """The policy as an evaluation report's "policy" entry (every field)."""
+        out = asdict(self)
+        out["view_offsets"] = list(self.view_offsets)
+        return out
+
+
+# A model that cannot re-rank: rows in signature order with the plain yaw.
+NO_RERANKING = QueryPolicy(
+    rerank_candidates=0,
+    rerank_wider=0,
+    signature_weight=0.0,
+    view_offsets=(),
+    snap_radius=0.0,
+    refine_yaw=0,
+)
+
+
+def policy_for(
+    model: Any,
+    base: QueryPolicy | None = None,
+    *,
+    rerank: int | None = None,
+    rerank_wider: int | None = None,
+    snap_radius: float | None = None,
+    refine_yaw: int | None = None,
+) -> QueryPolicy:
+    """`base` (default: the model's own `query_policy`) with the settings given (None:
+    unchanged), checked against what the model can do: one `DiscoError` naming the
+    option otherwise."""
+    policy = model.query_policy if base is None else base
+    can = model.abilities
+    changes: dict[str, Any] = {}
+    if rerank is not None:
+        if rerank > 0 and not can.rerank:
+            raise DiscoError(f"model {model.name} cannot re-rank; use --rerank 0")
+        changes["rerank_candidates"] = rerank
+    if rerank_wider is not None:
+        if rerank_wider > 0 and not model.query_policy.rerank_wider:
+            raise DiscoError(
+                f"model {model.name} has no wider re-ranking pass; leave out --rerank-wider"
+            )
+        changes["rerank_wider"] = rerank_wider
+    if snap_radius is not None:
+        if snap_radius > 0 and not can.locate:
+            raise DiscoError(
+                f"model {model.name} cannot estimate the query's position; use --snap-radius 0"
+            )
+        changes["snap_radius"] = snap_radius
+    if refine_yaw is not None:
+        # A model without the parallax-free yaw gives every row its plain one.
+        changes["refine_yaw"] = refine_yaw if can.refine_yaw else 0
+        if refine_yaw < 0:
+            changes["refine_yaw"] = refine_yaw  # refused by the check below
+    return replace(policy, **changes) if changes else policy
