@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,9 @@ TOKEN_ENV = "DISCO_MILVUS_TOKEN"
 # Seconds to reach a server before giving up with one line (a firewall drops silently).
 CONNECT_TIMEOUT_ENV = "DISCO_MILVUS_TIMEOUT"
 CONNECT_TIMEOUT_S = 5.0
+# Open clients per Milvus Lite folder in this process (`disconnect`).
+_LITE_USERS: dict[str, int] = {}
+_LITE_LOCK = threading.Lock()
 
 
 class MilvusAddress:
@@ -64,13 +68,14 @@ class MilvusAddress:
 
     def exists(self) -> bool:
         """Whether a map is stored there (a server is asked)."""
+        require_extra(self)
         if self.lite and not Path(self.uri).exists():
             return False
         client = connect(self)
         try:
             return client.has_collection(f"{self.name}_meta")
         finally:
-            client.close()
+            disconnect(self, client)
 
 
 def parse_address(value: Any) -> MilvusAddress | None:
@@ -113,17 +118,25 @@ def _pymilvus() -> Any:
     return pymilvus
 
 
-def connect(address: MilvusAddress) -> Any:
-    """A `MilvusClient` for `address`, within a bounded time; one `DatabaseError` line
-    when it cannot be reached or opened."""
-    pymilvus = _pymilvus()
-    # pymilvus logs every failed call with its traceback; disco says it in one line.
-    logging.getLogger("pymilvus").setLevel(logging.CRITICAL)
+def require_extra(address: MilvusAddress) -> None:
+    """One line naming the extra when its packages are missing (before anything else)."""
+    _pymilvus()
     if address.lite:
         try:
             import milvus_lite  # noqa: F401
         except ImportError:
             raise DiscoError(INSTALL_HINT) from None
+
+
+def connect(address: MilvusAddress) -> Any:
+    """A `MilvusClient` for `address`, within a bounded time; one `DatabaseError` line
+    when it cannot be reached or opened."""
+    require_extra(address)
+    pymilvus = _pymilvus()
+    # pymilvus logs every failed call with its traceback; disco says it in one line.
+    for name in ("pymilvus", "milvus_lite"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+    if address.lite:
         uri = os.path.abspath(address.uri)
         if not uri.endswith(".db"):
             # pymilvus starts Milvus Lite only for a path ending in .db
@@ -139,9 +152,9 @@ def connect(address: MilvusAddress) -> Any:
     except ValueError:
         raise DiscoError(f"{CONNECT_TIMEOUT_ENV}: a number of seconds") from None
     try:
-        return pymilvus.MilvusClient(uri=uri, token=token, timeout=timeout)
+        client = pymilvus.MilvusClient(uri=uri, token=token, timeout=timeout)
     except Exception as exc:  # pymilvus raises its own and grpc's errors
-        reason = " ".join(str(getattr(exc, "message", "") or exc).split())[:200]
+        reason = reason_of(exc)
         if address.lite:
             raise DatabaseError(
                 address,
@@ -151,6 +164,28 @@ def connect(address: MilvusAddress) -> Any:
         raise DatabaseError(
             address, f"cannot reach the Milvus server within {timeout:g} s ({reason})"
         ) from None
+    if address.lite:
+        with _LITE_LOCK:
+            _LITE_USERS[uri] = _LITE_USERS.get(uri, 0) + 1
+    return client
+
+
+def disconnect(address: MilvusAddress, client: Any) -> None:
+    """Close `client`; the last one of a Milvus Lite folder in this process stops its
+    embedded server, which frees the folder for another process."""
+    try:
+        client.close()
+    finally:
+        if address.lite:
+            uri = os.path.abspath(address.uri)
+            with _LITE_LOCK:
+                left = _LITE_USERS.get(uri, 1) - 1
+                _LITE_USERS[uri] = left
+            if left <= 0:
+                _LITE_USERS.pop(uri, None)
+                from milvus_lite import server_manager_instance
+
+                server_manager_instance.release_server(uri)
 
 
 def reason_of(exc: BaseException) -> str:
@@ -170,7 +205,6 @@ def milvus_errors(func: Callable) -> Callable:
         except Exception as exc:
             if type(exc).__module__.split(".")[0] not in ("pymilvus", "grpc", "milvus_lite"):
                 raise
-            reason = " ".join(str(getattr(exc, "message", "") or exc).split())[:200]
-            raise DatabaseError(self.path, f"Milvus error ({reason})") from None
+            raise DatabaseError(self.path, f"Milvus error ({reason_of(exc)})") from None
 
     return wrapper

@@ -52,7 +52,9 @@ from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.milvus_address import (
     MilvusAddress,
     connect,
+    disconnect,
     parse_address,
+    require_extra,
 )
 from disco_cli.milvus_address import milvus_errors as _milvus_errors
 from disco_cli.milvus_schema import (
@@ -146,6 +148,7 @@ class MilvusDatabase(Database):
         address = parse_address(path)
         if address is None:
             raise DiscoError(f"{path}: not a milvus: address")
+        require_extra(address)
         if address.lite and not Path(address.uri).exists():
             raise DatabaseError(address, "no such database")
         client = connect(address)
@@ -157,7 +160,7 @@ class MilvusDatabase(Database):
                 db._count_in_orphans()
             return db
         except BaseException:
-            client.close()
+            disconnect(address, client)
             raise
 
     @classmethod
@@ -207,13 +210,13 @@ class MilvusDatabase(Database):
             db.append(first, _meta_first=meta)
             return db
         except BaseException:
-            client.close()
+            disconnect(address, client)
             raise
 
     def close(self) -> None:
         if self._client is not None:
-            self._client.close()
-            self._client = None
+            client, self._client = self._client, None
+            disconnect(self.address, client)
 
     # -- writing ----------------------------------------------------------------
 
