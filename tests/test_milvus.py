@@ -17,6 +17,7 @@ import pytest
 pytest.importorskip("pymilvus")
 pytest.importorskip("milvus_lite")
 
+from conftest import package_path  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from disco_cli.cli import app  # noqa: E402
@@ -24,8 +25,6 @@ from disco_cli.database import Database  # noqa: E402
 from disco_cli.map import Map  # noqa: E402
 from disco_cli.milvus_address import INSTALL_HINT, parse_address  # noqa: E402
 from disco_cli.milvus_store import MilvusDatabase  # noqa: E402
-
-from conftest import package_path  # noqa: E402
 
 
 def _cli(*args: str) -> tuple[int, str]:
