@@ -86,10 +86,19 @@ def test_a_scan_read_in_another_layout_is_refused(written, layout: str, read_as:
 
 
 def test_the_check_needs_enough_points_to_judge() -> None:
-    far = np.full((999, 4), 1e4, np.float32)
-    assert layout_problem(far) is None  # too few points to say
-    assert "beyond" in layout_problem(np.full((1000, 4), 1e4, np.float32))
+    rng = np.random.default_rng(1)
+    wild = (10.0 ** rng.uniform(-3, 20, (1000, 4))).astype(np.float32)  # sizes of 23 decades
+    assert layout_problem(wild[:999]) is None  # too few points to say
+    assert "beyond 500 m" in layout_problem(wild)
+    nan = np.full((1000, 4), np.nan, np.float32)
+    assert "not numbers" in layout_problem(nan)
     assert "at the sensor" in layout_problem(np.zeros((1000, 4), np.float32))
+    # A scan moved whole into a far frame (a map's, 10 km away) is no wrong layout: the
+    # search refuses it later for having no point in range.
+    scan = rng.uniform(-60.0, 60.0, (2000, 4)).astype(np.float32)
+    assert layout_problem(scan) is None
+    scan[:, 0] += 10_000.0
+    assert layout_problem(scan) is None
 
 
 @pytest.mark.parametrize("fmt", ["nclt", "oxford"])
