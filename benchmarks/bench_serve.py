@@ -7,7 +7,10 @@ shells out pays without a server).
 A map of 30k-point synthetic scans is built first (`disco build-db`); then a server is
 started on a Unix socket and asked about `--queries` scans, one request at a time over
 one connection, by file path and with the points inline. Printed: the median and 90th
-percentile of each, and the ratio to the in-process query measured in this run.
+percentile of each, and the ratio to the in-process query measured in this run. Then
+`--fleet` clients (20) connect at the same moment, each asking one scan by path, for
+`--fleet-rounds` rounds: the median and the largest time from connecting to the reply,
+and how many were answered.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import argparse
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -32,6 +36,8 @@ def main() -> None:
     ap.add_argument("--map-scans", type=int, default=300)
     ap.add_argument("--queries", type=int, default=60)
     ap.add_argument("--fresh", type=int, default=5, help="fresh `disco query` processes")
+    ap.add_argument("--fleet", type=int, default=20, help="clients connecting at once")
+    ap.add_argument("--fleet-rounds", type=int, default=3)
     args = ap.parse_args()
     print_header("bench_serve")
 
@@ -93,6 +99,7 @@ def main() -> None:
                     t = time.perf_counter()
                     c.query(pts)
                     inline.append(time.perf_counter() - t)
+            fleet, answered = fleet_latencies(sock, queries, args.fleet, args.fleet_rounds)
         finally:
             proc.terminate()
             proc.wait(timeout=30)
@@ -123,6 +130,44 @@ def main() -> None:
     ):
         med = median_of_ms(times)
         print(f"| {label} | {med:.2f} | {percentile_ms(times, 90):.2f} | {med / base:.2f} |")
+    total = args.fleet * args.fleet_rounds
+    print(
+        f"{args.fleet} clients at once, {args.fleet_rounds} rounds: {answered} of {total} "
+        f"answered; connect to reply median {median_of_ms(fleet):.1f} ms, "
+        f"max {max(fleet) * 1000.0:.1f} ms"
+    )
+
+
+def fleet_latencies(sock: Path, queries: list[str], n: int, rounds: int) -> tuple[list, int]:
+    """Seconds from connecting to the reply of `n` clients released together, each
+    with its own connection and one query by path; and how many were answered."""
+    from disco_cli.client import Client, ClientError
+
+    times: list[float] = []
+    answered = 0
+    lock = threading.Lock()
+    for r in range(rounds):
+        gate = threading.Barrier(n)
+
+        def one(i: int) -> None:
+            nonlocal answered
+            gate.wait()
+            t = time.perf_counter()
+            try:
+                with Client(socket=sock) as c:
+                    c.query(queries[(r * n + i) % len(queries)])
+            except ClientError:
+                return
+            with lock:
+                times.append(time.perf_counter() - t)
+                answered += 1
+
+        threads = [threading.Thread(target=one, args=(i,)) for i in range(n)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    return times, answered
 
 
 if __name__ == "__main__":
