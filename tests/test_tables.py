@@ -170,3 +170,9 @@ def test_short_path_cuts_at_a_slash_and_keeps_the_file_name() -> None:
     assert short_path(p, 21) == "…/velodyne/000004.bin"
     assert short_path(p, 20) == "…/000004.bin"
     assert short_path(p, 3) == "…/000004.bin"  # never less than the file name
+
+
+def test_a_column_wider_than_the_terminal_is_shown_as_records() -> None:
+    drawn = _draw(["fingerprint"], [["f" * 50], ["g" * 50]], width=30)
+    assert "┃" not in drawn
+    assert drawn.split() == ["fingerprint", "f" * 50, "fingerprint", "g" * 50]

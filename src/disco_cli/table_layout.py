@@ -147,7 +147,8 @@ def _pack(cols: list[_Column], width: int, keys: int, loose: bool) -> list[list[
         else:
             return None
     groups.append(group)
-    return groups
+    # (A table of the keys alone, too wide itself, is shown as records.)
+    return groups if all(fits(g) for g in groups) else None
 
 
 def _groups(cols: list[_Column], width: int, keys: int) -> list[list[int]] | None:
