@@ -92,7 +92,8 @@ def test_a_bad_progress_seconds_gets_one_warning(
     assert warned == ["warning: DISCO_PROGRESS_SECONDS='abc' is not a number of seconds >= 0; "
                       "using 5"]  # fmt: skip
     monkeypatch.setattr(console, "_bad_progress_seconds_told", False)
-    res = _run("build-db", samples / "01", "-o", tmp_path / "n.db", env={"DISCO_PROGRESS_SECONDS": "2"})
+    env = {"DISCO_PROGRESS_SECONDS": "2"}
+    res = _run("build-db", samples / "01", "-o", tmp_path / "n.db", env=env)
     assert "DISCO_PROGRESS_SECONDS" not in res.stderr
 
 

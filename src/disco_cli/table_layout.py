@@ -9,7 +9,8 @@ point, by dropping whole columns. Here the widths are decided before rich draws:
    wrapped between words;
 3. else the columns split into several tables stacked one above the other, each
    repeating the key column (the rank, say) so that a row can be followed across;
-4. else (more than three such tables), on a narrow terminal, one block of `name value` lines per record.
+4. else (more than three such tables), on a narrow terminal, one block of
+   `name value` lines per record.
 
 A number or a name is never cut: its column is as wide as its widest cell.
 """

@@ -39,10 +39,7 @@ from disco_cli.commands.options import (
 )
 from disco_cli.console import fail, handle_errors, plural, rate_bar, say, stderr, warn
 
-MODEL_OF_NEW_MAP = (
-    "default, spectral, scancontext or a checkpoint path; default: 'default' for a new "
-    "database, the one that built it for an existing one (resumed, --append, --repair)."
-)
+MODEL_OF_NEW_MAP = "default, spectral, scancontext or a checkpoint; default: an existing map's."
 
 
 @handle_errors

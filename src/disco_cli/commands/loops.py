@@ -38,10 +38,7 @@ from disco_cli.commands.options import (
 from disco_cli.console import error, fail, handle_errors, plural, say, warn
 from disco_cli.query_policy import policy_for
 
-MODEL_OF_SEQUENCE = (
-    "default, spectral, scancontext or a checkpoint path; default: the one that built "
-    "the --db map when one is given, else 'default'."
-)
+MODEL_OF_SEQUENCE = "default, spectral, scancontext or a checkpoint; default: the --db map's."
 
 
 @handle_errors
@@ -78,8 +75,7 @@ def loops(
 ) -> None:
     """Detect loop closures along one sequence of scans (by default each scan searches the scans at least 50 frames before it).
 
-    query_index and match_index are the scans' positions in the sequence, from 0 (KITTI's
-    000000.bin is 0), unlike query's match_id, a map's id from 1.
+    query_index and match_index are positions in the sequence, from 0 (query's match_id: from 1).
     """  # noqa: E501
     from disco_cli.threads import set_threads
 
