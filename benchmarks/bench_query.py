@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import resource
 import subprocess
+from dataclasses import replace
 import sys
 import tempfile
 import time
@@ -200,9 +201,10 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
     from disco_cli.model import load_model
     from disco_cli.model.yaw_refine import forget_kept_views
     from disco_cli.readers import read_scan
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.search import SignatureIndex, effective_policy, match_queries
 
     model = load_model(model_name)
+    policy = effective_policy(model)
     db_path = tmp / "map10k.db"
     build_synthetic_db(db_path, model, n_map)
     scans = []
@@ -227,7 +229,13 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
     )
     cpu = {"total": [], "embed": []}  # process CPU time: the work, apart from waiting
     stages = {k: [] for k in keys}
-    wider = getattr(model, "rerank_wider", 0)
+    # Each rule off, one at a time (`QueryPolicy`), for what it costs.
+    without = {
+        "refine": replace(policy, refine_yaw=0),
+        "wider": replace(policy, rerank_wider=0),
+        "snap": replace(policy, snap_radius=0.0),
+        "views": replace(policy, view_offsets=()),
+    }
     for p in scans:
         c0, t0 = time.process_time(), time.perf_counter()
         pts = read_scan(p)
@@ -253,24 +261,16 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
         match_queries(index, ids, db, model, sig, feat, 10)
         forget_kept_views()
         ta = time.perf_counter()
-        match_queries(index, ids, db, model, sig, feat, 10, refine_yaw=0)
+        match_queries(index, ids, db, model, sig, feat, 10, without["refine"])
         forget_kept_views()
         tb = time.perf_counter()
-        model.rerank_wider = 0
-        match_queries(index, ids, db, model, sig, feat, 10)
-        model.rerank_wider = wider
+        match_queries(index, ids, db, model, sig, feat, 10, without["wider"])
         forget_kept_views()
         tc = time.perf_counter()
-        snap = getattr(model, "snap_radius", 0.0)
-        model.snap_radius = 0.0
-        match_queries(index, ids, db, model, sig, feat, 10)
-        model.snap_radius = snap
+        match_queries(index, ids, db, model, sig, feat, 10, without["snap"])
         forget_kept_views()
         td = time.perf_counter()
-        offsets = getattr(model, "query_view_offsets", ())
-        model.query_view_offsets = ()
-        match_queries(index, ids, db, model, sig, feat, 10)
-        model.query_view_offsets = offsets
+        match_queries(index, ids, db, model, sig, feat, 10, without["views"])
         te = time.perf_counter()
         for k, v in zip(
             stages,

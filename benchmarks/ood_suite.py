@@ -424,6 +424,7 @@ def evaluate(
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import read_scan
+    from disco_cli.query_policy import policy_for
     from disco_cli.search import match_queries
     from disco_cli.side_views import index_for, seen_from, side_offsets
 
@@ -458,9 +459,8 @@ def evaluate(
         )
         with db:
             ids, index = index_for(db)
-            found = match_queries(
-                index, ids, db, model, q_sig, q_feat, depth, refine_yaw=refine_yaw
-            )
+            policy = policy_for(model, refine_yaw=refine_yaw)
+            found = match_queries(index, ids, db, model, q_sig, q_feat, depth, policy)
     n1p = one_percent_n(len(map_paths))
     rows = []
     for i, matches in enumerate(found):
@@ -485,44 +485,40 @@ def evaluate(
     return rows
 
 
-class SnappedFloor:
+def snapped_floor(base, radius: float = 5.0, candidates: int = 10):
     """A model that does not re-rank (`spectral`), searched as the network is searched
     since the snap to the nearest map scan: its 10 nearest signatures, in signature
     order (their `distance` is the signature distance, so nothing is re-ordered), then
     the snap within 5 m with no margin (the margin is in the network's units). The
     suite's `spectral+snap`: what the snap alone gives the training-free floor."""
+    from dataclasses import replace
 
-    def __init__(self, base, radius: float = 5.0, candidates: int = 10):
-        self.base = base
-        self.name = f"{base.name}+snap"
-        self.fingerprint = f"{base.fingerprint}+snap"
-        self.bev_config = base.bev_config
-        self.rerank_candidates = candidates
-        self.snap_radius, self.snap_margin = radius, float("inf")
+    from disco_cli.model.interface import Abilities
+    from disco_cli.model.signature import signatures
+    from disco_cli.model.yaw_refine import query_in_match_frame_conf
 
-    def config_dict(self) -> dict:
-        return {**self.base.config_dict(), "model": self.name}
+    class SnappedFloor(type(base)):
+        abilities = Abilities(rerank=True, refine_yaw=True, locate=True)
+        query_policy = replace(
+            base.query_policy,
+            rerank_candidates=candidates,
+            snap_radius=radius,
+            snap_margin=float("inf"),
+        )
 
-    def embed(self, bevs: np.ndarray):
-        return self.base.embed(bevs)
+        def rerank_distances(self, query_features, candidate_features):
+            q = signatures(query_features, self.crop).astype(np.float64)
+            c = signatures(candidate_features, self.crop).astype(np.float64)
+            return np.linalg.norm(c - q, axis=1)
 
-    def yaw(self, query_features, match_features):
-        return self.base.yaw(query_features, match_features)
+        def query_position_conf(self, query_features, match_features):
+            rng = self.bev_config.max_range
+            return query_in_match_frame_conf(query_features, match_features, rng)
 
-    def refine_yaw(self, query_features, match_features):
-        return self.base.refine_yaw(query_features, match_features)
-
-    def rerank(self, query_features, candidate_features):
-        from disco_cli.model.signature import signatures
-
-        q = signatures(query_features, self.base.crop).astype(np.float64)
-        c = signatures(candidate_features, self.base.crop).astype(np.float64)
-        return np.linalg.norm(c - q, axis=1), self.yaw(query_features, candidate_features)
-
-    def query_position(self, query_features, match_features):
-        from disco_cli.model.yaw_refine import query_in_match_frame
-
-        return query_in_match_frame(query_features, match_features, self.bev_config.max_range)
+    floor = SnappedFloor(base.bev_config, base.crop)
+    floor.name = f"{base.name}+snap"
+    floor.fingerprint = f"{base.fingerprint}+snap"
+    return floor
 
 
 def load_suite_model(name: str):
@@ -536,7 +532,7 @@ def load_suite_model(name: str):
             # Its "re-ranking" is the scan's own signature distance, which would undo
             # what the side views found.
             raise SystemExit(f"{name}: a floor with the snap takes no side views")
-        return SnappedFloor(load_model(base[: -len("+snap")]))
+        return snapped_floor(load_model(base[: -len("+snap")]))
     return load_model(base)
 
 
@@ -566,32 +562,27 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
         from disco_cli.model.yaw_refine import VERSION
 
         head["refine_version"] = VERSION
-    from disco_cli.search import (
-        makes_query_views,
-        rerank_depth,
-        rerank_signature_weight,
-        rerank_wider,
-        snap_settings,
-    )
+    from disco_cli.search import effective_policy
 
-    depth = rerank_depth(model)
-    wider = rerank_wider(model, depth)
-    if wider[0]:  # rows from before the wider pass have no such key, and are redone
-        head["rerank_wider"] = list(wider)
-    if depth and rerank_signature_weight(model):  # likewise rows ordered by re-ranking alone
-        head["rerank_signature_weight"] = rerank_signature_weight(model)
-    snap = snap_settings(model)
-    if depth and snap[0]:  # likewise rows from before the snap
-        head["snap"] = list(snap)
+    p = effective_policy(model)
+    depth = p.rerank_candidates
+    if p.wider:  # rows from before the wider pass have no such key, and are redone
+        head["rerank_wider"] = [p.wider, p.rerank_wider_above]
+    if depth and p.signature_weight:  # likewise rows ordered by re-ranking alone
+        head["rerank_signature_weight"] = p.signature_weight
+    if p.snaps:  # likewise rows from before the snap
+        head["snap"] = [p.snap_radius, p.snap_margin]
         # likewise rows from before the snap carried the yaw by the map poses
         head["snap_yaw"] = "map poses"
-    if depth and makes_query_views(model):  # likewise rows from before the query's views
+    if depth and p.view_offsets:  # likewise rows from before the query's views
         head["query_views"] = {
-            "offsets": [float(o) for o in model.query_view_offsets],
-            "penalty": float(model.query_view_penalty),
+            "offsets": list(p.view_offsets),
+            "penalty": p.view_penalty,
             "first_pass": "own first kept",
             "snap_margin_on": "own distance",
         }
+    if p.approximate_views_from != 4096:  # likewise rows with the views searched so
+        head["approximate_views_from"] = p.approximate_views_from
     if f.is_file():
         lines = f.read_text().splitlines()
         old = json.loads(lines[0])

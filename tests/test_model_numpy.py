@@ -106,6 +106,20 @@ def test_a_state_that_does_not_fit_is_refused():
         FrozenUNet(missing, config)
 
 
+def test_a_config_key_the_network_does_not_know_is_refused(tmp_path):
+    config = default_model_config(H, 4)
+    state = arrays(random_net(config, seed=1))
+    FrozenUNet(state, {**config, "layout": "DiSCO-pytorch"})  # every known key is taken
+    with pytest.raises(ValueError, match="unknown keys dropout, widht"):
+        FrozenUNet(state, {**config, "widht": 4, "dropout": 0.1})
+    # Through the loader: one line naming the file and the key.
+    bad = tmp_path / "bad.npz"
+    save_npz(bad, state, BEVConfig().to_dict(), {**config, "widht": 4})
+    with pytest.raises(ModelError, match="bad.npz: .*unknown keys widht") as err:
+        load_model(str(bad))
+    assert "\n" not in str(err.value)
+
+
 def test_npz_weights_load_and_bad_ones_name_the_file(tmp_path):
     config = default_model_config(H, 4)
     net = random_net(config, seed=2)

@@ -74,8 +74,8 @@ class QueryPolicy:
             if isinstance(value, bool) or int(value) != value or value < 0:
                 raise DiscoError(f"{name} must be an integer >= 0, not {value!r}")
         for name in ("rerank_wider_above", "signature_weight", "view_penalty", "snap_margin"):
-            if not math.isfinite(float(getattr(self, name))):
-                raise DiscoError(f"{name} must be finite, not {getattr(self, name)!r}")
+            if math.isnan(float(getattr(self, name))):  # inf is a bound that never binds
+                raise DiscoError(f"{name} must be a number, not {getattr(self, name)!r}")
         radius = float(self.snap_radius)
         if not math.isfinite(radius) or radius < 0:
             raise DiscoError(f"snap radius must be a finite distance >= 0 m, not {radius}")

@@ -149,14 +149,26 @@ class _Conv3x3:
         return out.reshape(self.cout, b, r + 2, s + 2)[:, :, :r, :s]
 
 
+# Every key a model configuration may hold (checkpoint.py, disco.default_model_config,
+# authors.py's "layout"). Another key is a misspelling or a newer network this NumPy
+# U-Net does not know: refused, rather than run as something it is not.
+MODEL_CONFIG_KEYS = frozenset(
+    ("in_channels", "width", "norm", "circular", "sigmoid", "residual", "crop", "layout")
+)
+
+
 class FrozenUNet:
     """`unet.UNet.correction` in eval mode, in NumPy: [B, H, R, S] -> [B, R, S].
 
     `state` is a DiscoNet state dict as NumPy arrays (keys `unet.*`); `model_config`
     the checkpoint's (`norm`, `circular`, `sigmoid`). KeyError or ValueError when the
-    state does not fit."""
+    state does not fit or the configuration holds a key it does not know."""
 
     def __init__(self, state: Mapping[str, np.ndarray], model_config: Mapping[str, Any]):
+        unknown = sorted(set(model_config) - MODEL_CONFIG_KEYS)
+        if unknown:
+            known = ", ".join(sorted(MODEL_CONFIG_KEYS))
+            raise ValueError(f"model_config has unknown keys {', '.join(unknown)} (known: {known})")
         self.norm = bool(model_config.get("norm", True))
         self.circular = bool(model_config.get("circular", True))
         self.sigmoid = bool(model_config.get("sigmoid", False))
