@@ -49,8 +49,8 @@ def maps(samples: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path,
     return sqlite_map, milvus_map
 
 
-def _answers(db: str | Path, queries: list[str], exclude=None) -> list[tuple]:
-    with Map.open(db) as m:
+def _answers(db: str | Path, queries: list[str], exclude=None, index="auto") -> list[tuple]:
+    with Map.open(db, index=index) as m:
         out = []
         for res in m.query_files(queries, topk=3, exclude=exclude, threads=1):
             assert res.error is None, res.error
@@ -81,15 +81,17 @@ def test_same_answers_as_sqlite(maps, samples: Path) -> None:
     yaw agree (top-1 on all 26, the top 3 to rounding)."""
     sqlite_map, milvus_map = maps
     queries = _queries(samples)
-    want, got = _answers(sqlite_map, queries), _answers(milvus_map, queries)
-    assert len(got) == len(want) == 26
-    for w, g in zip(want, got):
-        assert [m[0] for m in g] == [m[0] for m in w]
-        np.testing.assert_allclose([m[1] for m in g], [m[1] for m in w], rtol=1e-5)
-        np.testing.assert_allclose([m[2] for m in g], [m[2] for m in w], atol=1e-3)
-    # The search itself ran in Milvus, not on signatures loaded here.
-    with Map.open(milvus_map) as m:
-        assert type(m._index()[1]).__name__ == "MilvusIndex"
+    want = _answers(sqlite_map, queries)
+    assert len(want) == 26
+    # A small map's signatures are searched here (auto); `ann` searches in Milvus.
+    for index, kind in (("auto", "SignatureIndex"), ("ann", "MilvusIndex")):
+        got = _answers(milvus_map, queries, index=index)
+        for w, g in zip(want, got, strict=True):
+            assert [m[0] for m in g] == [m[0] for m in w]
+            np.testing.assert_allclose([m[1] for m in g], [m[1] for m in w], rtol=1e-5)
+            np.testing.assert_allclose([m[2] for m in g], [m[2] for m in w], atol=1e-3)
+        with Map.open(milvus_map, index=index) as m:
+            assert type(m._index()[1]).__name__ == kind
 
 
 def test_copy_round_trip(maps, tmp_path: Path) -> None:
@@ -176,12 +178,13 @@ def test_damaged_row_reported_and_skipped(maps, samples: Path, tmp_path: Path) -
     assert "scan 5 (" in text and "checksum mismatch" in text
     assert "damaged scans: 5" in text
     query = str(samples / "01" / "velodyne" / "000005.bin")
-    with Map.open(fleet) as m:
-        heard: list[str] = []
-        m.on_damaged = heard.append
-        found = m.query(np.fromfile(query, np.float32).reshape(-1, 4), topk=3)
-    assert len(heard) == 1 and "1 damaged row skipped: scan 5" in heard[0]
-    assert 5 not in [x.match_id for x in found] and len(found) == 3
+    for index in ("auto", "ann"):  # found when the signatures are read / the row is
+        with Map.open(fleet, index=index) as m:
+            heard: list[str] = []
+            m.on_damaged = heard.append
+            found = m.query(np.fromfile(query, np.float32).reshape(-1, 4), topk=3)
+        assert len(heard) == 1 and "1 damaged row skipped: scan 5" in heard[0], index
+        assert 5 not in [x.match_id for x in found] and len(found) == 3
     # Copying leaves the damaged row out and says so.
     code, text = _cli("build-db", "--from", fleet, "-o", tmp_path / "rest.db")
     assert code == 0 and "copied 25 scans" in text and "scan 5" in text

@@ -624,13 +624,16 @@ class MilvusDatabase(Database):
     # -- searching --------------------------------------------------------------
 
     def index_for(self, kind: str = "auto", note: Any = None) -> tuple[np.ndarray, Any]:
-        """`(ids, index)` for `Map`: searched in Milvus (`MilvusIndex`), except for
-        `exact` and for maps with side views, which load the signatures here and search
-        them as the SQLite map does (`side_views.index_for`)."""
-        from disco_cli.index import check_index_kind
+        """`(ids, index)` for `Map`. `ann`, and `auto` from `AUTO_ANN_MIN_ROWS` scans:
+        searched in Milvus (`MilvusIndex`; FLAT, HNSW from `HNSW_MIN_ROWS`). `exact`,
+        `auto` below that, and maps with side views: the signatures are read once and
+        searched here as the SQLite map's are (`side_views.index_for`): Milvus Lite's
+        own search is pure Python, ~0.2 s a query at 20,000 scans (docs/scaling.md)."""
+        from disco_cli.index import AUTO_ANN_MIN_ROWS, check_index_kind
 
         check_index_kind(kind)
-        if kind == "exact" or self.side_offsets:
+        small = kind == "auto" and len(self) < AUTO_ANN_MIN_ROWS
+        if kind == "exact" or small or self.side_offsets:
             from disco_cli.side_views import index_for
 
             return index_for(self)
