@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from test_serve import cli, start_server
 
-from disco_cli.client import Client
+from disco_cli.client import Client, ClientError
 
 
 @pytest.fixture(scope="module")
@@ -254,3 +254,16 @@ def test_the_maps_warnings_reach_the_client(small_map: Path, tmp_path: Path) -> 
     assert any(gone.name in w and "no relative pose" in w for w in first), first
     assert any("scan 3" in w for w in second)  # every later answer leaves it out too
     assert 3 not in [r["match_id"] for r in rows]
+
+
+def test_a_reply_that_comes_too_late_is_a_client_error(strict: Path, small_map: Path) -> None:
+    scan = next((small_map.parent / "scans").glob("*.bin"))
+    with Client(socket=strict) as c:
+        before = c.request({"op": "info"})["cancelled"]
+    with Client(socket=strict, timeout=0.05) as c:
+        with pytest.raises(ClientError, match="no reply") as info:
+            c.query(scan, topk=20, pose=True)  # 20 ICPs: far longer than 50 ms
+        assert isinstance(info.value.__cause__, OSError)
+        c._timeout = 60.0
+        assert c.ping()  # on a new connection: the late reply is not taken for this one
+        assert c.request({"op": "info"})["cancelled"] == before + 1

@@ -123,6 +123,7 @@ class Client:
         except ConnectionResetError:
             return None
         except OSError as exc:  # a timeout among them
+            self.close()  # a late reply must not pass for the next request's
             raise ClientError(f"{self.where}: no reply ({exc})") from exc
         if not reply:
             return None
