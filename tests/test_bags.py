@@ -746,7 +746,7 @@ def test_a_bad_message_is_named_and_skippable(tmp_path: Path) -> None:
     code, _, err = run("build-db", bag, "-o", tmp_path / "skip.db", "--skip-bad", *MODEL)
     assert code == 0, err
     err = " ".join(err.split())  # rich wraps long lines
-    assert "wrote 2 scans" in err and "1 unreadable scans skipped" in err
+    assert "wrote 2 scans" in err and "1 unreadable scan skipped" in err
 
 
 @pytest.mark.parametrize(
