@@ -21,7 +21,7 @@ from conftest import package_path  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from disco_cli.cli import app  # noqa: E402
-from disco_cli.database import Database  # noqa: E402
+from disco_cli.database import Database, ScanBatch  # noqa: E402
 from disco_cli.map import Map  # noqa: E402
 from disco_cli.milvus_address import INSTALL_HINT, parse_address  # noqa: E402
 from disco_cli.milvus_store import MilvusDatabase  # noqa: E402
@@ -259,3 +259,80 @@ def test_orphan_rows_counted_in(maps, tmp_path: Path) -> None:
         assert db.check() == []
     finally:
         db.close()
+
+
+def test_writers_taking_turns_lose_no_rows(maps, tmp_path: Path) -> None:
+    """Two writers holding one map append in turn: each reads the counters again, so no
+    id is given twice and no row is overwritten."""
+    sqlite_map, _ = maps
+    fleet = f"milvus:{tmp_path / 'fleet.db'}"
+    assert _cli("build-db", "--from", sqlite_map, "-o", fleet)[0] == 0
+    with Database.open(sqlite_map) as src:
+        ids, sigs = src.signatures()
+        rows = src.rows(ids[:3])
+
+    def batch(tag: str) -> ScanBatch:
+        return ScanBatch(
+            paths=[f"/robot-{tag}/{p}" for p in rows.paths],
+            signatures=sigs[:3],
+            features=rows.features,
+            poses=rows.poses,
+        )
+
+    a = MilvusDatabase.open(fleet, writable=True)
+    b = MilvusDatabase.open(fleet, writable=True)
+    try:
+        got = [a.append(batch("a1")), b.append(batch("b1")), a.append(batch("a2"))]
+    finally:
+        a.close()
+        b.close()
+    assert got == [[27, 28, 29], [30, 31, 32], [33, 34, 35]]
+    with MilvusDatabase.open(fleet) as db:
+        assert len(db) == 35 and db.check() == []
+        assert sum("/robot-" in p for p in db.paths()) == 9
+
+
+def test_serve_answers_from_a_milvus_map(maps, samples: Path, tmp_path: Path) -> None:
+    """`disco serve --db milvus:...` replies what `disco query` prints for the SQLite map."""
+    import json
+
+    from disco_cli.client import Client
+
+    sqlite_map, milvus_map = maps
+    scans = [str(samples / "01" / "velodyne" / f"{i:06d}.bin") for i in (5, 12, 18)]
+    code, out = _cli("query", *scans, "--db", sqlite_map, "-k", "3", "--format", "jsonl")
+    assert code == 0, out
+    want = [json.loads(x) for x in out.splitlines() if x.startswith("{")]
+    sock = tmp_path / "disco.sock"
+    env = {**os.environ, "PYTHONPATH": package_path()}
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "disco_cli.cli",
+            "serve",
+            "--db",
+            milvus_map,
+            "--socket",
+            str(sock),
+            "--topk",
+            "3",
+            "--scan-root",
+            str(samples),
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not sock.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.1)
+        with Client(sock) as c:
+            got = [row for scan in scans for row in c.query(scan)]
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    assert [r["match"] for r in got] == [r["match"] for r in want]
+    np.testing.assert_allclose([r["yaw_deg"] for r in got], [r["yaw_deg"] for r in want])

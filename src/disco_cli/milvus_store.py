@@ -226,6 +226,10 @@ class MilvusDatabase(Database):
         if not batch.paths:
             return []
         self.check_batch_shapes(batch)
+        if _meta_first is None:
+            # Another process may have appended since this one last did (one at a time).
+            self._read_counters()
+            self._count_in_orphans()
         start = int(self.meta["next_id"])
         ids = list(range(start, start + len(batch.paths)))
         self._insert(ids, batch)
@@ -309,6 +313,15 @@ class MilvusDatabase(Database):
         self._client.upsert(
             self._meta_c, [{"key": k, "value": v, "v": [0.0, 0.0]} for k, v in values.items()]
         )
+
+    def _read_counters(self) -> None:
+        got = self._client.query(
+            self._meta_c,
+            filter='key in ["next_id", "generation", "index_type"]',
+            output_fields=["key", "value"],
+            consistency_level="Strong",
+        )
+        self.meta.update({r["key"]: r["value"] for r in got})
 
     def _count_in_orphans(self) -> None:
         """Rows an interrupted append inserted before raising `next_id`: counted in."""

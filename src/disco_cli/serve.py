@@ -168,6 +168,9 @@ class QueryService:
     def _file_stamp(self) -> tuple:
         """Size and mtime of the map file and its WAL: they change when another
         process appends."""
+        db = self.map.database
+        if hasattr(db, "address"):  # a Milvus map: its generation counts every write
+            return (db.generation,)
         stamp = []
         for suffix in ("", "-wal"):
             try:
