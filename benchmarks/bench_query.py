@@ -32,10 +32,10 @@ from __future__ import annotations
 import argparse
 import resource
 import subprocess
-from dataclasses import replace
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

@@ -423,8 +423,8 @@ def evaluate(
     from disco_cli.database import Database, ModelInfo, ScanBatch
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
     from disco_cli.poses import xy_yaw
-    from disco_cli.readers import read_scan
     from disco_cli.query_policy import policy_for
+    from disco_cli.readers import read_scan
     from disco_cli.search import match_queries
     from disco_cli.side_views import index_for, seen_from, side_offsets
 

@@ -17,9 +17,9 @@ from test_yaw_flip import _features, pose, street, wrap
 from disco_cli.database import MatchRows
 from disco_cli.model import load_model
 from disco_cli.model import yaw_refine as yr
+from disco_cli.model.interface import Abilities
 from disco_cli.model.signature import signatures
 from disco_cli.model.verify import aligned_correlation, aligned_correlations
-from disco_cli.model.interface import Abilities
 from disco_cli.query_views import candidates_with_views, views_search
 from disco_cli.search import match_queries
 from disco_cli.signature_index import ProjectedSignatures, SignatureIndex, brute_force_topk

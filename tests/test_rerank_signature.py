@@ -28,7 +28,9 @@ def test_ranking_score_by_hand() -> None:
     sig_d = np.array([0.50, 0.30, 0.45, 0.50])
     # 0.70 - 0.3 / 0.50 = 0.10, 0.72 - 1.00 = -0.28, 0.71 - 0.667 = 0.043, 0.10 (tie:
     # row 5 first)
-    assert ranking_score(rerank_d, sig_d, 0.3) == pytest.approx([0.1, -0.28, 0.71 - 0.3 / 0.45, 0.1])
+    assert ranking_score(rerank_d, sig_d, 0.3) == pytest.approx(
+        [0.1, -0.28, 0.71 - 0.3 / 0.45, 0.1]
+    )
     assert _order(rows, rerank_d, sig_d, 0.3) == [1, 2, 0, 3]
     # Weight 0: the re-rank distance alone, ties by row.
     assert _order(rows, rerank_d, sig_d, 0.0) == [0, 3, 2, 1]

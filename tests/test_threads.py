@@ -1,12 +1,15 @@
-"""The thread setting (`--threads N` > DISCO_THREADS > 1) reaches torch and the C++ core.
+"""The thread setting (`--threads N` > DISCO_THREADS > 1) reaches torch, the NumPy U-Net's
+BLAS and the C++ core.
 
 The truth is the value given: after `--threads 3` (or DISCO_THREADS=2) the command's
-own work runs with torch.get_num_threads() == 3 (2), and the compiled core's
-threaded calls receive 3 (2). Bad values give one line, never a traceback.
+own work runs with torch.get_num_threads() == 3 (2) where it runs torch, a query's NumPy
+U-Net multiplies on 3 (2) BLAS threads, and the compiled core's threaded calls receive
+3 (2). Bad values give one line, never a traceback.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +71,6 @@ def test_api_set_threads_reaches_torch_and_the_library_variables() -> None:
     assert disco_cli.set_threads(2) == 2
     assert torch.get_num_threads() == 2
     assert disco_cli.get_threads() == 2
-    import os
 
     assert os.environ["OMP_NUM_THREADS"] == "2"  # what torch and BLAS read when they load
     for bad in (0, -1, "abc", 1.5, True):
@@ -120,44 +122,62 @@ def test_the_setting_reaches_the_c_core_search(monkeypatch: pytest.MonkeyPatch) 
     assert rec.threads == {"int8_encode": 3, "int8_candidates": 3}
 
 
+@pytest.fixture(scope="module")
+def default_db(samples: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A map of three sample scans by the shipped model (its NumPy U-Net: no torch)."""
+    from disco_cli import Map
+    from disco_cli.readers import list_scans, read_scan
+
+    path = tmp_path_factory.mktemp("threads") / "default.db"
+    with Map.create(path, "default") as m:
+        m.add_many((read_scan(p), str(p), None) for p in list_scans(samples / "00")[:3])
+    return path
+
+
 def _query_records_threads(monkeypatch: pytest.MonkeyPatch) -> dict:
+    """What a query's work runs on: the U-Net's BLAS threads (`blas_threads` around its
+    products), the reading pool, and the setting the C++ search and FFTs read."""
+    import disco_cli.model.disco as disco_model
     from disco_cli.map import Map
 
-    seen: dict = {}
+    seen: dict = {"blas": []}
+    shipped = disco_model.blas_threads
     original = Map.query_files
 
-    def query_files(self, paths, **kw):
-        seen["torch"] = torch.get_num_threads()
-        from disco_cli.threads import get_threads
+    def blas_threads(n: int = 1):
+        seen["blas"].append(n)
+        return shipped(n)
 
-        seen["pool"] = get_threads() if kw.get("threads") is None else kw["threads"]
+    def query_files(self, paths, **kw):
+        seen["pool"] = disco_threads.get_threads() if kw.get("threads") is None else kw["threads"]
         return original(self, paths, **kw)
 
+    monkeypatch.setattr(disco_model, "blas_threads", blas_threads)
     monkeypatch.setattr(Map, "query_files", query_files)
     return seen
 
 
-def test_query_threads_option_reaches_torch(
-    samples_spectral_db: Path, samples: Path, monkeypatch: pytest.MonkeyPatch
+def test_query_threads_option_reaches_the_u_net_and_the_pools(
+    default_db: Path, samples: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     seen = _query_records_threads(monkeypatch)
-    scan = sorted((samples / "00" / "velodyne").iterdir())[0]
-    torch.set_num_threads(1)
-    res = runner.invoke(app, ["query", str(scan), "-d", str(samples_spectral_db), "--threads", "3"])
+    scan = sorted((samples / "01" / "velodyne").iterdir())[0]
+    res = runner.invoke(app, ["query", str(scan), "-d", str(default_db), "--threads", "3"])
     assert res.exit_code == 0, res.output
-    assert seen["torch"] == 3 and seen["pool"] == 3
+    assert seen["blas"] and set(seen["blas"]) == {3} and seen["pool"] == 3
+    assert disco_threads.get_threads() == 3 and os.environ["OPENBLAS_NUM_THREADS"] == "3"
 
 
 def test_query_takes_disco_threads_from_the_environment(
-    samples_spectral_db: Path, samples: Path, monkeypatch: pytest.MonkeyPatch
+    default_db: Path, samples: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     seen = _query_records_threads(monkeypatch)
-    scan = sorted((samples / "00" / "velodyne").iterdir())[0]
+    scan = sorted((samples / "01" / "velodyne").iterdir())[0]
     res = runner.invoke(
-        app, ["query", str(scan), "-d", str(samples_spectral_db)], env={"DISCO_THREADS": "2"}
+        app, ["query", str(scan), "-d", str(default_db)], env={"DISCO_THREADS": "2"}
     )
     assert res.exit_code == 0, res.output
-    assert seen["torch"] == 2 and seen["pool"] == 2
+    assert set(seen["blas"]) == {2} and seen["pool"] == 2
 
 
 def test_train_threads_reach_torch_and_the_voxelizer(

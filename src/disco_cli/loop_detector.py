@@ -245,8 +245,8 @@ class LoopDetector:
         array or a function that reads it (needed when poses are estimated);
         `side_signatures` `[V, D]` its side views' (when the detector has side views)."""
         from disco_cli.search import match_queries
-        from disco_cli.signature_index import SignatureIndex
         from disco_cli.side_views import ViewIndex
+        from disco_cli.signature_index import SignatureIndex
 
         i = len(self)
         label = name or f"scan-{i}"

@@ -17,7 +17,6 @@ those are re-measured directly in float64:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
