@@ -426,7 +426,7 @@ def evaluate(
     from disco_cli.query_policy import policy_for
     from disco_cli.readers import read_scan
     from disco_cli.search import match_queries
-    from disco_cli.side_views import index_for, seen_from, side_offsets
+    from disco_cli.map_side_views import index_for, seen_from, side_offsets
 
     m_sig, m_feat = embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), threads)
     offsets = side_offsets(side_views)

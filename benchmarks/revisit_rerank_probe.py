@@ -36,7 +36,7 @@ def embedded(world: Path, cache: Path, model) -> dict[str, np.ndarray]:
 
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import read_scan
-    from disco_cli.side_views import seen_from
+    from disco_cli.map_side_views import seen_from
 
     f = cache / f"{world.name}.npz"
     if f.is_file():

@@ -1,4 +1,4 @@
-"""Side views (`side_views.py`, `build-db --side-views`): a map scan's signatures seen
+"""Side views (`map_side_views.py`, `build-db --side-views`): a map scan's signatures seen
 from beside it take part in the search and answer for the scan itself."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from disco_cli.cli import app
 from disco_cli.readers import list_scans, read_scan
 from disco_cli.search import brute_force_topk
-from disco_cli.side_views import ViewIndex, side_offsets, side_view_bevs
+from disco_cli.map_side_views import ViewIndex, side_offsets, side_view_bevs
 
 
 def run(*args: str) -> tuple[int, str]:

@@ -14,7 +14,7 @@ Layout (format version 2; docs/database.md has the tables and the figures):
   `scale`, deflated (zlib, raw stream): read only for the rows a query re-ranks.
 - `side_views(scan_id, offset_m, signature, signature_scale, crc)`: only in a map built
   with side views (meta `side_views_m`): each scan's signatures re-centred `offset_m`
-  to its side (`side_views.py`), searched beside the scans'.
+  to its side (`map_side_views.py`), searched beside the scans'.
 
 Every row carries `crc`, the CRC-32 of its payload (its id and every other column, in a
 fixed byte layout: `_scan_crc`, `_feature_crc`, `_view_crc`), written with the row and
@@ -351,7 +351,7 @@ class Database(RowReader):
                 self.path, f"holds features {self.feature_shape}, got {batch.features.shape[1:]}"
             )
         if batch.side_offsets != self.side_offsets:
-            from disco_cli.side_views import side_views_m
+            from disco_cli.map_side_views import side_views_m
 
             def said(offsets: tuple[float, ...]) -> str:
                 return f"side views at {side_views_m(offsets):g} m" if offsets else "no side views"

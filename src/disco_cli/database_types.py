@@ -59,7 +59,7 @@ class ScanBatch:
     poses: np.ndarray | None = None
     times: np.ndarray | None = None
     rel_paths: list[str | None] | None = None  # relative to the database's folder
-    # Side views (`side_views.py`): the offsets and `[B, V, D]` signatures, or none.
+    # Side views (`map_side_views.py`): the offsets and `[B, V, D]` signatures, or none.
     side_offsets: tuple[float, ...] = ()
     side_signatures: np.ndarray | None = None
 

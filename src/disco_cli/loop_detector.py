@@ -141,7 +141,7 @@ class LoopDetector:
     estimates it and keeps every pair. `on_pose_error(message)` hears of a pair whose
     pose cannot be estimated (that pair is left out); by default it is a warning.
     `side_views`: also search each earlier scan as seen from that many metres to its
-    left and right (`side_views.py`), for revisits in another lane (a map's stored
+    left and right (`map_side_views.py`), for revisits in another lane (a map's stored
     embeddings are then not reused: it holds no views of the sequence). `policy`: the
     query stage's `QueryPolicy` (default: the model's; `rerank` changes it); the
     `policy` attribute may be replaced before the first scan.
@@ -167,7 +167,7 @@ class LoopDetector:
     ):
         from disco_cli.map import _load_model
         from disco_cli.query_policy import policy_for
-        from disco_cli.side_views import side_offsets
+        from disco_cli.map_side_views import side_offsets
 
         if exclude_frames is not None and (
             isinstance(exclude_frames, bool) or int(exclude_frames) != exclude_frames
@@ -221,7 +221,7 @@ class LoopDetector:
         sides = None
         if self.side_offsets:
             from disco_cli.pipeline import embed_side_views
-            from disco_cli.side_views import side_view_bevs
+            from disco_cli.map_side_views import side_view_bevs
 
             views = side_view_bevs(pts, self._model.bev_config, self.side_offsets)
             sides = embed_side_views([views], self._model)[0]
@@ -245,7 +245,7 @@ class LoopDetector:
         array or a function that reads it (needed when poses are estimated);
         `side_signatures` `[V, D]` its side views' (when the detector has side views)."""
         from disco_cli.search import match_queries
-        from disco_cli.side_views import ViewIndex
+        from disco_cli.map_side_views import ViewIndex
         from disco_cli.signature_index import SignatureIndex
 
         i = len(self)

@@ -27,7 +27,7 @@ from disco_cli.database import DamagedRows, Database, ModelInfo, ScanBatch, dama
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.localize import Match, PointCache, as_match, refine_matches
 from disco_cli.query_policy import policy_for
-from disco_cli.side_views import side_offsets, side_views_m
+from disco_cli.map_side_views import side_offsets, side_views_m
 
 __all__ = [
     "Map",
@@ -316,7 +316,7 @@ class Map:
         unless `overwrite` (it is replaced when the first batch is written).
         `side_views` (metres, 0 = none) also stores each scan's signatures seen from that
         far to its left and right, for queries that drive beside the map's line
-        (`side_views.py`; about 3x the embedding time when adding)."""
+        (`map_side_views.py`; about 3x the embedding time when adding)."""
         path = _address(path)
         if path.exists() and not overwrite:
             raise DatabaseError(path, "already exists; use Map.open to add to it")
@@ -494,7 +494,7 @@ class Map:
         one transaction per `batch` scans (as `disco build-db`); returns their ids.
         An unnamed scan is called `scan-<id>`."""
         from disco_cli.pipeline import array_points, scan_bev
-        from disco_cli.side_views import side_view_bevs
+        from disco_cli.map_side_views import side_view_bevs
 
         self._check_writable()
         ids: list[int] = []

@@ -647,7 +647,7 @@ class MilvusDatabase(Database):
         check_index_kind(kind)
         small = kind == "auto" and len(self) < AUTO_ANN_MIN_ROWS
         if kind == "exact" or small or self.side_offsets:
-            from disco_cli.side_views import index_for
+            from disco_cli.map_side_views import index_for
 
             return index_for(self)
         from disco_cli.milvus_index import MilvusIndex

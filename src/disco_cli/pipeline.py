@@ -153,7 +153,7 @@ def _load_one(
     keep_points: bool,
     side_offsets: tuple[float, ...] = (),
 ) -> Loaded:
-    from disco_cli.side_views import side_view_bevs
+    from disco_cli.map_side_views import side_view_bevs
 
     try:
         points, bev = _load_points_bev(path, bev_config, scan_format)

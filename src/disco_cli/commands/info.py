@@ -37,7 +37,7 @@ def info(
 
     from disco_cli.console import OutputFormat, RowWriter, resolve_format
     from disco_cli.milvus_copy import open_database  # a file, or a milvus: address
-    from disco_cli.side_views import side_views_m
+    from disco_cli.map_side_views import side_views_m
 
     with open_database(db_path) as db:
         rows = [

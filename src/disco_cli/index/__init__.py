@@ -100,7 +100,7 @@ def index_for_database(db: Any, kind: str = "auto", note: Any = None) -> tuple[n
     """`(ids, index)` to search the map `db` with (`side_views.index_for` for `exact`;
     for `ann`, the sidecar when it is current, else one built and saved beside the map).
     `note(message)` is told when an index is built or a sidecar is unusable."""
-    from disco_cli.side_views import index_for
+    from disco_cli.map_side_views import index_for
 
     chosen = choose_kind(kind, len(db), note)
     if chosen == "exact":

@@ -325,7 +325,7 @@ def open_or_build(
     """`(ids, index)` of the map `db` from its sidecar when that is current; else built
     from the map's signatures (and side views) and saved beside it for the next time."""
     from disco_cli.index import map_key, sidecar_path
-    from disco_cli.side_views import ViewIndex
+    from disco_cli.map_side_views import ViewIndex
 
     say = note or (lambda _msg: None)
     path = sidecar_path(db.path)

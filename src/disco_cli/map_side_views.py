@@ -1,4 +1,5 @@
-"""Side views: map scans seen again from a few metres to their left and right.
+"""Map side views: map scans seen again from a few metres to their left and right, stored
+in the map (not the query views of `query_views.py`).
 
 A later visit rarely drives the map's exact line. Recall falls with the lateral
 distance to the nearest map scan (issue 12: from 1.00 at 2-3 m to 0.61 at 3-4 m on
