@@ -79,12 +79,18 @@ def cast(
     )
 
 
-def sweep_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+# The fastest a simulated platform drives during one sweep (m/s, about 54 km/h). Scans
+# further apart than one sweep at this speed (`--step-m 5` samples a car's places, it
+# does not make the car go 50 m/s) are distorted as at this speed.
+MAX_SWEEP_SPEED = 15.0
+
+
+def sweep_poses(poses: np.ndarray, fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Sensor poses at the start and the end of each sweep, `([N, 4, 4], [N, 4, 4])`.
 
     A scan's pose is the pose half-way through its sweep; the sweep runs from half
     way from the previous scan's pose to half way to the next one (extrapolated at
-    the ends of a session).
+    the ends of a session), or `fraction` of that around the scan's pose.
     """
     from scipy.spatial.transform import Rotation
 
@@ -100,7 +106,7 @@ def sweep_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return poses.copy(), poses.copy()
     prev = np.concatenate([blend(poses[:1], poses[1:2], -1.0), poses[:-1]])
     nxt = np.concatenate([poses[1:], blend(poses[-1:], poses[-2:-1], -1.0)])
-    return blend(poses, prev, 0.5), blend(poses, nxt, 0.5)
+    return blend(poses, prev, 0.5 * fraction), blend(poses, nxt, 0.5 * fraction)
 
 
 def finish_scan(
@@ -328,7 +334,10 @@ def simulate(
             dirs = psensor.directions()
             folder = out / plan.name
             (folder / "velodyne").mkdir(parents=True, exist_ok=True)
-            starts, ends = sweep_poses(plan.poses) if motion_distortion else (plan.poses, None)
+            fraction = min(1.0, MAX_SWEEP_SPEED / psensor.rate_hz / step_m)
+            starts, ends = (
+                sweep_poses(plan.poses, fraction) if motion_distortion else (plan.poses, None)
+            )
 
             def submit(
                 i: int,
