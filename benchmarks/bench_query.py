@@ -18,9 +18,8 @@
    (`unet_numpy.py`) against torch's U-Net on the same weights (one torch thread, as
    queries run), interleaved in this process, and the ratio.
 
-Like the `disco` command, the process first asks glibc to keep freed memory
-(`malloc_tuning.py`) and OpenBLAS to use one thread (`blas_threads.py`);
-`--process-defaults` leaves both as they are, for the ratio.
+Like the `disco` command, the process first asks OpenBLAS to use one thread
+(`blas_threads.py`); `--process-defaults` leaves it as it is, for the ratio.
 
 With --open N...: only what the integrity check on opening costs, on maps of N
 synthetic scans: `Database.open` with and without `verify`, and a fresh one-scan
@@ -514,18 +513,16 @@ def main() -> None:
     ap.add_argument(
         "--process-defaults",
         action="store_true",
-        help="leave glibc's allocator and OpenBLAS's threads as they are (disco sets both)",
+        help="leave OpenBLAS's threads as they are (disco sets one)",
     )
     args = ap.parse_args()
     if not args.process_defaults:
         from disco_cli.blas_threads import one_blas_thread_for_process
-        from disco_cli.malloc_tuning import keep_freed_memory
 
-        keep_freed_memory()
         one_blas_thread_for_process()
     print_header("bench_query")
     print(
-        "  glibc keeps freed memory and OpenBLAS runs one thread (as `disco` sets them): "
+        "  OpenBLAS runs one thread (as `disco` sets it): "
         f"{not args.process_defaults}"
     )
     if args.yaw_f16:

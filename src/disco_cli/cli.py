@@ -105,9 +105,6 @@ def _root(
 def main() -> None:
     """Console entry point: clean exits on Ctrl-C and on a closed pipe (`| head`)."""
     try:
-        from disco_cli.malloc_tuning import keep_freed_memory
-
-        keep_freed_memory()  # a query's arrays reuse mapped pages (malloc_tuning.py)
         app()
     except DiscoError as exc:  # commands catch these; this is the safety net
         error(str(exc))
