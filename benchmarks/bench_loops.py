@@ -17,6 +17,7 @@ import argparse
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,15 +26,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 class _Counting:
-    """Wraps a model's `rerank` to count its calls: a scan's second is the wider pass."""
+    """Wraps a model's re-ranking (with the query's views, as DiSCO re-ranks) to count
+    its calls: a scan's second is the wider pass."""
 
     def __init__(self, model):
-        self.calls, self._rerank = 0, model.rerank
-        model.rerank = self
+        self.calls, self._rerank = 0, model.rerank_distances_views
+        model.rerank_distances_views = self
 
-    def __call__(self, query_features, features):
+    def __call__(self, query_features, features, views):
         self.calls += 1
-        return self._rerank(query_features, features)
+        return self._rerank(query_features, features, views)
 
 
 def main() -> None:
@@ -58,12 +60,13 @@ def main() -> None:
         simulate(tmp, sessions=1, length_m=args.length_m, seed=args.seed, threads=0)
         paths, _ = suite.load_session(Path(tmp) / "00")
         shipped, baseline = load_model("default"), load_model("default")
-        baseline.rerank_wider = 0
         sigs, feats = suite.embed(shipped, lambda i: read_scan(paths[i]), len(paths), args.threads)
     counter, wider = _Counting(shipped), 0
     detectors = {
         "shipped": LoopDetector(shipped, verify=False),
-        "without the wider pass": LoopDetector(baseline, verify=False),
+        "without the wider pass": LoopDetector(
+            baseline, verify=False, policy=replace(baseline.query_policy, rerank_wider=0)
+        ),
     }
     times: dict[str, list[float]] = {k: [] for k in detectors}
     for i in range(len(paths)):

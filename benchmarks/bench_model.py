@@ -173,8 +173,8 @@ def main() -> None:
         f"phase correlation {fast:.3f} ms, exhaustive shift search {slow:.1f} ms "
         f"({slow / fast:.0f}x)"
     )
-    if getattr(model, "rerank_candidates", 0):
-        rerank = median_ms(lambda: model.rerank(q, cands), max(args.repeat, 20))[0]
+    if model.abilities.rerank:
+        rerank = median_ms(lambda: model.rerank_distances(q, cands), max(args.repeat, 20))[0]
         print(f"re-ranking 10 candidates, yaw included: {rerank:.3f} ms")
 
 

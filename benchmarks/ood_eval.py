@@ -65,23 +65,28 @@ def main() -> int:
 
     import torch
 
+    from disco_cli.query_policy import policy_for
+
     torch.set_num_threads(args.threads)
     for name in args.models:
         side_views = S.split_side_views(name)[1]
         model = S.load_suite_model(name)
-        if args.rerank_wider is not None and hasattr(model, "rerank_wider"):
-            model.rerank_wider = args.rerank_wider
-        if args.snap_radius is not None and hasattr(model, "snap_radius"):
-            model.snap_radius = args.snap_radius
-        if args.rerank is not None and hasattr(model, "rerank_candidates"):
-            model.rerank_candidates = args.rerank
+        # The settings given, where the model has the rule (a QueryPolicy; the model's
+        # own is never changed).
+        p = model.query_policy
+        wider = args.rerank_wider if p.rerank_wider else None
+        snap = args.snap_radius if model.abilities.locate else None
+        rerank = args.rerank if model.abilities.rerank else None
+        policy = policy_for(model, rerank=rerank, rerank_wider=wider, snap_radius=snap)
         cells = []
         for w in args.worlds:
             mp, mpose = S.load_session(w / "00")
             qp, qpose = S.load_session(w / "01")
             tf = _Lift(args.z) if args.z else None
             q = S.Queries(qp, qpose, args.tilt, seed=args.seed, transform=tf)
-            rows = S.evaluate(model, mp, mpose, q, args.threads, side_views, radius=args.radius)
+            rows = S.evaluate(
+                model, mp, mpose, q, args.threads, side_views, radius=args.radius, policy=policy
+            )
             s = S.summarize(rows)
             has = [r for r in rows if r["has"]]
             miss = sum(not r["r1"] for r in has)

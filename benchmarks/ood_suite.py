@@ -416,17 +416,20 @@ def evaluate(
     side_views: float = 0.0,
     refine_yaw: int = 1,
     radius: float = RADIUS,
+    policy=None,
 ) -> list[dict]:
     """One row per query: nearest map scan, hits at 1, 5 and 1 %, yaw error. With
     `side_views`, the map stores side views (`disco build-db --side-views`); the best
-    `refine_yaw` matches get the parallax-free yaw (`disco query --refine-yaw`)."""
+    `refine_yaw` matches get the parallax-free yaw (`disco query --refine-yaw`); the
+    query stage runs under `policy` (a `QueryPolicy`; None: the model's), so that an
+    ablation is `dataclasses.replace(model.query_policy, rule=0)`."""
     from disco_cli.database import Database, ModelInfo, ScanBatch
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
+    from disco_cli.map_side_views import index_for, seen_from, side_offsets
     from disco_cli.poses import xy_yaw
     from disco_cli.query_policy import policy_for
     from disco_cli.readers import read_scan
     from disco_cli.search import match_queries
-    from disco_cli.map_side_views import index_for, seen_from, side_offsets
 
     m_sig, m_feat = embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), threads)
     offsets = side_offsets(side_views)
@@ -459,7 +462,7 @@ def evaluate(
         )
         with db:
             ids, index = index_for(db)
-            policy = policy_for(model, refine_yaw=refine_yaw)
+            policy = policy_for(model, policy, refine_yaw=refine_yaw)
             found = match_queries(index, ids, db, model, q_sig, q_feat, depth, policy)
     n1p = one_percent_n(len(map_paths))
     rows = []

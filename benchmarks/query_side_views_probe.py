@@ -208,8 +208,8 @@ class World:
     def run(
         self, model, kind: str, positions, gate=None, penalty=0.0, factor=1.0, keep_own=False
     ) -> tuple[float, int, list[float], int]:
-        from disco_cli.search import SignatureIndex, match_queries
         from disco_cli.map_side_views import ViewIndex
+        from disco_cli.search import SignatureIndex, match_queries
 
         e = self.e
         if kind == "map":

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -50,8 +51,9 @@ def main() -> None:
         batch = ScanBatch(paths, world.map_signatures, mf, pose4)
         with Database.create(Path(tmp) / "map.db", ModelInfo.of(model), batch) as db:
             ids, sigs = db.signatures()
+            no_refine = replace(model.query_policy, refine_yaw=0)
             found = match_queries(
-                SignatureIndex(sigs), ids, db, model, world.query_signatures, qf, 10, refine_yaw=0
+                SignatureIndex(sigs), ids, db, model, world.query_signatures, qf, 10, no_refine
             )
     hits = {"shipped order": 0, "peak": 0, "peak - distance": 0}
     n = 0

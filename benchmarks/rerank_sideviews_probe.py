@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -42,9 +43,10 @@ def main() -> None:
     for sv in args.side_views:
         for rerank in (True, False):
             model = suite.load_suite_model(args.model)
+            policy = model.query_policy
             if not rerank:
-                model.rerank_candidates = 0
-            rows = suite.evaluate(model, mp, mpose, queries, 2, sv, 1, args.radius)
+                policy = replace(policy, rerank_candidates=0)
+            rows = suite.evaluate(model, mp, mpose, queries, 2, sv, 1, args.radius, policy)
             s = suite.summarize(rows)
             print(
                 f"{args.world.name} {args.model} side views {sv:g} m, "

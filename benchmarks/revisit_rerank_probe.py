@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +35,9 @@ OFFSETS = (2.5, 4.0, 5.0, 6.0)
 def embedded(world: Path, cache: Path, model) -> dict[str, np.ndarray]:
     import ood_suite as suite
 
+    from disco_cli.map_side_views import seen_from
     from disco_cli.poses import xy_yaw
     from disco_cli.readers import read_scan
-    from disco_cli.map_side_views import seen_from
 
     f = cache / f"{world.name}.npz"
     if f.is_file():
@@ -93,20 +94,24 @@ class Evaluated:
         self.top = np.argsort(best, axis=1, kind="stable")[:, :40]
         self.sig = np.take_along_axis(best, self.top, axis=1)
         self.rr = np.stack(
-            [model.rerank(e["qf"][i], e["mf"][t])[0] for i, t in enumerate(self.top)]
+            [model.rerank_distances(e["qf"][i], e["mf"][t]) for i, t in enumerate(self.top)]
         ).astype(np.float64)
         self._estimates: dict[tuple[int, int], np.ndarray] = {}
 
     def estimate(self, i: int, j: int) -> np.ndarray:
         if (i, j) not in self._estimates:
-            from disco_cli.search import query_on_map
+            from disco_cli.search import query_on_map_conf
 
-            _, xy = query_on_map(self.model, self.e["qf"][i], self.e["mf"][j], self.mp[j])
+            _, xy, _ = query_on_map_conf(self.model, self.e["qf"][i], self.e["mf"][j], self.mp[j])
             self._estimates[(i, j)] = xy
         return self._estimates[(i, j)]
 
     def recall(self, rule) -> tuple[float, int, list[float]]:
-        from disco_cli.model.disco import RERANK_WIDER_ABOVE, SNAP_MARGIN, SNAP_RADIUS
+        from disco_cli.query_policy import QueryPolicy
+
+        shipped = QueryPolicy()
+        RERANK_WIDER_ABOVE = shipped.rerank_wider_above  # noqa: N806
+        SNAP_MARGIN, SNAP_RADIUS = shipped.snap_margin, shipped.snap_radius  # noqa: N806
 
         hits, near = [], []
         for i in np.flatnonzero(self.true_d.min(axis=1) <= self.radius):
@@ -144,16 +149,15 @@ def time_rule(e: dict[str, np.ndarray], model, reps: int = 5) -> None:
             return MatchRows(ids, [paths[i] for i in ids], e["mpose"][ids], e["mf"][ids])
 
     index, ids, db = SignatureIndex(e["ms"]), np.arange(len(e["ms"])), Memory()
-    weight = model.rerank_signature_weight
+    weight = model.query_policy.signature_weight
     times: dict[float, list[float]] = {weight: [], 0.0: []}
     for _ in range(reps):
         for i in range(len(e["qs"])):
             for w in (weight, 0.0):
-                model.rerank_signature_weight = w
+                p = replace(model.query_policy, signature_weight=w)
                 t = time.perf_counter()
-                match_queries(index, ids, db, model, e["qs"][i : i + 1], e["qf"][i : i + 1], 10)
+                match_queries(index, ids, db, model, e["qs"][i : i + 1], e["qf"][i : i + 1], 10, p)
                 times[w].append(time.perf_counter() - t)
-    model.rerank_signature_weight = weight
     a, b = (1e3 * float(np.median(times[w])) for w in (weight, 0.0))
     print(
         f"match_queries per query: {a:.2f} ms with weight {weight:g}, {b:.2f} ms with 0 "

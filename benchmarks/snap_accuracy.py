@@ -8,7 +8,7 @@ does, once without the snap and once with it. Printed, over the queries whose be
 before the snap lies within 5 m (a true match):
 
 - the error of the query's position estimated from that best match
-  (`search.query_on_map`, what the snap uses): median, 90th and 99th percentile, max;
+  (`search.query_on_map_conf`, what the snap uses): median, 90th and 99th percentile, max;
 - how often the snap moves the best match, and how far (median, on the map);
 - Recall@1 (a match within 5 m) without and with the snap; with --list, each query it
   finds or loses: how far the best match lay, and where the true one was.
@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -45,9 +46,9 @@ class _MapRows:
         return MatchRows(ids, paths, self.pose4[ids], self.world.map_features[ids])
 
 
-def measure(model, world: S.EmbeddedWorld, name: str) -> dict[str, list]:
+def measure(model, policy, world: S.EmbeddedWorld, name: str) -> dict[str, list]:
     from disco_cli.poses import xy_yaw
-    from disco_cli.search import SignatureIndex, match_queries, query_on_map
+    from disco_cli.search import SignatureIndex, match_queries, query_on_map_conf
 
     mx, my, myaw = xy_yaw(world.map_poses)
     qx, qy, _ = xy_yaw(world.queries.poses)
@@ -57,10 +58,11 @@ def measure(model, world: S.EmbeddedWorld, name: str) -> dict[str, list]:
     qs, qf = world.query_signatures, world.query_features
 
     def search(snap: float, k: int) -> list:
-        return match_queries(index, ids, store, model, qs, qf, k, refine_yaw=0, snap_radius=snap)
+        p = replace(policy, refine_yaw=0, snap_radius=snap)
+        return match_queries(index, ids, store, model, qs, qf, k, p)
 
     plain = search(0.0, 10)
-    before, after = [m[0].row for m in plain], [m[0].row for m in search(model.snap_radius, 1)]
+    before, after = [m[0].row for m in plain], [m[0].row for m in search(policy.snap_radius, 1)]
     out: dict[str, list] = {"err": [], "moved": [], "move_m": [], "hit0": [], "hit1": []}
     out["changed"] = []
     for i, (b, a) in enumerate(zip(before, after)):
@@ -86,7 +88,7 @@ def measure(model, world: S.EmbeddedWorld, name: str) -> dict[str, list]:
         if a != b:
             out["move_m"].append(math.hypot(mx[a] - mx[b], my[a] - my[b]))
         if d[b] <= RADIUS:
-            _, (ex, ey) = query_on_map(model, qf[i], world.map_features[b], pose4[b])
+            _, (ex, ey), _ = query_on_map_conf(model, qf[i], world.map_features[b], pose4[b])
             out["err"].append(math.hypot(ex - qx[i], ey - qy[i]))
     return out
 
@@ -112,16 +114,17 @@ def main() -> int:
     if not worlds:
         raise SystemExit(f"no worlds given and none cached in {args.out / 'worlds'}")
     model = load_model(args.model)
-    if not getattr(model, "snap_radius", 0):
+    policy = model.query_policy
+    if not policy.snap_radius:
         raise SystemExit(f"model {model.name} does not snap")
     if args.radius is not None:
-        model.snap_radius = args.radius
+        policy = replace(policy, snap_radius=args.radius)
     if args.margin is not None:
-        model.snap_margin = args.margin
+        policy = replace(policy, snap_margin=args.margin)
     print_header("snap_accuracy")
     total: dict[str, list] = {}
     for w in worlds:
-        got = measure(model, S.embed_world(model, w, threads=args.threads), w.name)
+        got = measure(model, policy, S.embed_world(model, w, threads=args.threads), w.name)
         for k, v in got.items():
             total.setdefault(k, []).extend(v)
         print(f"  {w.name}: {len(got['hit0'])} queries", file=sys.stderr, flush=True)
@@ -130,7 +133,7 @@ def main() -> int:
     n = len(total["hit0"])
     moved = int(np.sum(total["moved"]))
     print(
-        f"{args.model} (snap within {model.snap_radius:g} m, margin {model.snap_margin:g}), "
+        f"{args.model} (snap within {policy.snap_radius:g} m, margin {policy.snap_margin:g}), "
         f"{len(worlds)} worlds, {n} queries with a true match within 5 m:\n"
         f"  position estimated from a true best match ({len(err)}): error median {p50:.2f} m, "
         f"p90 {p90:.2f}, p99 {p99:.2f}, max {err.max():.2f}\n"
