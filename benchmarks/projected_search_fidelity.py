@@ -1,4 +1,4 @@
-"""How often the views' approximate search (`query_views.ProjectedSignatures`) returns
+"""How often the views' approximate search (`signature_index.ProjectedSignatures`) returns
 what the exact search does, by projected dimensions and widening.
 
     PYTHONPATH=src .venv/bin/python benchmarks/projected_search_fidelity.py \
@@ -31,25 +31,26 @@ def main() -> None:
     print_header("projected_search_fidelity")
     from query_side_views_probe import World
 
-    from disco_cli import query_views
+    from disco_cli import signature_index
     from disco_cli.model import load_model
-    from disco_cli.search import SignatureIndex
+    from disco_cli.signature_index import SignatureIndex
 
     model = load_model("default")
     rows, views = [], []
     for spec in args.worlds:
         w = World(spec, args.cache, model)
         rows += [w.e["ms"], w.e["qs"]]
-        views += [model.query_views(f)[0] for f in w.e["qf"][::5]]
+        offsets = model.query_policy.view_offsets
+        views += [model.query_views(f, offsets)[0] for f in w.e["qf"][::5]]
     sigs, q = np.concatenate(rows), np.concatenate(views)
     exact, _ = SignatureIndex(sigs, int8_min_rows=1 << 62).search(q, 10)
     print(f"map {len(sigs)} rows, {len(q)} view queries")
     print("| dims | widen | nearest the exact one | overlap of the 10 nearest |")
     print("| ---: | ---: | ---: | ---: |")
     for dims in (48, 64, 96, 128):
-        proj = query_views.ProjectedSignatures(sigs, dims)
+        proj = signature_index.ProjectedSignatures(sigs, dims)
         for widen in (2, 4, 8):
-            query_views.PROJECTED_WIDEN = widen
+            signature_index.PROJECTED_WIDEN = widen
             got, _ = proj.search(q, 10)
             top1 = float(np.mean(got[:, 0] == exact[:, 0]))
             overlap = np.mean([len(set(a) & set(b)) / 10 for a, b in zip(got, exact)])
