@@ -514,9 +514,9 @@ def snapped_floor(base, radius: float = 5.0, candidates: int = 10):
             c = signatures(candidate_features, self.crop).astype(np.float64)
             return np.linalg.norm(c - q, axis=1)
 
-        def query_position_conf(self, query_features, match_features):
+        def query_position_conf(self, query_features, match_features, check_below):
             rng = self.bev_config.max_range
-            return query_in_match_frame_conf(query_features, match_features, rng)
+            return query_in_match_frame_conf(query_features, match_features, rng, check_below)
 
     floor = SnappedFloor(base.bev_config, base.crop)
     floor.name = f"{base.name}+snap"
@@ -586,6 +586,8 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
         }
     if p.approximate_views_from != 4096:  # likewise rows with the views searched so
         head["approximate_views_from"] = p.approximate_views_from
+    if p.refine_yaw and p.yaw_check_below != 0.6:  # likewise rows with another yaw check
+        head["yaw_check_below"] = p.yaw_check_below
     if f.is_file():
         lines = f.read_text().splitlines()
         old = json.loads(lines[0])

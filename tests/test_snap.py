@@ -33,11 +33,11 @@ class _Model(StubModel):
         self.asked: list[int] = []  # rows whose position was estimated
         self.refined: list[int] = []  # rows whose yaw was refined
 
-    def query_position_conf(self, query_features, match_features):
+    def query_position_conf(self, query_features, match_features, check_below):
         self.asked.append(int(match_features[1]))
         return self.heading, self.at, float("nan")
 
-    def refine_yaw_conf(self, query_features, match_features):
+    def refine_yaw_conf(self, query_features, match_features, check_below):
         self.refined += [int(f[1]) for f in match_features]
         return np.full(len(match_features), -1.0), np.full(len(match_features), np.nan)
 

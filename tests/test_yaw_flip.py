@@ -95,14 +95,14 @@ def _queries(seed: int) -> list[tuple[float, float, float]]:
 STREETS = (0, 4, 5)
 
 
-def _refined(model, alike: bool, streets=STREETS):
+def _refined(model, alike: bool, streets=STREETS, check_below=0.6):
     errors, confs, coarse_errors = [], [], []
     for s in streets:
         qs = _queries(100 + s)
         poses = [pose(0, 0, 0)] + [pose(*q) for q in qs]
         sigs, f = _features(model, street(s, alike), poses, 10 * s)
         for i, q in enumerate(qs):
-            yaw, conf = model.refine_yaw_conf(f[i + 1], f[:1])
+            yaw, conf = model.refine_yaw_conf(f[i + 1], f[:1], check_below)
             errors.append(abs(wrap(yaw[0] - q[2])))
             confs.append(conf[0])
             coarse_errors.append(abs(wrap(model.yaw(f[i + 1], f[:1])[0] - q[2])))
@@ -120,6 +120,13 @@ def test_a_street_alike_both_ways_gets_its_yaw_and_a_low_confidence(model):
     # And its confidence says so: every alike-street match below every unlike one.
     assert conf.max() < conf_un.min(), (conf.round(2), conf_un.round(2))
     assert np.all((conf >= 0) & (conf <= 1)) and np.all((conf_un >= 0) & (conf_un <= 1))
+
+
+def test_the_policy_switches_the_second_heading_check_off(model):
+    # yaw_check_below 0 (QueryPolicy): no confidence is below it, the other heading is
+    # never searched, and the refined yaw turns some of the alike street around.
+    err, _, _ = _refined(model, alike=True, check_below=0.0)
+    assert (err > 90).sum() >= 2, err.round(1)
 
 
 def test_confidence_is_the_margin_to_the_best_other_heading():

@@ -67,13 +67,23 @@ class QueryPolicy:
     # How many best matches get the parallax-free yaw (model/yaw_refine.py): about 1.5 ms
     # each, so only the best by default; 0: plain phase correlation.
     refine_yaw: int = 1
+    # Below this yaw confidence (1 - the best other heading's peak / the yaw's own) the
+    # parallax-free yaw searches the other heading too and keeps the one the images'
+    # plain correlation prefers: alike streets give 0.1-0.55, asymmetric ones 0.8-0.95.
+    # On test_yaw_flip's street alike both ways the search before it turned 5 of 24
+    # queries around, the check none; on selection world 5103, 3 of 111 yaws over 10
+    # degrees before, none with it (model-history.md, "The yaw check"). 0: no check.
+    # (The search's grid, 3 m steps reaching 6 m to the query's sides, is the model's:
+    # model/yaw_refine.py.)
+    yaw_check_below: float = 0.6
 
     def __post_init__(self) -> None:
         for name in ("rerank_candidates", "rerank_wider", "refine_yaw", "approximate_views_from"):
             value = getattr(self, name)
             if isinstance(value, bool) or int(value) != value or value < 0:
                 raise DiscoError(f"{name} must be an integer >= 0, not {value!r}")
-        for name in ("rerank_wider_above", "signature_weight", "view_penalty", "snap_margin"):
+        numbers = ("rerank_wider_above", "signature_weight", "view_penalty", "snap_margin")
+        for name in (*numbers, "yaw_check_below"):
             if math.isnan(float(getattr(self, name))):  # inf is a bound that never binds
                 raise DiscoError(f"{name} must be a number, not {getattr(self, name)!r}")
         radius = float(self.snap_radius)

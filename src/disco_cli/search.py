@@ -110,11 +110,16 @@ def shown_distances(score: np.ndarray, own: np.ndarray, first: int) -> np.ndarra
 
 
 def query_on_map_conf(
-    model: QueryModel, query_features: np.ndarray, match_features: np.ndarray, pose: np.ndarray
+    model: QueryModel,
+    query_features: np.ndarray,
+    match_features: np.ndarray,
+    pose: np.ndarray,
+    check_below: float = QueryPolicy.yaw_check_below,
 ) -> tuple[float, np.ndarray, float]:
     """(parallax-free yaw to the match, x, y [2] of the query sensor on the map, the
-    yaw's confidence), from one match whose `pose` is its x, y, z, yaw (rad) on the map."""
-    yaw, t, conf = model.query_position_conf(query_features, match_features)
+    yaw's confidence), from one match whose `pose` is its x, y, z, yaw (rad) on the map;
+    `check_below` as the policy's `yaw_check_below`."""
+    yaw, t, conf = model.query_position_conf(query_features, match_features, check_below)
     c, s = np.cos(pose[3]), np.sin(pose[3])
     xy = np.asarray(pose[:2], np.float64) + np.array([c * t[0] - s * t[1], s * t[0] + c * t[1]])
     return yaw, xy, float(conf)
@@ -128,6 +133,7 @@ def snap_first(
     own: np.ndarray,
     radius: float,
     margin: float,
+    check_below: float = QueryPolicy.yaw_check_below,
 ) -> tuple[int, float | None, float]:
     """The snap: (which candidate goes first, its parallax-free yaw, that yaw's
     confidence). `best` indexes the best-scored candidate in `stored` (poses, features)
@@ -148,7 +154,7 @@ def snap_first(
     if not np.isfinite(pose[best, [0, 1, 3]]).all():
         return best, None, float("nan")
     yaw, estimate, conf = query_on_map_conf(
-        model, query_features, stored.features[best], pose[best]
+        model, query_features, stored.features[best], pose[best], check_below
     )
     with np.errstate(invalid="ignore"):  # NaN poses compare False: never candidates
         near = np.hypot(*(pose[:, :2] - pose[best, :2]).T) <= radius
@@ -289,7 +295,14 @@ def match_queries(
             if policy.snaps:
                 b = int(order[0])
                 n, yaw, conf = snap_first(
-                    model, features[i], stored, b, own, policy.snap_radius, policy.snap_margin
+                    model,
+                    features[i],
+                    stored,
+                    b,
+                    own,
+                    policy.snap_radius,
+                    policy.snap_margin,
+                    policy.yaw_check_below,
                 )
                 d[n] = min(d[n], d[b])  # the tie-break: it takes the best's score
                 snapped = (n, yaw, conf)
@@ -312,7 +325,7 @@ def match_queries(
             # The snap refined the first already (or carried the yaw to it).
             yaw[0], conf[0], todo = snapped[1], snapped[2], todo[1:]
         if len(todo):
-            y, c = model.refine_yaw_conf(features[i], feats[todo])
+            y, c = model.refine_yaw_conf(features[i], feats[todo], policy.yaw_check_below)
             yaw[todo], conf[todo] = y, c
         out.append(
             [

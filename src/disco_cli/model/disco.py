@@ -22,6 +22,7 @@ from disco_cli.model.unet_numpy import FrozenUNet
 from disco_cli.model.verify import aligned_correlation, aligned_correlations
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
 from disco_cli.model.yaw_refine import (
+    CHECK_BELOW,
     query_in_match_frame_conf,
     recentre_kept,
     refine_yaw_conf,
@@ -211,23 +212,32 @@ class DiscoModel:
         return estimate_yaw_conf(self._g(query_features), self._g(match_features))
 
     def refine_yaw_conf(
-        self, query_features: np.ndarray, match_features: np.ndarray
+        self,
+        query_features: np.ndarray,
+        match_features: np.ndarray,
+        check_below: float = CHECK_BELOW,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(`refine_yaw`, its confidence [K] in [0, 1]: yaw_refine.refine_checked)."""
+        """(`refine_yaw`, its confidence [K] in [0, 1]: yaw_refine.refine_checked, the
+        second heading checked below `check_below`)."""
         return refine_yaw_conf(
             self.refine_image(query_features),
             self.refine_image(match_features),
             self.bev_config.max_range,
+            check_below,
         )
 
     def query_position_conf(
-        self, query_features: np.ndarray, match_features: np.ndarray
+        self,
+        query_features: np.ndarray,
+        match_features: np.ndarray,
+        check_below: float = CHECK_BELOW,
     ) -> tuple[float, np.ndarray, float]:
         """`query_position` and the yaw's confidence."""
         return query_in_match_frame_conf(
             self.refine_image(query_features),
             self.refine_image(match_features),
             self.bev_config.max_range,
+            check_below,
         )
 
     def refine_image(self, features: np.ndarray) -> np.ndarray:

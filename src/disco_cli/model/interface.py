@@ -70,15 +70,17 @@ class QueryModel(Protocol):
         ...
 
     def refine_yaw_conf(
-        self, query_features: np.ndarray, match_features: np.ndarray
+        self, query_features: np.ndarray, match_features: np.ndarray, check_below: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        """`yaw_conf` without the parallax of the two sensors' offset."""
+        """`yaw_conf` without the parallax of the two sensors' offset; the best other
+        heading is searched too where the confidence is below `check_below`."""
         ...
 
     def query_position_conf(
-        self, query_features: np.ndarray, match_features: np.ndarray
+        self, query_features: np.ndarray, match_features: np.ndarray, check_below: float
     ) -> tuple[float, np.ndarray, float]:
-        """(yaw, position [2] of the query sensor in the match's frame (m), confidence)."""
+        """(yaw, position [2] of the query sensor in the match's frame (m), confidence),
+        the heading checked as `refine_yaw_conf`'s."""
         ...
 
 
@@ -100,8 +102,8 @@ class Unable:
     def query_views(self, query_features: Any, offsets: Any) -> Any:
         raise self._refuse("make views of the query")
 
-    def refine_yaw_conf(self, query_features: Any, match_features: Any) -> Any:
+    def refine_yaw_conf(self, query_features: Any, match_features: Any, check_below: Any) -> Any:
         raise self._refuse("refine the yaw")
 
-    def query_position_conf(self, query_features: Any, match_features: Any) -> Any:
+    def query_position_conf(self, query_features: Any, match_features: Any, check: Any) -> Any:
         raise self._refuse("estimate the query's position")

@@ -17,7 +17,7 @@ import numpy as np
 from disco_cli.model.interface import Abilities, Unable
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
-from disco_cli.model.yaw_refine import refine_yaw_conf
+from disco_cli.model.yaw_refine import CHECK_BELOW, refine_yaw_conf
 from disco_cli.query_policy import NO_RERANKING, QueryPolicy
 
 
@@ -71,7 +71,12 @@ class SpectralModel(Unable):
         return estimate_yaw_conf(query_features, match_features)
 
     def refine_yaw_conf(
-        self, query_features: np.ndarray, match_features: np.ndarray
+        self,
+        query_features: np.ndarray,
+        match_features: np.ndarray,
+        check_below: float = CHECK_BELOW,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(`refine_yaw`, its confidence [K] in [0, 1])."""
-        return refine_yaw_conf(query_features, match_features, self.bev_config.max_range)
+        """(`refine_yaw`, its confidence [K] in [0, 1]; the second heading checked below
+        `check_below`)."""
+        rng = self.bev_config.max_range
+        return refine_yaw_conf(query_features, match_features, rng, check_below)

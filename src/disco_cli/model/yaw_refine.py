@@ -43,7 +43,8 @@ from disco_cli.model.yaw import (
 VERSION = 5
 # Below this yaw confidence the best other heading is searched for too, and the two are
 # told apart by the plain correlation of the images (`refine_checked`). A street alike on
-# both sides gives 0.1-0.55, an asymmetric one 0.8-0.95 (tests/test_yaw_flip.py).
+# both sides gives 0.1-0.55, an asymmetric one 0.8-0.95 (tests/test_yaw_flip.py). The
+# query stage passes its policy's `yaw_check_below` (the same by default); 0: no check.
 CHECK_BELOW = 0.6
 # The first grid's half width (m) of the check's searches: 6 + 1.5 + 0.5 = 8 m reached.
 CHECK_REACH = 6.0
@@ -356,7 +357,7 @@ def _searches(
 
 
 def refine_checked(
-    query: np.ndarray, match: np.ndarray, max_range: float
+    query: np.ndarray, match: np.ndarray, max_range: float, check_below: float = CHECK_BELOW
 ) -> tuple[float, np.ndarray, float]:
     """(yaw_deg, position [2] of the match's sensor in the query frame (m), yaw confidence
     in [0, 1]): `refine_one`, with the opposite heading (or any other strong one) ruled
@@ -365,7 +366,7 @@ def refine_checked(
     On a street alike on both sides, the whitened phase correlation (every frequency
     weighted alike) can peak as high on theta + 180 degrees as on theta, and the greedy
     position search may settle near the wrong one. When the best other heading comes
-    within CHECK_BELOW of the best (the confidence, 1 - other / best), each of the two
+    within `check_below` of the best (the confidence, 1 - other / best), each of the two
     headings gets searches of its own, one as wide as the first and one reaching
     CHECK_REACH + 2 m (revisits 4-8 m aside lie beyond the first search's 5 m); the
     other heading wins only where both its own phase-correlation peak is the higher and
@@ -380,7 +381,7 @@ def refine_checked(
     idx, peak = second_peak(curve[None], np.array([best]))
     other, other_val = int(idx[0]), float(peak[0])
     conf = float(margin(val, other_val))
-    if conf < CHECK_BELOW:
+    if conf < check_below:
         windows = [(c + np.arange(-2, 3)) % sectors for c in (best, other)]
         found = _searches(views, [(w, r) for w in windows for r in (COARSE_REACH, CHECK_REACH)])
         v1, ncc1, _, _ = _heading(views, windows[0], found[:2])
@@ -422,14 +423,14 @@ def _aligned_ncc(views: _Views, position: np.ndarray, shift: int) -> float:
 
 
 def refine_yaw_conf(
-    query: np.ndarray, matches: np.ndarray, max_range: float
+    query: np.ndarray, matches: np.ndarray, max_range: float, check_below: float = CHECK_BELOW
 ) -> tuple[np.ndarray, np.ndarray]:
     """(yaw [K] in degrees, (-180, 180], yaw confidence [K] in [0, 1]) of the query
     [R, S] relative to each match [K, R, S] (`refine_checked`)."""
     m = np.asarray(matches)
     if m.ndim == 2:
         m = m[None]
-    out = [refine_checked(query, mk, max_range) for mk in m]
+    out = [refine_checked(query, mk, max_range, check_below) for mk in m]
     yaw = np.array([o[0] for o in out], np.float32)
     return _wrapped(yaw), np.array([o[2] for o in out], np.float32)
 
@@ -451,10 +452,10 @@ def query_in_match_frame(
 
 
 def query_in_match_frame_conf(
-    query: np.ndarray, match: np.ndarray, max_range: float
+    query: np.ndarray, match: np.ndarray, max_range: float, check_below: float = CHECK_BELOW
 ) -> tuple[float, np.ndarray, float]:
     """`query_in_match_frame` and the yaw's confidence (`refine_checked`)."""
-    yaw, match_in_query, conf = refine_checked(query, match, max_range)
+    yaw, match_in_query, conf = refine_checked(query, match, max_range, check_below)
     c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
     # The match sensor sits at p in the query frame, so the query sits at -R p in the
     # match frame, R turning query axes into match axes (the yaw).
