@@ -188,6 +188,10 @@ def test_damaged_row_reported_and_skipped(maps, samples: Path, tmp_path: Path) -
     # Copying leaves the damaged row out and says so.
     code, text = _cli("build-db", "--from", fleet, "-o", tmp_path / "rest.db")
     assert code == 0 and "copied 25 scans" in text and "scan 5" in text
+    # --repair rewrites the row from the scans the map was built from.
+    code, text = _cli("build-db", samples / "00", "-o", fleet, "--repair")
+    assert code == 0 and "repaired 1 damaged scans" in text, text
+    assert _cli("info", fleet, "--check")[0] == 0
 
 
 def test_milvus_lite_held_by_another_process(maps, samples: Path) -> None:
@@ -336,3 +340,14 @@ def test_serve_answers_from_a_milvus_map(maps, samples: Path, tmp_path: Path) ->
         proc.wait(timeout=30)
     assert [r["match"] for r in got] == [r["match"] for r in want]
     np.testing.assert_allclose([r["yaw_deg"] for r in got], [r["yaw_deg"] for r in want])
+
+
+def test_resumed_build_adds_the_rest(samples: Path, tmp_path: Path) -> None:
+    """A build stopped after some scans is resumed by the same command, as for SQLite."""
+    fleet = f"milvus:{tmp_path / 'fleet.db'}"
+    scans = sorted(str(p) for p in (samples / "00" / "velodyne").iterdir())
+    assert _cli("build-db", *scans[:10], "-o", fleet)[0] == 0
+    code, text = _cli("build-db", samples / "00", "-o", fleet)
+    assert code == 0 and "wrote 16 scans" in text and "10 were in it already" in text, text
+    with Map.open(fleet) as m:
+        assert [Path(n).name for n in m.names()] == [Path(p).name for p in scans]
