@@ -4,6 +4,7 @@ docs/research/model-history.md ran.
 
     .venv/bin/python benchmarks/ood_eval.py WORLD... --models default ft.pt [--tilt 3] [--z 0.5]
         [--rerank-wider 0] [--snap-radius 0] [--rerank 0] [--radius 8.5]
+        [--policy FIELD=VALUE ...]
 
 `NAME+svM` is NAME with a map of side views M m to each side, `spectral+snap` the floor
 searched with the network's snap to the nearest map scan (as in ood_suite.py).
@@ -12,7 +13,9 @@ Each WORLD holds sessions 00 (the map) and 01 (the queries); a match is true wit
 (`--radius`: 8.5 for revisits 4-8 m to the side, then also Recall@1 by distance).
 Prints one line per model: Recall@1 / Recall@5 / mean yaw error (deg) and the misses of
 Recall@1 per world. `--rerank-wider 0 --snap-radius 0` gives the network's search as it
-was before those two steps.
+was before those two steps. `--policy` sets any field of the query stage's `QueryPolicy`
+(disco_cli/query_policy.py) for an ablation, e.g. `--policy signature_weight=0
+view_offsets= yaw_check_below=0` (a tuple as comma-separated numbers, empty for none).
 """
 
 from __future__ import annotations
@@ -42,6 +45,24 @@ class _Lift:
         return shift_z(pts, self.dz)
 
 
+def with_fields(policy, settings: list[str]):
+    """`policy` with FIELD=VALUE settings, each VALUE read as the field's type."""
+    from dataclasses import fields, replace
+
+    types = {f.name: type(getattr(policy, f.name)) for f in fields(policy)}
+    changes = {}
+    for item in settings:
+        key, sep, value = item.partition("=")
+        if not sep or key not in types:
+            raise SystemExit(f"--policy {item}: FIELD=VALUE with FIELD one of {', '.join(types)}")
+        kind = types[key]
+        if kind is tuple:
+            changes[key] = tuple(float(v) for v in value.split(",") if v.strip())
+        else:
+            changes[key] = kind(float(value)) if kind is int else kind(value)
+    return replace(policy, **changes)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("worlds", nargs="+", type=Path)
@@ -61,6 +82,13 @@ def main() -> int:
         default=S.RADIUS,
         help="a match is true within this (m); above 5, Recall@1 by distance too (revisits)",
     )
+    ap.add_argument(
+        "--policy",
+        nargs="+",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="QueryPolicy fields to set (an ablation), e.g. signature_weight=0 view_offsets=",
+    )
     args = ap.parse_args()
 
     import torch
@@ -78,6 +106,8 @@ def main() -> int:
         snap = args.snap_radius if model.abilities.locate else None
         rerank = args.rerank if model.abilities.rerank else None
         policy = policy_for(model, rerank=rerank, rerank_wider=wider, snap_radius=snap)
+        policy = with_fields(policy, args.policy)
+        print(f"{name}: {policy}", flush=True)
         cells = []
         for w in args.worlds:
             mp, mpose = S.load_session(w / "00")
