@@ -42,6 +42,7 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -206,8 +207,18 @@ class World:
         return self._queries.points(i)
 
     def run(
-        self, model, kind: str, positions, gate=None, penalty=0.0, factor=1.0, keep_own=False
+        self,
+        model,
+        kind: str,
+        positions,
+        gate=None,
+        penalty=0.0,
+        factor=1.0,
+        keep_own=False,
+        policy=None,
     ) -> tuple[float, int, list[float], int]:
+        """Recall@1 of one variant; `policy`: the query stage's for `kind` "none" (default:
+        the model's without its own views, as before they were built)."""
         from disco_cli.map_side_views import ViewIndex
         from disco_cli.search import SignatureIndex, match_queries
 
@@ -223,12 +234,18 @@ class World:
         else:
             index = QueryViewIndex(e["ms"], factor, keep_own)
         m = ViewReranked(model, penalty) if kind in ("U", "GU", "bevF") else model
+        # The probe makes its own views: the shipped ones (built after it) stay off.
+        no_views = replace(model.query_policy, view_offsets=())
+        if kind == "none" and policy is not None:
+            no_views = policy
         plain = SignatureIndex(e["ms"])
         hits, near, over10 = [], [], 0
         for i in self.has:
             qf = e["qf"][i : i + 1]
             if gate is not None:
-                best = match_queries(plain, self.ids, self.db, model, e["qs"][i : i + 1], qf, 1)
+                best = match_queries(
+                    plain, self.ids, self.db, model, e["qs"][i : i + 1], qf, 1, no_views
+                )
                 best = best[0][0]
                 if best.distance <= gate:
                     self._score(i, best, hits, near)
@@ -246,7 +263,7 @@ class World:
                 from disco_cli.model.yaw_refine import recentre
 
                 m.views = recentre(model._u(qf[0]), positions, model.bev_config.max_range)
-            best = match_queries(index, self.ids, self.db, m, sig, qf, 1)[0][0]
+            best = match_queries(index, self.ids, self.db, m, sig, qf, 1, no_views)[0][0]
             over10 += self._score(i, best, hits, near)
         hits, near = np.array(hits), np.array(near)
         bands = [(near >= a) & (near < a + 1) for a in (4, 5, 6, 7)]
@@ -283,18 +300,19 @@ def time_views(w: World, model, reps: int = 3) -> None:
         runs.append(
             (name, pos, QueryViewIndex(e["ms"], factor, keep_own), ViewReranked(model, penalty))
         )
+    no_views = replace(model.query_policy, view_offsets=())  # the probe's own views only
     times: dict[str, list[float]] = {"today": [], **{name: [] for name in TIMED}}
     for _ in range(reps):
         for i in range(len(e["qs"])):
             qf = e["qf"][i : i + 1]
             t = time.perf_counter()
-            match_queries(plain, w.ids, w.db, model, e["qs"][i : i + 1], qf, 10)
+            match_queries(plain, w.ids, w.db, model, e["qs"][i : i + 1], qf, 10, no_views)
             times["today"].append(time.perf_counter() - t)
             for name, pos, index, m in runs:
                 t = time.perf_counter()
                 sig = g_views(model, qf[0], pos)
                 m.views = recentre(model._u(qf[0]), pos, rng)
-                match_queries(index, w.ids, w.db, m, sig, qf, 10)
+                match_queries(index, w.ids, w.db, m, sig, qf, 10, no_views)
                 times[name].append(time.perf_counter() - t)
     med = {name: 1e3 * float(np.median(t)) for name, t in times.items()}
     print(

@@ -9,8 +9,9 @@ radius (m) within which a match is true; worlds are embedded once by the shipped
 and cached (--cache, as `query_side_views_probe.py` does). Every query goes through
 `search.match_queries` with the map in memory, three ways:
 
-- `before`: no side views of the query, the yaw search reaching 5 m, and the snap
-  searching the yaw to the scan it moves to (the search before issue 24's views);
+- `before`: no side views of the query, the yaw search reaching 5 m (the search before
+  issue 24's views, except that the snap now carries the yaw to the scan it moves to by
+  the map poses, where it searched it then: that function is gone, issue 32);
 - `views`: the query's side views (`DiscoModel.query_views`), the snap carrying the
   best match's yaw by the two map poses, the yaw search still reaching 5 m;
 - `shipped`: as `views`, with the yaw search reaching `yaw_refine.SIDE_REACH` to the
@@ -28,24 +29,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-
-def searched_snap_yaw(snap):
-    """`search.snap_to_nearest_conf` as before: no yaw for a scan the snap moved to
-    (match_queries then searches it)."""
-
-    def snapped(model, query_features, stored, order, distances, radius, margin):
-        moved, yaw, conf = snap(model, query_features, stored, order, distances, radius, margin)
-        if moved[0] != order[0]:
-            return moved, None, float("nan")
-        return moved, yaw, conf
-
-    return snapped
 
 
 def set_side_reach(metres: float) -> None:
@@ -73,25 +62,25 @@ def main() -> None:
     torch.set_num_threads(1)
     from query_side_views_probe import World
 
-    import disco_cli.search as search
     from disco_cli.model import load_model, yaw_refine
 
     model = load_model("default")
-    offsets, snap = model.query_view_offsets, search.snap_to_nearest_conf
+    shipped = model.query_policy
+    offsets = shipped.view_offsets
     if args.offsets:
         offsets = tuple(float(x) for x in args.offsets.split(","))
+    views = replace(shipped, view_offsets=offsets)
     ways = {
-        "before": ((), searched_snap_yaw(snap), 0.0),
-        "views": (offsets, snap, 0.0),
-        "shipped": (offsets, snap, yaw_refine.SIDE_REACH),
+        "before": (replace(shipped, view_offsets=()), 0.0),
+        "views": (views, 0.0),
+        "shipped": (views, yaw_refine.SIDE_REACH),
     }
     print("| world | queries | " + " | ".join(ways) + " |")
     print("| --- | ---: | " + " | ".join("---:" for _ in ways) + " |")
     for spec in args.worlds:
         w = World(spec, args.cache, model)
         cells, n = [], 0
-        for views, snap_fn, reach in ways.values():
-            model.query_view_offsets, search.snap_to_nearest_conf = views, snap_fn
+        for policy, reach in ways.values():
             set_side_reach(reach)
             errors: list[float] = []
             score = w._score
@@ -104,7 +93,7 @@ def main() -> None:
                 return out
 
             w._score = scored
-            r1, n, by, over10 = w.run(model, "none", None)
+            r1, n, by, over10 = w.run(model, "none", None, policy=policy)
             w._score = score
             cell = f"{r1:.3f}"
             if w.radius > 5:
