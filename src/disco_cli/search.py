@@ -9,14 +9,19 @@ One function, `match_queries`, under one `QueryPolicy` (query_policy.py):
 2. Re-ranking (`policy.rerank_candidates`): each candidate's feature images against the
    query's and its views' (`model.rerank_distances_views`); where none of the first ones
    re-ranks better than `rerank_wider_above`, the next ones down to `rerank_wider`.
-3. One score ranks the rows and is the `distance` they show (`ranking_score`):
+3. One score ranks the rows and is the `distance` they show (`ranking_score`,
+   `shown_distances`):
 
-       distance = r - signature_weight / s
+       score = r - signature_weight / s
+       distance = score - score(first row) + r_own(first row)
 
-   r: the candidate's best re-rank distance over the query (its own) and its views
-   (a view's plus `view_penalty`); s: its nearest signature distance over the same.
-   Without re-ranking the distance is the signature distance. `max_distance` applies
-   to it before the top-k cut, so the rows are sorted by what they show.
+   r: the candidate's best re-rank distance over the query (r_own: its own) and its
+   views (a view's plus `view_penalty`); s: its nearest signature distance over the
+   same. The shift makes the first row show how well the query itself matches it,
+   which compares across queries (thresholds, precision); within a query the order is
+   the score's. Without re-ranking the distance is the signature distance.
+   `max_distance` applies to it before the top-k cut, so the rows are sorted by what
+   they show.
 4. The snap, a tie-break of that score (`snap_first`): among the candidates within
    `snap_radius` m of the best on the map whose own re-rank distance is within
    `snap_margin` of the best's, the one nearest the query's position (estimated from
@@ -58,7 +63,7 @@ class Match:
     row: int  # row in the index (0-based, id order)
     match_id: int
     path: str
-    # The score that ranks the rows (`ranking_score`): lower is better.
+    # The score that ranks the rows, shifted per query (`shown_distances`): lower is better.
     distance: float
     yaw_deg: float
     pose: np.ndarray  # x, y, z, yaw (rad) of the match, NaN where unknown
