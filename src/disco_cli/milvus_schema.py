@@ -2,14 +2,33 @@
 
 from __future__ import annotations
 
+import base64
 import json
 from typing import Any
 
-from disco_cli.database import FORMAT_VERSION
+import numpy as np
+
+from disco_cli.database import (
+    FORMAT_VERSION,
+    ScanBatch,
+    _encode_features,
+    _feature_crc,
+    _scaled,
+    _scan_crc,
+    _view_crc,
+)
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.milvus_address import MilvusAddress, reason_of
 
-__all__ = ["create_collections", "load_collections", "read_meta", "PATH_MAX", "VARCHAR_MAX"]
+__all__ = [
+    "create_collections",
+    "load_collections",
+    "read_meta",
+    "encode_rows",
+    "row_crc",
+    "PATH_MAX",
+    "VARCHAR_MAX",
+]
 
 # Milvus's largest VARCHAR; the deflated features of the default model are ~9 KB.
 VARCHAR_MAX = 65535
@@ -135,3 +154,79 @@ def create_collections(
         "v",
         2,
     )
+
+
+def _null(v: float) -> float | None:
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def vector_bytes(vec: Any) -> bytes:
+    return np.asarray(vec, dtype="<f4").tobytes()
+
+
+def row_crc(rid: int, row: dict) -> int:
+    """The scan row's checksum: `database._scan_crc`'s layout over the stored values,
+    with the float32 vector's bytes as the signature."""
+    return _scan_crc(
+        rid,
+        row["path"],
+        row["rel_path"],
+        row["time"],
+        row["x"],
+        row["y"],
+        row["z"],
+        row["yaw"],
+        vector_bytes(row["sig"]),
+        1.0,
+    )
+
+
+def encode_rows(
+    where: Any, ids: list[int], batch: ScanBatch, rels: list
+) -> tuple[list[dict], list[dict]]:
+    """A batch's rows for the scans and views collections, checksummed: the signature as
+    the float16-rounded values the SQLite map reads back (both maps search the same
+    vectors), the features as the SQLite map's deflated blob in base64."""
+    rows, views = [], []
+    for k, rid in enumerate(ids):
+        sig16, scale = _scaled(batch.signatures[k], np.dtype("<f2"))
+        vec = np.frombuffer(sig16, "<f2").astype(np.float32) * np.float32(scale)
+        data, fscale = _encode_features(batch.features[k])
+        text = base64.b64encode(data).decode("ascii")
+        if len(text) > VARCHAR_MAX:
+            raise DatabaseError(
+                where, f"a scan's features take {len(text)} bytes, over Milvus's 65535"
+            )
+        path = str(batch.paths[k])
+        if len(path.encode("utf-8", "surrogateescape")) > PATH_MAX:
+            raise DatabaseError(where, f"{path[:60]}...: path longer than {PATH_MAX}")
+        x, y, z, yaw = (_null(v) for v in batch.poses[k])  # type: ignore[index]
+        row = {
+            "id": rid,
+            "sig": vec.tolist(),
+            "path": path,
+            "rel_path": rels[k],  # type: ignore[index]
+            "time": _null(batch.times[k]),  # type: ignore[index]
+            "x": x,
+            "y": y,
+            "z": z,
+            "yaw": yaw,
+            "features": text,
+            "feature_scale": float(fscale),
+        }
+        row["crc"] = row_crc(rid, row)
+        row["feature_crc"] = _feature_crc(rid, fscale, data)
+        rows.append(row)
+        for j, offset in enumerate(batch.side_offsets):
+            vsig, vscale = _scaled(batch.side_signatures[k, j], np.dtype("<f2"))  # type: ignore[index]
+            vvec = np.frombuffer(vsig, "<f2").astype(np.float32) * np.float32(vscale)
+            views.append(
+                {
+                    "key": rid * 64 + j,
+                    "scan_id": rid,
+                    "offset_m": float(offset),
+                    "sig": vvec.tolist(),
+                    "crc": _view_crc(rid, float(offset), vector_bytes(vvec), 1.0),
+                }
+            )
+    return rows, views

@@ -41,11 +41,7 @@ from disco_cli.database import (
     ModelInfo,
     ScanBatch,
     _bad_signatures,
-    _encode_features,
-    _feature_crc,
     _locate,
-    _scaled,
-    _scan_crc,
     _view_crc,
 )
 from disco_cli.errors import DatabaseError, DiscoError
@@ -58,11 +54,12 @@ from disco_cli.milvus_address import (
 )
 from disco_cli.milvus_address import milvus_errors as _milvus_errors
 from disco_cli.milvus_schema import (
-    PATH_MAX,
-    VARCHAR_MAX,
     create_collections,
+    encode_rows,
     load_collections,
     read_meta,
+    row_crc,
+    vector_bytes,
 )
 
 __all__ = ["MilvusDatabase", "parse_address", "HNSW_MIN_ROWS"]
@@ -74,33 +71,8 @@ _HNSW_BUILD = {"M": 16, "efConstruction": 128}
 _PAGE = 4096
 
 
-def _null(v: float) -> float | None:
-    return None if v is None or not np.isfinite(v) else float(v)
-
-
 def _nan(v: Any) -> float:
     return np.nan if v is None else float(v)
-
-
-def _vector_bytes(vec: Any) -> bytes:
-    return np.asarray(vec, dtype="<f4").tobytes()
-
-
-def _row_crc(rid: int, row: dict) -> int:
-    """The scan row's checksum: `database._scan_crc`'s layout over the stored values,
-    with the float32 vector's bytes as the signature."""
-    return _scan_crc(
-        rid,
-        row["path"],
-        row["rel_path"],
-        row["time"],
-        row["x"],
-        row["y"],
-        row["z"],
-        row["yaw"],
-        _vector_bytes(row["sig"]),
-        1.0,
-    )
 
 
 class MilvusDatabase(Database):
@@ -260,50 +232,9 @@ class MilvusDatabase(Database):
             self.damaged.pop(i, None)
 
     def _insert(self, ids: list[int], batch: ScanBatch, upsert: bool = False) -> None:
-        rows, views = [], []
+        # Relative paths mean nothing on a server: none are stored there.
         rels = batch.rel_paths if self.address.lite else [None] * len(ids)
-        for k, rid in enumerate(ids):
-            sig16, scale = _scaled(batch.signatures[k], np.dtype("<f2"))
-            # The values the SQLite map reads back: both maps search the same vectors.
-            vec = np.frombuffer(sig16, "<f2").astype(np.float32) * np.float32(scale)
-            data, fscale = _encode_features(batch.features[k])
-            text = base64.b64encode(data).decode("ascii")
-            if len(text) > VARCHAR_MAX:
-                raise DatabaseError(
-                    self.path, f"a scan's features take {len(text)} bytes, over Milvus's 65535"
-                )
-            path = str(batch.paths[k])
-            if len(path.encode("utf-8", "surrogateescape")) > PATH_MAX:
-                raise DatabaseError(self.path, f"{path[:60]}...: path longer than {PATH_MAX}")
-            x, y, z, yaw = (_null(v) for v in batch.poses[k])  # type: ignore[index]
-            row = {
-                "id": rid,
-                "sig": vec.tolist(),
-                "path": path,
-                "rel_path": rels[k],  # type: ignore[index]
-                "time": _null(batch.times[k]),  # type: ignore[index]
-                "x": x,
-                "y": y,
-                "z": z,
-                "yaw": yaw,
-                "features": text,
-                "feature_scale": float(fscale),
-            }
-            row["crc"] = _row_crc(rid, row)
-            row["feature_crc"] = _feature_crc(rid, fscale, data)
-            rows.append(row)
-            for j, offset in enumerate(batch.side_offsets):
-                vsig, vscale = _scaled(batch.side_signatures[k, j], np.dtype("<f2"))  # type: ignore[index]
-                vvec = np.frombuffer(vsig, "<f2").astype(np.float32) * np.float32(vscale)
-                views.append(
-                    {
-                        "key": rid * 64 + j,
-                        "scan_id": rid,
-                        "offset_m": float(offset),
-                        "sig": vvec.tolist(),
-                        "crc": _view_crc(rid, float(offset), _vector_bytes(vvec), 1.0),
-                    }
-                )
+        rows, views = encode_rows(self.path, ids, batch, rels)  # type: ignore[arg-type]
         # Views first: a scan row is only ever seen with its views stored.
         if views:
             self._client.upsert(self._views_c, views)
@@ -471,7 +402,7 @@ class MilvusDatabase(Database):
             return f"signature is not {self.signature_dim} values"
         if not isinstance(row.get("path"), str):
             return "path is not text"
-        if row.get("crc") != _row_crc(int(row["id"]), row):
+        if row.get("crc") != row_crc(int(row["id"]), row):
             return "checksum mismatch (signature, pose, time or path changed)"
         return None
 
@@ -518,7 +449,7 @@ class MilvusDatabase(Database):
             sig = r.get("sig")
             if sig is None or len(sig) != self.signature_dim:
                 bad[rid] = "a side view has another size"
-            elif r.get("crc") != _view_crc(rid, float(r["offset_m"]), _vector_bytes(sig), 1.0):
+            elif r.get("crc") != _view_crc(rid, float(r["offset_m"]), vector_bytes(sig), 1.0):
                 bad[rid] = "a side view fails its checksum"
             else:
                 sound.append(r)
