@@ -351,3 +351,26 @@ def test_resumed_build_adds_the_rest(samples: Path, tmp_path: Path) -> None:
     assert code == 0 and "wrote 16 scans" in text and "10 were in it already" in text, text
     with Map.open(fleet) as m:
         assert [Path(n).name for n in m.names()] == [Path(p).name for p in scans]
+
+
+def test_hnsw_from_a_size(maps, samples: Path, tmp_path: Path, monkeypatch) -> None:
+    """Past HNSW_MIN_ROWS scans the map's vector index becomes HNSW (here lowered to 20),
+    and Milvus's search through it gives the SQLite map's answers on the samples."""
+    pytest.importorskip("faiss")
+    import disco_cli.milvus_store as store
+    from disco_cli.milvus_address import connect, disconnect
+
+    sqlite_map, _ = maps
+    fleet = f"milvus:{tmp_path / 'fleet.db'}"
+    monkeypatch.setattr(store, "HNSW_MIN_ROWS", 20)
+    assert _cli("build-db", "--from", sqlite_map, "-o", fleet)[0] == 0
+    where = parse_address(fleet)
+    client = connect(where)
+    try:
+        assert client.describe_index("disco_scans", "sig")["index_type"] == "HNSW"
+    finally:
+        disconnect(where, client)
+    queries = _queries(samples)
+    want = _answers(sqlite_map, queries)
+    got = _answers(fleet, queries, index="ann")
+    assert [g[0][0] for g in got] == [w[0][0] for w in want]
