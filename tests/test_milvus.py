@@ -374,3 +374,28 @@ def test_hnsw_from_a_size(maps, samples: Path, tmp_path: Path, monkeypatch) -> N
     want = _answers(sqlite_map, queries)
     got = _answers(fleet, queries, index="ann")
     assert [g[0][0] for g in got] == [w[0][0] for w in want]
+
+
+def test_bad_addresses_one_line(maps, samples: Path, tmp_path: Path) -> None:
+    sqlite_map, _ = maps
+    query = samples / "01" / "velodyne" / "000005.bin"
+    cases = [
+        (
+            ("build-db", samples / "00", "-o", f"milvus:{tmp_path}/no/x.db"),
+            f"folder {tmp_path}/no does not exist; create it first",
+        ),
+        (("info", f"milvus:{tmp_path}/none.db"), "no such database"),
+        (
+            ("query", query, "--db", "milvus://h/x"),
+            "no such database (a server is milvus://HOST:PORT/NAME)",
+        ),
+        (("info", f"milvus:{sqlite_map}"), "is a file, not a Milvus Lite folder"),
+        (
+            ("build-db", "--from", sqlite_map, "-o", sqlite_map),
+            "--from and --output name the same map",
+        ),
+    ]
+    for args, said in cases:
+        code, text = _cli(*args)
+        assert code == 1, text
+        assert len(_lines(text)) == 1 and _lines(text)[0].endswith(said), text

@@ -66,6 +66,12 @@ class MilvusAddress:
     def parent(self) -> Path:
         return Path(os.path.abspath(self.uri)).parent if self.lite else Path.cwd()
 
+    def check_folder(self) -> None:
+        """One line when a Milvus Lite map's folder cannot be made (its parent is missing)."""
+        parent = os.path.dirname(os.path.abspath(self.uri))
+        if self.lite and not os.path.isdir(parent):
+            raise DatabaseError(self, f"folder {parent} does not exist; create it first")
+
     def exists(self) -> bool:
         """Whether a map is stored there (a server is asked)."""
         require_extra(self)
@@ -143,6 +149,7 @@ def connect(address: MilvusAddress) -> Any:
             raise DatabaseError(address, "a Milvus Lite map's PATH must end in .db")
         if os.path.exists(uri) and not os.path.isdir(uri):
             raise DatabaseError(address, "is a file, not a Milvus Lite folder")
+        address.check_folder()
         token = ""
     else:
         uri = address.uri

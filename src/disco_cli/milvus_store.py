@@ -122,7 +122,8 @@ class MilvusDatabase(Database):
             raise DiscoError(f"{path}: not a milvus: address")
         require_extra(address)
         if address.lite and not Path(address.uri).exists():
-            raise DatabaseError(address, "no such database")
+            hint = "" if address.uri.endswith(".db") else " (a server is milvus://HOST:PORT/NAME)"
+            raise DatabaseError(address, f"no such database{hint}")
         client = connect(address)
         try:
             load_collections(address, client)

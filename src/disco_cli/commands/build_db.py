@@ -116,6 +116,7 @@ def build_db(
     inputs = inputs or []
     if parse_address(output) is not None:
         output = parse_address(output)  # type: ignore[assignment]
+        output.check_folder()  # type: ignore[attr-defined]  # before any scan is embedded
     else:
         check_output_file(output, what="the database")  # before any scan is embedded
     fmt = scan_format.value if scan_format is not None else None
