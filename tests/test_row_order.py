@@ -57,3 +57,28 @@ def test_max_distance_cuts_by_the_shown_distance_before_the_top_k(sample_map) ->
                 assert all(r.distance <= bound for r in got)
             below = m.query(points, topk=10, max_distance=full[0].distance - 1e-6)
             assert below == []
+
+
+def test_disco_serve_answers_under_the_policy_it_was_given(sample_map, samples: Path) -> None:
+    """`ServeOptions.policy` reaches every request: with re-ranking off the rows are the
+    plain signature order (the map's nearest signatures), sorted by what they show."""
+    from disco_cli import Map
+    from disco_cli.pipeline import load_bev
+    from disco_cli.serve import QueryService, ServeOptions
+
+    path, _ = sample_map
+    scan = str(list_scans(samples / "01")[3])
+    with Map.open(path) as m:
+        ids, sigs = m.database.signatures()
+        query_sig, _ = m.model.embed(load_bev(scan, m.model.bev_config)[None])
+        nearest = ids[np.argsort(np.linalg.norm(sigs - query_sig[0], axis=1), kind="stable")[:5]]
+        plain = replace(m.model.query_policy, rerank_candidates=0)
+        served = {}
+        for name, policy in (("shipped", None), ("plain", plain)):
+            service = QueryService(m, ServeOptions(topk=5, policy=policy))
+            served[name] = service.handle({"scan": scan})["rows"]
+    assert [r["match_id"] for r in served["plain"]] == nearest.tolist()
+    assert served["shipped"] != served["plain"]  # the shipped policy re-ranks
+    for rows in served.values():
+        d = [r["distance"] for r in rows]
+        assert d == sorted(d)

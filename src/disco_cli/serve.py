@@ -77,11 +77,13 @@ class Cancelled(Exception):
 @dataclass
 class ServeOptions:
     """What every request gets unless it says otherwise, and where scans may be read:
-    `scan_root` None reads any path (relative ones from the working folder)."""
+    `scan_root` None reads any path (relative ones from the working folder). `policy`:
+    the query stage's `QueryPolicy` for every request (None: the map's model's)."""
 
     topk: int = 10
     max_request_bytes: int = MAX_REQUEST_BYTES
     scan_root: Path | None = None
+    policy: Any = None
 
 
 def _plain(value: Any) -> Any:
@@ -327,7 +329,11 @@ class QueryService:
         result = next(
             iter(
                 self.map.query_files(
-                    [path], topk=topk, max_distance=max_distance, scan_format=scan_format
+                    [path],
+                    topk=topk,
+                    max_distance=max_distance,
+                    scan_format=scan_format,
+                    policy=self.options.policy,
                 )
             )
         )
@@ -347,7 +353,9 @@ class QueryService:
         from disco_cli.pipeline import array_points
 
         points = array_points(_decode_points(field), name)
-        matches = self.map.query(points, topk=topk, max_distance=max_distance, name=name)
+        matches = self.map.query(
+            points, topk=topk, max_distance=max_distance, name=name, policy=self.options.policy
+        )
         if pose:
             matches = self._refine(matches, points, verify=verify)
         return QueryResult(0, name, matches)
