@@ -828,7 +828,9 @@ def main(argv: list[str] | None = None) -> int:
         help="matches per query with the parallax-free yaw (0: plain phase correlation)",
     )
     ap.add_argument(
-        "--update-docs", action="store_true", help="write the tables into docs/results.md"
+        "--update-docs",
+        action="store_true",
+        help="write the tables into docs/research/ood-suite.md",
     )
     args = ap.parse_args(argv)
 
@@ -974,7 +976,7 @@ def main(argv: list[str] | None = None) -> int:
     (out / "tables.md").write_text(text)
     print(text)
     if args.update_docs:
-        doc = ROOT / "docs" / "results.md"
+        doc = ROOT / "docs" / "research" / "ood-suite.md"
         mark = "quick" if args.quick else "full"
         begin, end = f"<!-- ood-{mark}:begin -->", f"<!-- ood-{mark}:end -->"
         body = doc.read_text()

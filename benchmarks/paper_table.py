@@ -58,13 +58,22 @@ FAMILIES_SHIPPED = dict(FAMILIES)
 
 def world_folder(out: Path, fam: Family, seed: int, quick: bool) -> Path:
     tag = "-q" if quick else ""
-    if fam != FAMILIES_SHIPPED.get(fam.name):  # a calibration variant: its own folder
-        tag += "-" + hashlib.sha1(repr(fam).encode()).hexdigest()[:8]
+    shipped = FAMILIES_SHIPPED[fam.name]
+    sim = (fam.simulate_args(seed, quick), fam.town_toml())
+    if sim != (shipped.simulate_args(seed, quick), shipped.town_toml()):
+        # a calibration variant of what is simulated: a folder of its own
+        tag += "-" + hashlib.sha1(repr(sim).encode()).hexdigest()[:8]
     folder = out / "worlds" / f"{fam.name}-{seed}{tag}"
     if (folder / "world.json").is_file():
         return folder
     disco = str(Path(sys.executable).parent / "disco")
     cmd = [disco, "simulate", str(folder), *fam.simulate_args(seed, quick), "-q", "--force"]
+    toml = fam.town_toml()
+    if toml is not None:
+        town = out / "worlds" / f"{folder.name}.toml"
+        town.parent.mkdir(parents=True, exist_ok=True)
+        town.write_text(toml)
+        cmd += ["--town", str(town)]
     cmd += ["--threads", str(os.environ.get("DISCO_THREADS", "2"))]
     print("+", " ".join(cmd[1:]), file=sys.stderr, flush=True)
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
@@ -81,7 +90,8 @@ def cached_rows(out: Path, fam: Family, seed: int, quick: bool, method: str, thr
     model = load_model(method)
     key = {"family": asdict(fam), "seed": seed, "quick": quick, "method": method}
     key["fingerprint"] = str(getattr(model, "fingerprint", method))
-    f = out / "rows" / f"{folder.name}--{Path(method).stem}.jsonl"
+    variant = hashlib.sha1(repr(fam).encode()).hexdigest()[:8]
+    f = out / "rows" / f"{folder.name}--{variant}--{Path(method).stem}.jsonl"
     if f.is_file():
         lines = f.read_text().splitlines()
         if json.loads(lines[0]) == json.loads(json.dumps(key)):
@@ -163,6 +173,7 @@ def override(families: dict[str, Family], item: str) -> tuple[str, Family]:
         "int": int,
         "bool": lambda v: v.lower() in ("1", "true", "yes"),
         "str": str,
+        "float | None": lambda v: None if v.lower() == "none" else float(v),
     }
     if kind == "tuple[str, ...]":
         return name, replace(fam, **{key: tuple(value.split())})

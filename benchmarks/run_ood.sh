@@ -9,7 +9,7 @@
 #   benchmarks/run_ood.sh --quick                       # a few minutes: one style, 32 beams
 #   benchmarks/run_ood.sh                               # every world (85; hdl64 costs most)
 #   benchmarks/run_ood.sh --quick --models default spectral run/candidate.pt
-#   benchmarks/run_ood.sh --update-docs                 # tables into docs/results.md
+#   benchmarks/run_ood.sh --update-docs                 # tables into docs/research/ood-suite.md
 #   benchmarks/run_ood.sh --only blv --no-real          # issue 24's boulevard worlds only
 #
 # Its seeds (7101-7301) are used by nothing else (docs/research/model-history.md#seeds). Runs at low priority
