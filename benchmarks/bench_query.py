@@ -521,10 +521,7 @@ def main() -> None:
 
         one_blas_thread_for_process()
     print_header("bench_query")
-    print(
-        "  OpenBLAS runs one thread (as `disco` sets it): "
-        f"{not args.process_defaults}"
-    )
+    print(f"  OpenBLAS runs one thread (as `disco` sets it): {not args.process_defaults}")
     if args.yaw_f16:
         with tempfile.TemporaryDirectory() as tmp:
             y = bench_yaw_f16(args.model, *args.yaw_f16, Path(tmp))

@@ -180,6 +180,14 @@ def override(families: dict[str, Family], item: str) -> tuple[str, Family]:
     return name, replace(fam, **{key: conv[kind](value)})
 
 
+def write_between(doc: Path, mark: str, text: str) -> None:
+    """Replace what lies between `<!-- MARK:begin -->` and `<!-- MARK:end -->` in `doc`."""
+    begin, end = f"<!-- {mark}:begin -->", f"<!-- {mark}:end -->"
+    page = doc.read_text()
+    a, b = page.index(begin) + len(begin), page.index(end)
+    doc.write_text(page[:a] + "\n" + text + "\n" + page[b:])
+
+
 def cpu_name() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -199,6 +207,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "paper")
     ap.add_argument("--threads", type=int, default=int(os.environ.get("DISCO_THREADS", "2")))
     ap.add_argument("--json", type=Path, help="also write the summaries here")
+    ap.add_argument(
+        "--update-docs",
+        action="store_true",
+        help="write the tables into docs/results.md (report seeds, full mode only)",
+    )
     ap.add_argument(
         "--set",
         action="append",
@@ -220,11 +233,25 @@ def main() -> None:
                 rows += cached_rows(args.out, FAMILIES[fam], seed, args.quick, method, args.threads)
             results[(fam, method)] = summarize(rows)
     mode = "quick" if args.quick else "full"
-    print(f"# {args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}")
+    head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}"
+    print(f"# {head}")
     print("\n".join(table(results, args.families, args.models)))
     print()
     print("\n".join(precision_table(results, args.families, args.models)))
     print(f"\n({time.monotonic() - t0:.0f} s)")
+    if args.update_docs:
+        if args.quick or args.seeds != "report":
+            raise SystemExit("--update-docs writes the report seeds' full tables only")
+        text = "\n".join(
+            [
+                head,
+                "",
+                *table(results, args.families, args.models),
+                "",
+                *precision_table(results, args.families, args.models),
+            ]
+        )
+        write_between(ROOT / "docs" / "results.md", "paper", text)
     if args.json:
         args.json.write_text(
             json.dumps({f"{f}/{m}": s for (f, m), s in results.items()}, indent=1) + "\n"

@@ -544,10 +544,7 @@ def test_default_model_reranks_the_nearest_signatures(
         [
             min(
                 [1 - corr(feat[0, 1], stored.features[i, 1])]
-                + [
-                    1 + policy.view_penalty - corr(v, stored.features[i, 1])
-                    for v in view_images
-                ]
+                + [1 + policy.view_penalty - corr(v, stored.features[i, 1]) for v in view_images]
             )
             for i in cand
         ]

@@ -121,9 +121,10 @@ def test_match_id_counts_from_1_and_loop_indices_from_0(spectral_map: Path, samp
         assert int(r["query_index"]) == int(Path(r["query"]).stem)
         assert int(r["match_index"]) == int(Path(r["match"]).stem)
     wide = {"COLUMNS": "400"}
-    assert "match_id is the scan's id in the map: 1 for the first" in _run(
-        "query", "--help", env=wide
-    ).stdout
+    assert (
+        "match_id is the scan's id in the map: 1 for the first"
+        in _run("query", "--help", env=wide).stdout
+    )
     assert "positions in the sequence, from 0" in _run("loops", "--help", env=wide).stdout
 
 

@@ -13,9 +13,9 @@ import pytest
 from query_stubs import StubModel
 
 from disco_cli.database import MatchRows
+from disco_cli.map_side_views import ViewIndex
 from disco_cli.readers import list_scans, read_scan
 from disco_cli.search import match_queries, ranking_score
-from disco_cli.map_side_views import ViewIndex
 
 
 def _order(rows, rerank_d, sig_d, weight):

@@ -10,9 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
+from disco_cli.map_side_views import ViewIndex, side_offsets, side_view_bevs
 from disco_cli.readers import list_scans, read_scan
 from disco_cli.search import brute_force_topk
-from disco_cli.map_side_views import ViewIndex, side_offsets, side_view_bevs
 
 
 def run(*args: str) -> tuple[int, str]:

@@ -166,8 +166,8 @@ class LoopDetector:
         policy: Any = None,
     ):
         from disco_cli.map import _load_model
-        from disco_cli.query_policy import policy_for
         from disco_cli.map_side_views import side_offsets
+        from disco_cli.query_policy import policy_for
 
         if exclude_frames is not None and (
             isinstance(exclude_frames, bool) or int(exclude_frames) != exclude_frames
@@ -220,8 +220,8 @@ class LoopDetector:
         sig, feat = embed_one(pts, self._model, label)
         sides = None
         if self.side_offsets:
-            from disco_cli.pipeline import embed_side_views
             from disco_cli.map_side_views import side_view_bevs
+            from disco_cli.pipeline import embed_side_views
 
             views = side_view_bevs(pts, self._model.bev_config, self.side_offsets)
             sides = embed_side_views([views], self._model)[0]
@@ -244,8 +244,8 @@ class LoopDetector:
         """`add` for a scan embedded already (by `model.embed`); `points` is its point
         array or a function that reads it (needed when poses are estimated);
         `side_signatures` `[V, D]` its side views' (when the detector has side views)."""
-        from disco_cli.search import match_queries
         from disco_cli.map_side_views import ViewIndex
+        from disco_cli.search import match_queries
         from disco_cli.signature_index import SignatureIndex
 
         i = len(self)

@@ -26,8 +26,8 @@ import numpy as np
 from disco_cli.database import DamagedRows, Database, ModelInfo, ScanBatch, damaged_line
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.localize import Match, PointCache, as_match, refine_matches
-from disco_cli.query_policy import policy_for
 from disco_cli.map_side_views import side_offsets, side_views_m
+from disco_cli.query_policy import policy_for
 
 __all__ = [
     "Map",
@@ -493,8 +493,8 @@ class Map:
         """Add scans from `(points, name, pose)` or `(points, name, pose, time)` tuples,
         one transaction per `batch` scans (as `disco build-db`); returns their ids.
         An unnamed scan is called `scan-<id>`."""
-        from disco_cli.pipeline import array_points, scan_bev
         from disco_cli.map_side_views import side_view_bevs
+        from disco_cli.pipeline import array_points, scan_bev
 
         self._check_writable()
         ids: list[int] = []

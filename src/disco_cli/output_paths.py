@@ -16,6 +16,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from disco_cli.errors import DiscoError
 
@@ -101,3 +102,16 @@ def write_atomic(path: str | Path, write: Callable[[Path], object]) -> None:
 def write_text_atomic(path: str | Path, text: str) -> None:
     """`text` into `path`, atomically."""
     write_atomic(path, lambda tmp: tmp.write_text(text))
+
+
+def check_map_output(output: Path) -> Any:
+    """The map a build writes: a Milvus address (`milvus:...`, its folder checked) or the
+    file path, checked by `check_output_file`; either before any scan is embedded."""
+    from disco_cli.milvus_address import parse_address
+
+    address = parse_address(output)
+    if address is None:
+        check_output_file(output, what="the database")
+        return output
+    address.check_folder()
+    return address

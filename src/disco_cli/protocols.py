@@ -389,9 +389,7 @@ def _run_protocol(
                 mask = oxford_in_test_squares(qs.poses[:, 0, 3], qs.poses[:, 1, 3])
                 if not mask.any():
                     continue
-                met = evaluate_sessions(
-                    sessions[m], qs, model, p.radius, p.topk, mask, policy
-                )
+                met = evaluate_sessions(sessions[m], qs, model, p.radius, p.topk, mask, policy)
                 results.append(SessionResult(m, q, met))
         return p, results
     for m in p.map_sessions:

@@ -16,8 +16,9 @@ import typer
 from disco_cli.commands.options import (
     PANEL_IN,
     PANEL_POSES,
-    PANEL_RUN,
+    AppendOpt,
     CalibOpt,
+    CopyFromOpt,
     DeviceOpt,
     ExtrinsicOpt,
     MaxTimeGapOpt,
@@ -27,11 +28,11 @@ from disco_cli.commands.options import (
     RepairOpt,
     ScanFormatOpt,
     SideViewsOpt,
+    SkipBadOpt,
     ThreadsOpt,
     TopicOpt,
     batch_option,
     model_option,
-    opt,
     output_option,
     pose_options,
     poses_option,
@@ -65,37 +66,14 @@ def build_db(
     scan_format: ScanFormatOpt = None,
     topic: TopicOpt = None,
     pose_topic: PoseTopicOpt = None,
-    append: Annotated[
-        bool,
-        opt(
-            "--append",
-            panel=PANEL_IN,
-            help="Add these scans to an existing database built from other scans (same model).",
-        ),
-    ] = False,
-    copy_from: Annotated[
-        Optional[str],
-        opt(
-            "--from",
-            panel=PANEL_IN,
-            help="Copy the map MAP (a file, milvus:PATH or milvus://HOST:PORT/NAME) into a new "
-            "--output without embedding again; no scans are given (docs/scaling.md).",
-            metavar="MAP",
-        ),
-    ] = None,
+    append: AppendOpt = False,
+    copy_from: CopyFromOpt = None,
     repair: RepairOpt = False,
     side_views: SideViewsOpt = None,
     batch: Annotated[int, batch_option("Scans per network batch and per transaction.")] = 32,
     threads: ThreadsOpt = None,
     device: DeviceOpt = "cpu",
-    skip_bad: Annotated[
-        bool,
-        opt(
-            "--skip-bad",
-            panel=PANEL_RUN,
-            help="Warn about unreadable scans and go on, instead of stopping at the first.",
-        ),
-    ] = False,
+    skip_bad: SkipBadOpt = False,
     quiet: QuietOpt = False,
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
@@ -104,21 +82,16 @@ def build_db(
     set_threads(threads)  # first: torch and BLAS read it as they load
 
     from disco_cli.map import Interrupted, open_for_adding
-    from disco_cli.output_paths import check_output_file
+    from disco_cli.output_paths import check_map_output
     from disco_cli.pipeline import check_device, collect_scans
 
     check_device(device)
-    from disco_cli.milvus_address import parse_address
-    from disco_cli.milvus_copy import copy_command
-
     if copy_from is not None:  # a copy between stores: nothing is embedded
+        from disco_cli.milvus_copy import copy_command
+
         return say(copy_command(copy_from, output, inputs, warn))
     inputs = inputs or []
-    if parse_address(output) is not None:
-        output = parse_address(output)  # type: ignore[assignment]
-        output.check_folder()  # type: ignore[attr-defined]  # before any scan is embedded
-    else:
-        check_output_file(output, what="the database")  # before any scan is embedded
+    output = check_map_output(output)  # before any scan is embedded
     fmt = scan_format.value if scan_format is not None else None
     if pose_topic is not None and poses is not None:
         raise fail("give --poses or --pose-topic, not both")

@@ -113,9 +113,7 @@ def evaluate(
         model = load_model(model_name or "default", device=device)
         policy = policy_for(model, **settings)
         say = lambda msg: stderr.print(msg, highlight=False)  # noqa: E731
-        proto, results = run_protocol(
-            protocol, queries[0], model, warn, say, oxford_scale, policy
-        )
+        proto, results = run_protocol(protocol, queries[0], model, warn, say, oxford_scale, policy)
         rows = table_rows(proto, results, approach=f"disco ({model.name})")
         title = f"{proto.dataset}: {model.name}"
         return RowWriter(TABLE_COLUMNS, fmt, digits=2).write(rows, title=title)

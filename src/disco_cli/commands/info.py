@@ -36,8 +36,8 @@ def info(
     import json
 
     from disco_cli.console import OutputFormat, RowWriter, resolve_format
-    from disco_cli.milvus_copy import open_database  # a file, or a milvus: address
     from disco_cli.map_side_views import side_views_m
+    from disco_cli.milvus_copy import open_database  # a file, or a milvus: address
 
     with open_database(db_path) as db:
         rows = [

@@ -223,6 +223,32 @@ RepairOpt = Annotated[
         rich_help_panel=PANEL_IN,
     ),
 ]
+AppendOpt = Annotated[
+    bool,
+    typer.Option(
+        "--append",
+        help="Add these scans to an existing database built from other scans (same model).",
+        rich_help_panel=PANEL_IN,
+    ),
+]
+CopyFromOpt = Annotated[
+    Optional[str],
+    typer.Option(
+        "--from",
+        help="Copy the map MAP (a file, milvus:PATH or milvus://HOST:PORT/NAME) into a new "
+        "--output without embedding again; no scans are given (docs/scaling.md).",
+        metavar="MAP",
+        rich_help_panel=PANEL_IN,
+    ),
+]
+SkipBadOpt = Annotated[
+    bool,
+    typer.Option(
+        "--skip-bad",
+        help="Warn about unreadable scans and go on, instead of stopping at the first.",
+        rich_help_panel=PANEL_RUN,
+    ),
+]
 SideViewsOpt = Annotated[
     Optional[float],
     typer.Option(
