@@ -188,6 +188,40 @@ def evaluate(fam: Family, folder: Path, method: str) -> list[dict]:
     return rows
 
 
+def oracle_rows(fam: Family, folder: Path) -> list[dict]:
+    """The family's ceiling: rows as `evaluate` writes them for a method whose top 1 is
+    always the map scan nearest the query's real position (its `d1`, that scan's
+    distance in metres). Below 1 only where the ground truth lags (`gt_lag_m`)."""
+    map_paths, map_poses = load_run(folder / "00")
+    q_paths, q_poses = load_run(folder / "01")
+    mx, my, _ = xy_yaw_of(map_poses)
+    qx, qy, qyaw = xy_yaw_of(q_poses)
+    hx, hy = qx - fam.gt_lag_m * np.cos(qyaw), qy - fam.gt_lag_m * np.sin(qyaw)
+    rows = []
+    for i in range(0, len(q_paths), fam.query_every):
+        real = np.hypot(mx - qx[i], my - qy[i])
+        label = np.hypot(mx - hx[i], my - hy[i])
+        hit = bool(label[int(np.argmin(real))] <= fam.radius)
+        rows.append(
+            {
+                "query": i,
+                "near_m": round(float(label.min()), 3),
+                "has": bool(label.min() <= fam.radius),
+                "d1": float(real.min()),
+                "r1": hit,
+                "r1p": hit,
+                "yaw_err": None,  # it has no yaw
+            }
+        )
+    return rows
+
+
+def xy_yaw_of(poses: np.ndarray) -> tuple:
+    from disco_cli.poses import xy_yaw
+
+    return xy_yaw(poses)
+
+
 def summarize(rows: list[dict]) -> dict[str, float]:
     """The table's metrics over one family's rows (all its seeds together)."""
     from disco_cli.evaluation.metrics import precision_recall
