@@ -8,7 +8,7 @@ rows of a top-10 answer). Per query, medians over the queries of the CPU time of
 process (on a shared machine its wall time mostly measures the other processes), all in
 this process:
 
-- the parallax-free yaw of the best match without the check (`CHECK_BELOW` = -1: what
+- the parallax-free yaw of the best match without the check (`check_below` = -1: what
   `refine_yaw` did before) against with it (the default: the second heading searched
   only where the confidence is below 0.6), and with it forced on every match (the worst
   case: every match ambiguous); each starts without the query's kept views, as a new
@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import print_header
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -36,6 +35,8 @@ def main() -> None:
     ap.add_argument("--model", default="default")
     ap.add_argument("--queries", type=int, default=60)
     args = ap.parse_args()
+    from _common import print_header
+
     print_header("bench_yaw_conf")
 
     import torch
@@ -56,21 +57,19 @@ def main() -> None:
         if d[j] <= 5.0 and j + 10 <= len(mx):
             pairs.append((i, j))
     pairs = pairs[: args.queries]
-    below = yaw_refine.CHECK_BELOW
+    below = model.query_policy.yaw_check_below
     times = {"plain": [], "checked": [], "forced": [], "coarse": [], "coarse_conf": []}
     checked = 0
     for i, j in pairs:
         q, m = w.query_features[i], w.map_features[j : j + 1]
         rest = w.map_features[j + 1 : j + 10]
         for key, level in (("plain", -1.0), ("checked", below), ("forced", 1.01)):
-            yaw_refine.CHECK_BELOW = level
             yaw_refine.forget_kept_views()  # each as a new query would pay it
             t = time.process_time()
-            _, conf = model.refine_yaw_conf(q, m)
+            _, conf = model.refine_yaw_conf(q, m, check_below=level)
             times[key].append(time.process_time() - t)
             if key == "checked":
                 checked += int(conf[0] < below or level > 1)
-        yaw_refine.CHECK_BELOW = below
         t = time.process_time()
         model.yaw(q, rest)
         times["coarse"].append(time.process_time() - t)

@@ -344,7 +344,10 @@ def check_invocation(words: list[str]) -> list[str]:
     return problems
 
 
-_BENCH = re.compile(r"(?<![\w/])(benchmarks/[\w./-]+\.(?:py|sh))([^\n|;&]*)")
+# the benchmarks, and the research probes kept beside their notes
+_BENCH = re.compile(
+    r"(?<![\w/])((?:benchmarks|docs/research/probes)/[\w./-]+\.(?:py|sh))([^\n|;&]*)"
+)
 
 
 def check_scripts(text: str) -> list[str]:

@@ -2,7 +2,7 @@
 
     disco build-db WORLD/00 -o map.db
     disco query WORLD/01 --db map.db --topk 1 --pose --format jsonl > q.jsonl
-    .venv/bin/python benchmarks/pose_yaw_error.py WORLD q.jsonl [--radius 5]
+    .venv/bin/python docs/research/probes/pose_yaw_error.py WORLD q.jsonl [--radius 5]
 
 Over the queries whose top match lies within --radius of them (the suite's protocol),
 prints the mean, median and largest error of the refined `yaw_deg` (the yaw of

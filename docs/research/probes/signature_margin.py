@@ -1,7 +1,8 @@
 """How far apart a signature keeps places: the margin that a saturated Recall@1 hides.
 
-    .venv/bin/python benchmarks/signature_margin.py [--models default spectral PATH.pt]
-    .venv/bin/python benchmarks/signature_margin.py --worlds sel/s5001 sel/s5007 [--models ...]
+    .venv/bin/python docs/research/probes/signature_margin.py [--models default spectral PATH.pt]
+    .venv/bin/python docs/research/probes/signature_margin.py --worlds sel/s5001 sel/s5007 \\
+        [--models ...]
 
 Where every model finds 99-100 % of the queries (the suite's worlds with revisits up to
 1.5 m to the side), Recall@1 cannot say which signature is nearer to losing a place.
@@ -30,7 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 
 CLOSE = 1.1  # a ratio below this is a close call
 FAR = 20.0  # another place: a map scan farther than this (m) from the query

@@ -1,6 +1,6 @@
 """How well the snap to the nearest map scan knows where the query is, on simulated worlds.
 
-    .venv/bin/python benchmarks/snap_accuracy.py [WORLD ...] [--model default]
+    .venv/bin/python docs/research/probes/snap_accuracy.py [WORLD ...] [--model default]
 
 For each world (default: every world of the suite cached in out/ood/worlds; each holds
 sessions 00, the map, and 01, the queries), the queries are searched as `disco query`
@@ -26,7 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 import ood_suite as S  # noqa: E402
 
 RADIUS = 5.0

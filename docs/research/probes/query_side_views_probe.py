@@ -1,10 +1,10 @@
 """Issue 24 probe: query-side views, the query seen again from beside itself.
 
     SEL=/work/wt/revisit-rerank/out/sel   # the selection worlds (model-history.md, "Seeds")
-    PYTHONPATH=src nice -n 15 /work/main/.venv/bin/python benchmarks/query_side_views_probe.py \
+    PYTHONPATH=src nice -n 15 .venv/bin/python docs/research/probes/query_side_views_probe.py \
         $SEL/sel5103:8.5 $SEL/sel5101:5 $SEL/sel5102:5 \
         $(for i in 1 2 3 4 5 6 7 8; do echo $SEL/s500$i:5; done) --cache out/qsv --bev
-    PYTHONPATH=src nice -n 15 /work/main/.venv/bin/python benchmarks/query_side_views_probe.py \
+    PYTHONPATH=src nice -n 15 .venv/bin/python docs/research/probes/query_side_views_probe.py \
         $SEL/sel5103:8.5 --cache out/qsv --time      # also $SEL/s5001:5, $SEL/sel5102:5
 
 Each argument is WORLD:RADIUS, a `disco simulate` folder (sessions 00 and 01, as the
@@ -47,7 +47,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 
 
 def y_offsets(*metres: float, x: bool = False) -> np.ndarray:

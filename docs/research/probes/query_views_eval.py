@@ -1,7 +1,7 @@
 """Issue 24: the query's side views as shipped, against the search before them.
 
     SEL=out/sel   # the selection worlds (docs/research/model-history.md, "Seeds")
-    PYTHONPATH=src nice -n 5 .venv/bin/python benchmarks/query_views_eval.py \
+    PYTHONPATH=src nice -n 5 .venv/bin/python docs/research/probes/query_views_eval.py \
         $SEL/sel5103:8.5 $SEL/sel5101:5 $SEL/sel5102:5 $SEL/s5001:5 ... $SEL/s5008:5
 
 Each argument is WORLD:RADIUS, a `disco simulate` folder (sessions 00 and 01) and the
@@ -34,7 +34,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 
 
 def set_side_reach(metres: float) -> None:
@@ -85,7 +90,7 @@ def main() -> None:
             errors: list[float] = []
             score = w._score
 
-            def scored(i, best, hits, near, score=score, errors=errors):
+            def scored(i, best, hits, near, score=score, errors=errors, w=w):
                 out = score(i, best, hits, near)
                 if hits[-1]:
                     true = math.degrees(w.e["qxyyaw"][i, 2] - w.e["mpose"][best.row, 3])

@@ -1,6 +1,6 @@
 """Which image the parallax-free yaw should re-centre: the shipped network's G, U or G - U.
 
-    .venv/bin/python benchmarks/yaw_refine_images.py out/ood/worlds/hard-terrace-16b-c30
+    .venv/bin/python docs/research/probes/yaw_refine_images.py out/ood/worlds/hard-terrace-16b-c30
 
 On a world of the out-of-distribution suite (`benchmarks/run_ood.sh` makes them under
 out/ood/worlds), each query of session 01 (as the suite queries them; --tilt adds more) is
@@ -19,7 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 import ood_suite as suite  # noqa: E402
 
 

@@ -1,9 +1,9 @@
 """Issue 24's second-robot fine-tune: its worlds, its BEVs as compact arrays, and
 `disco train`'s loop run on those arrays (on a GPU machine without disco's compiled core).
 
-    .venv/bin/python benchmarks/train_second_robot.py worlds DIR          # training + selection
-    .venv/bin/python benchmarks/train_second_robot.py export DIR/tr.npz DIR/tr/*
-    python3 benchmarks/train_second_robot.py train DIR/tr.npz --val DIR/val.npz \
+    .venv/bin/python docs/research/probes/train_second_robot.py worlds DIR  # training + selection
+    .venv/bin/python docs/research/probes/train_second_robot.py export DIR/tr.npz DIR/tr/*
+    python3 docs/research/probes/train_second_robot.py train DIR/tr.npz --val DIR/val.npz \
         --init default.pt --out run/ --epochs 12 --every 3 --device cuda --d-pos 8 --d-neg 15
 
 `export` voxelizes exactly as `disco train` loads (`load_training_data`, --spacing 1,
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[3]  # the repository, from docs/research/probes
 sys.path.insert(0, str(ROOT / "src"))
 
 # name: seed, sensor, change, sessions, length m, step m, robot options

@@ -1,6 +1,6 @@
 """Issue 24 probe: orders of the re-ranked candidates, tried offline on cached embeddings.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/revisit_rerank_probe.py \
+    PYTHONPATH=src .venv/bin/python docs/research/probes/revisit_rerank_probe.py \
         out/sel/sel5103:8.5:5 out/sel/s5008:5:0 ... [--cache out/rrprobe]
 
 Each argument is WORLD:RADIUS:SIDE_VIEWS: a `disco simulate` folder (sessions 00 and 01,
@@ -27,7 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 
 OFFSETS = (2.5, 4.0, 5.0, 6.0)
 
@@ -71,9 +76,9 @@ def embedded(world: Path, cache: Path, model) -> dict[str, np.ndarray]:
 
 
 RULES: dict[str, object] = {"r": lambda r, d, a: r}
-RULES.update({f"r+{a:g}d": (lambda a: lambda r, d, _: r + a * d)(a) for a in (1, 2, 3)})
-RULES.update({f"r+{a:g}ln d": (lambda a: lambda r, d, _: r + a * np.log(d))(a) for a in (0.5,)})
-RULES.update({f"r-{a:g}/d": (lambda a: lambda r, d, _: r - a / d)(a) for a in (0.1, 0.2, 0.3, 0.4)})
+RULES.update({f"r+{a:g}d": (lambda a: lambda r, d, _: r + a * d)(a) for a in (1, 2, 3)})  # noqa: B023
+RULES.update({f"r+{a:g}ln d": (lambda a: lambda r, d, _: r + a * np.log(d))(a) for a in (0.5,)})  # noqa: B023
+RULES.update({f"r-{a:g}/d": (lambda a: lambda r, d, _: r - a / d)(a) for a in (0.1, 0.2, 0.3, 0.4)})  # noqa: B023
 
 
 class Evaluated:

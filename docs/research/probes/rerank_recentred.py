@@ -1,6 +1,6 @@
 """Would re-ranking by the re-centred yaw's peak help? Recall@1 on one suite world.
 
-    .venv/bin/python benchmarks/rerank_recentred.py \
+    .venv/bin/python docs/research/probes/rerank_recentred.py \
         out/ood/worlds/hard-terrace-16b-c45 --top 3
 
 On a world of the out-of-distribution suite (`benchmarks/run_ood.sh` makes them under
@@ -20,7 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 import ood_suite as suite  # noqa: E402
 
 

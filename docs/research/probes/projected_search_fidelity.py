@@ -1,7 +1,7 @@
 """How often the views' approximate search (`signature_index.ProjectedSignatures`) returns
 what the exact search does, by projected dimensions and widening.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/projected_search_fidelity.py \
+    PYTHONPATH=src .venv/bin/python docs/research/probes/projected_search_fidelity.py \
         out/sel/sel5103:8.5 out/sel/sel5101:5 ... out/sel/s5008:5 --cache out/qsv
 
 The map is every world's map and query signatures together (5,700 rows for the eleven
@@ -18,7 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 
 
 def main() -> None:

@@ -1,7 +1,7 @@
 """Which distance the query's rows show (issue 32): Recall@1, recall at 100 % precision,
 F1max, AUC, yaw error and how many queries print their top 10 out of distance order.
 
-    .venv/bin/python benchmarks/ranking_score_eval.py MAP.db:QUERY_DIR:RADIUS ... \\
+    .venv/bin/python docs/research/probes/ranking_score_eval.py MAP.db:QUERY_DIR:RADIUS ... \\
         [--shown shifted raw own]
 
 Each argument is a map built by `disco build-db` (with poses), a folder of query scans
@@ -25,7 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Beside the dated notes; ood_suite and _common stay in benchmarks/ (the repository root
+# is three folders up), sibling probes import each other from here.
+sys.path[:0] = [
+    str(Path(__file__).resolve().parent),
+    str(Path(__file__).resolve().parents[3] / "benchmarks"),
+]
 
 SHOWN = {
     "shifted": None,  # the shipped search.shown_distances
