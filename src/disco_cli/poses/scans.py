@@ -142,7 +142,9 @@ def read_extrinsic(path: str | Path) -> np.ndarray:
     T = np.eye(4)
     T[: len(values) // 4] = values.reshape(-1, 4)
     R = T[:3, :3]
-    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4):
+    # A rotation's entries lie within +-1: test that first, so R @ R.T cannot overflow.
+    rigid = np.abs(R).max() <= 1.0 + 1e-4 and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+    if not np.allclose(T[3], [0, 0, 0, 1]) or not rigid:
         raise PoseFileError(f"{path}: not a rigid transform (rotation not orthonormal)")
     return T
 
