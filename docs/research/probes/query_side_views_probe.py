@@ -1,6 +1,6 @@
 """Issue 24 probe: query-side views, the query seen again from beside itself.
 
-    SEL=/work/wt/revisit-rerank/out/sel   # the selection worlds (model-history.md, "Seeds")
+    SEL=out/sel   # the selection worlds (model-history.md, "Seeds")
     PYTHONPATH=src nice -n 15 .venv/bin/python docs/research/probes/query_side_views_probe.py \
         $SEL/sel5103:8.5 $SEL/sel5101:5 $SEL/sel5102:5 \
         $(for i in 1 2 3 4 5 6 7 8; do echo $SEL/s500$i:5; done) --cache out/qsv --bev
