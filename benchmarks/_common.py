@@ -154,7 +154,7 @@ def model_arg(name: str, tmp: Path) -> tuple[str, str]:
 
     if name != "default" or DEFAULT_WEIGHTS.is_file():
         return name, name
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.model.checkpoint import save_checkpoint
     from disco_cli.model.disco import build_net, default_model_config
 

@@ -40,10 +40,10 @@ def main() -> int:
 
     import torch
 
-    from disco_cli.database import Database, ModelInfo, ScanBatch
-    from disco_cli.index.ann import AnnIndex, AnnParams
-    from disco_cli.poses import xy_yaw
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.io.poses import xy_yaw
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
+    from disco_cli.maps.index.ann import AnnIndex, AnnParams
+    from disco_cli.query.search import SignatureIndex, match_queries
 
     torch.set_num_threads(2)
     model = S.load_suite_model(args.model)

@@ -85,7 +85,7 @@ def main() -> None:
     parser.add_argument("--build-db", action="store_true", help="also time disco build-db")
     args = parser.parse_args()
 
-    from disco_cli.readers import bags, list_scans, read_scan
+    from disco_cli.io.readers import bags, list_scans, read_scan
 
     print_header("bench_bags")
     scans = [np.fromfile(p, "<f4").reshape(-1, 4) for p in sorted(SAMPLE.glob("*.bin"))]

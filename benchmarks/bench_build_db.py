@@ -58,10 +58,10 @@ def run_cli(
 
 
 def serial_baseline(paths: list[Path], model_name: str, batch: int, out: Path) -> dict:
-    from disco_cli.bev import polar_bev
-    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.io.readers import read_scan
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
     from disco_cli.model import load_model
-    from disco_cli.readers import read_scan
+    from disco_cli.model.bev import polar_bev
 
     model = load_model(model_name)
     info = ModelInfo.of(model)

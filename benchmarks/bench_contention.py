@@ -39,7 +39,7 @@ from _common import REPO, model_arg, print_header, synthetic_scan
 # reader thread, as before, but nothing touches torch or the library variables.
 OLD_BEHAVIOUR = """
 import sys
-import disco_cli.threads as t
+import disco_cli.runtime.threads as t
 def leave_torch_alone(n=None):
     t._current = 1
     return 1

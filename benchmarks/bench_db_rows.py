@@ -38,8 +38,8 @@ from _common import cpu_model, model_arg, print_header, synthetic_scan
 
 def feature_pool(n: int, tmp: Path) -> tuple[np.ndarray, str]:
     """`[n, 2, 40, 120]` features of the default architecture from synthetic scans."""
-    from disco_cli.bev import polar_bev
     from disco_cli.model import load_model
+    from disco_cli.model.bev import polar_bev
 
     name, what = model_arg("default", tmp)
     model = load_model(name)
@@ -50,7 +50,7 @@ def feature_pool(n: int, tmp: Path) -> tuple[np.ndarray, str]:
 
 def stored_pool(path: Path) -> tuple[np.ndarray, str]:
     """The features stored in an existing map (up to 64 of them)."""
-    from disco_cli.database import Database
+    from disco_cli.maps.database import Database
 
     with Database.open(path) as db:
         ids, _ = db.signatures()
@@ -69,7 +69,7 @@ def main() -> None:
     except ImportError:  # no compiled core for this Python: the CPU line alone
         print(f"# bench_db_rows on machine: {cpu_model()}, {os.cpu_count()} cores")
 
-    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
 
     with tempfile.TemporaryDirectory(dir=args.dir) as tmpdir:
         tmp = Path(tmpdir)

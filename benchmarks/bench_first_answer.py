@@ -41,7 +41,7 @@ t2 = time.perf_counter()
 from disco_cli.model import fft
 fft.backend()
 t3 = time.perf_counter()
-from disco_cli.map import Map
+from disco_cli.maps.facade import Map
 m = Map.open(sys.argv[1])
 t4 = time.perf_counter()
 results = list(m.query_files([sys.argv[2]], topk=10))

@@ -49,9 +49,9 @@ def main() -> None:
     import torch
     from _common import median_of_ms, print_header
 
-    from disco_cli.loop_detector import LoopDetector
+    from disco_cli.io.readers import read_scan
     from disco_cli.model import load_model
-    from disco_cli.readers import read_scan
+    from disco_cli.query.loop_detector import LoopDetector
     from disco_cli.simulator import simulate
 
     torch.set_num_threads(args.threads)

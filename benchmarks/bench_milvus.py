@@ -49,7 +49,7 @@ DISCO = [sys.executable, "-m", "disco_cli.cli"]
 
 def real_rows(out: Path) -> tuple[np.ndarray, np.ndarray]:
     """Signatures and features of the 26 bundled scans (an SQLite map built once)."""
-    from disco_cli.database import Database
+    from disco_cli.maps.database import Database
 
     db_path = out / "samples.db"
     if not db_path.exists():
@@ -76,9 +76,9 @@ def synthetic(n: int, dim: int, seed: int = 0) -> np.ndarray:
 
 
 def scale(args: argparse.Namespace) -> dict:
-    import disco_cli.milvus_store as store
-    from disco_cli.database import ModelInfo, ScanBatch
-    from disco_cli.milvus_index import MilvusIndex
+    import disco_cli.maps.milvus_store as store
+    from disco_cli.maps.database import ModelInfo, ScanBatch
+    from disco_cli.maps.milvus_index import MilvusIndex
     from disco_cli.model import load_model
 
     out = Path(args.out)
@@ -174,7 +174,7 @@ def scale(args: argparse.Namespace) -> dict:
 
 
 def world(args: argparse.Namespace) -> dict:
-    from disco_cli.map import Map
+    from disco_cli.maps.facade import Map
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -26,10 +26,10 @@ import torch
 from _common import median_wall_cpu_ms as median_ms
 from _common import print_header
 
-from disco_cli.bev import BEVConfig, polar_bev, polar_bev_batch
+from disco_cli.io.readers import list_scans, read_scan
 from disco_cli.model import DEFAULT_WEIGHTS, load_model
+from disco_cli.model.bev import BEVConfig, polar_bev, polar_bev_batch
 from disco_cli.model.disco import DiscoModel, build_net, default_model_config
-from disco_cli.readers import list_scans, read_scan
 
 REPO = Path(__file__).resolve().parent.parent
 KITTI = REPO.parent / "shared" / "realdata" / "kitti00" / "velodyne" / "000000.bin"
@@ -56,7 +56,7 @@ def rotate(points: np.ndarray, deg: float) -> np.ndarray:
 
 
 def yaw_accuracy(names: list[str] | None = None, spins: int = 8) -> None:
-    from disco_cli.poses import read_kitti_poses, relative_yaw_deg, wrap_deg
+    from disco_cli.io.poses import read_kitti_poses, relative_yaw_deg, wrap_deg
 
     real = REPO.parent / "shared" / "realdata"
     seq = real / "kitti00"

@@ -55,7 +55,7 @@ def pool_scans() -> list[np.ndarray]:
 def build(path: Path, rows: int) -> None:
     """The map at `path`: `rows` rows written through the Database API."""
     from disco_cli import load_model, signature
-    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
 
     model = load_model("spectral")
     embedded = [signature(model, points) for points in pool_scans()]
@@ -92,8 +92,8 @@ def build(path: Path, rows: int) -> None:
 
 
 def rows_in(path: Path) -> int:
-    from disco_cli.database import Database
     from disco_cli.errors import DatabaseError
+    from disco_cli.maps.database import Database
 
     try:
         with Database.open(path) as db:
@@ -107,7 +107,7 @@ CHILD = """
 import json, sys, time
 sys.path.insert(0, sys.argv[2])
 from bench_open import pool_scans
-from disco_cli.map import Map
+from disco_cli.maps.facade import Map
 points = pool_scans()[5]
 t0 = time.perf_counter()
 m = Map.open(sys.argv[1])
@@ -126,7 +126,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args()
     print_header("bench_open")
-    from disco_cli.database import Database
+    from disco_cli.maps.database import Database
 
     path = args.dir / f"bench-open-{args.rows}.db"
     if rows_in(path) != args.rows:

@@ -26,7 +26,7 @@ import numpy as np
 from _common import median_wall_cpu_ms, print_header
 
 from disco_cli import _core
-from disco_cli.relative_pose import PoseConfig, _icp_config, estimate_relative_pose
+from disco_cli.query.relative_pose import PoseConfig, _icp_config, estimate_relative_pose
 
 REPO = Path(__file__).resolve().parent.parent
 REAL = REPO.parent / "shared" / "realdata"
@@ -152,7 +152,7 @@ def calibrate(config: PoseConfig) -> None:
         )
 
     if (SAMPLES / "00" / "poses.txt").is_file():
-        from disco_cli.poses import read_kitti_poses
+        from disco_cli.io.poses import read_kitti_poses
 
         poses = {s: read_kitti_poses(SAMPLES / s / "poses.txt") for s in ("00", "01")}
 
@@ -214,7 +214,7 @@ def calibrate(config: PoseConfig) -> None:
             f"{f[:, 0].max():.2f}, with them max {f[:, 1].max():.2f}"
         )
     if (REAL / "kitti00").is_dir():
-        from disco_cli.poses import read_kitti_poses
+        from disco_cli.io.poses import read_kitti_poses
 
         d = REAL / "kitti00"
         poses = read_kitti_poses(d / "poses.txt", d / "calib.txt")
@@ -344,7 +344,7 @@ def main() -> None:
     )
 
     if (SAMPLES / "00" / "poses.txt").is_file():
-        from disco_cli.poses import read_kitti_poses
+        from disco_cli.io.poses import read_kitti_poses
 
         p0 = read_kitti_poses(SAMPLES / "00" / "poses.txt")
         p1 = read_kitti_poses(SAMPLES / "01" / "poses.txt")

@@ -50,7 +50,7 @@ from _common import median_of_ms as median_ms
 
 
 def bench_search(n: int, dim: int, reps: int) -> dict:
-    from disco_cli.search import SignatureIndex, brute_force_topk
+    from disco_cli.query.search import SignatureIndex, brute_force_topk
 
     rng = np.random.default_rng(0)
     sigs = rng.random((n, dim), dtype=np.float32)
@@ -89,7 +89,7 @@ def bench_search(n: int, dim: int, reps: int) -> dict:
 
 
 def build_synthetic_db(path: Path, model, n: int) -> None:
-    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
 
     rng = np.random.default_rng(1)
     info = ModelInfo.of(model)
@@ -117,8 +117,9 @@ def build_synthetic_db(path: Path, model, n: int) -> None:
 
 _FRESH_QUERY = """
 import sys, time; t0 = time.perf_counter()
-from disco_cli.database import Database; from disco_cli.model import load_model
-from disco_cli.search import SignatureIndex, match_queries; from disco_cli.pipeline import load_bev
+from disco_cli.maps.database import Database; from disco_cli.model import load_model
+from disco_cli.query.search import SignatureIndex, match_queries
+from disco_cli.io.pipeline import load_bev
 t1 = time.perf_counter()
 db = Database.open(sys.argv[1], verify=sys.argv[4] == "1"); t2 = time.perf_counter()
 m = load_model(sys.argv[2]); ids, s = db.signatures(); ix = SignatureIndex(s)
@@ -132,7 +133,7 @@ def bench_open(model_name: str, n: int, tmp: Path, reps: int) -> dict:
     """What `Database.open`'s integrity check costs on a map of n scans (page cache warm,
     as right after it was written): opening alone, and a fresh one-scan query process,
     with and without `verify`, interleaved; medians."""
-    from disco_cli.database import Database
+    from disco_cli.maps.database import Database
     from disco_cli.model import load_model
 
     db = tmp / f"open{n}.db"
@@ -190,17 +191,17 @@ def bench_open(model_name: str, n: int, tmp: Path, reps: int) -> dict:
 
 
 def polar_bev_of(model, points: np.ndarray) -> np.ndarray:
-    from disco_cli.bev import polar_bev
+    from disco_cli.model.bev import polar_bev
 
     return polar_bev(points, model.bev_config)
 
 
 def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict:
-    from disco_cli.database import Database
+    from disco_cli.io.readers import read_scan
+    from disco_cli.maps.database import Database
     from disco_cli.model import load_model
     from disco_cli.model.yaw_refine import forget_kept_views
-    from disco_cli.readers import read_scan
-    from disco_cli.search import SignatureIndex, effective_policy, match_queries
+    from disco_cli.query.search import SignatureIndex, effective_policy, match_queries
 
     model = load_model(model_name)
     policy = effective_policy(model)
@@ -358,8 +359,9 @@ def bench_first_result(db: str, scan: str, model: str) -> dict:
     code = f"""
 import time; t0 = time.perf_counter()
 import disco_cli.cli; t1 = time.perf_counter()
-import numpy; from disco_cli.model import load_model; from disco_cli.database import Database
-from disco_cli.search import SignatureIndex, match_queries; from disco_cli.pipeline import load_bev
+import numpy; from disco_cli.model import load_model; from disco_cli.maps.database import Database
+from disco_cli.query.search import SignatureIndex, match_queries
+from disco_cli.io.pipeline import load_bev
 t2 = time.perf_counter()
 db = Database.open({db!r}); m = load_model({model!r}); t3 = time.perf_counter()
 ids, s = db.signatures(); ix = SignatureIndex(s); t4 = time.perf_counter()
@@ -432,11 +434,11 @@ def bench_yaw_f16(
 ) -> dict:
     """Yaw from features stored as float16 (through a real database) vs float32, on
     revisits: each query scan with its nearest map scan within `radius` m (poses.txt)."""
-    from disco_cli.bev import polar_bev
-    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.io.poses import read_kitti_poses, wrap_deg, xy_yaw
+    from disco_cli.io.readers import list_scans, read_scan
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
     from disco_cli.model import load_model
-    from disco_cli.poses import read_kitti_poses, wrap_deg, xy_yaw
-    from disco_cli.readers import list_scans, read_scan
+    from disco_cli.model.bev import polar_bev
 
     model = load_model(model_name)
 
@@ -517,7 +519,7 @@ def main() -> None:
     )
     args = ap.parse_args()
     if not args.process_defaults:
-        from disco_cli.blas_threads import one_blas_thread_for_process
+        from disco_cli.runtime.blas_threads import one_blas_thread_for_process
 
         one_blas_thread_for_process()
     print_header("bench_query")

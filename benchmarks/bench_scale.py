@@ -123,7 +123,7 @@ class _Rows:
         self.base, self.feats, self.pose4 = base, feats, pose4
 
     def rows(self, ids):
-        from disco_cli.database import MatchRows
+        from disco_cli.maps.database import MatchRows
 
         ids = np.asarray(ids, np.int64)
         b = self.base[ids]
@@ -131,7 +131,7 @@ class _Rows:
 
 
 def pipeline_r1(index, n, rows: _Rows, model, qs, qf, q_xy, has) -> float:
-    from disco_cli.search import match_queries
+    from disco_cli.query.search import match_queries
 
     found = match_queries(index, np.arange(n), rows, model, qs, qf, 1)
     hit = []
@@ -145,7 +145,7 @@ def pipeline_r1(index, n, rows: _Rows, model, qs, qf, q_xy, has) -> float:
 _LOADER = """
 import json, sys, time, numpy as np, faiss
 faiss.omp_set_num_threads(1)
-from disco_cli.index.ann import AnnIndex
+from disco_cli.maps.index.ann import AnnIndex
 def rss():
     for l in open('/proc/self/status'):
         if l.startswith('VmRSS:'): return int(l.split()[1]) / 1024
@@ -197,11 +197,11 @@ def main() -> int:
 
     import torch
 
-    from disco_cli.database import Database, ModelInfo, ScanBatch
-    from disco_cli.index.ann import AnnIndex, default_params
+    from disco_cli.io.poses import xy_yaw
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
+    from disco_cli.maps.index.ann import AnnIndex, default_params
     from disco_cli.model import load_model
-    from disco_cli.poses import xy_yaw
-    from disco_cli.search import SignatureIndex
+    from disco_cli.query.search import SignatureIndex
 
     torch.set_num_threads(2)
     model = load_model("default")

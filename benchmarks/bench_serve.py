@@ -41,8 +41,8 @@ def main() -> None:
     args = ap.parse_args()
     print_header("bench_serve")
 
-    from disco_cli.client import Client
-    from disco_cli.map import Map
+    from disco_cli.maps.facade import Map
+    from disco_cli.service.client import Client
 
     exe = Path(sys.executable).parent / "disco"
     with tempfile.TemporaryDirectory() as tmp:
@@ -85,7 +85,7 @@ def main() -> None:
                     raise SystemExit(f"server failed: {proc.stderr.read().decode()}")
                 time.sleep(0.02)
             ready = time.perf_counter() - t0
-            from disco_cli.readers import read_scan
+            from disco_cli.io.readers import read_scan
 
             inline_pts = [read_scan(q) for q in queries]
             with Client(sock) as c:
@@ -141,7 +141,7 @@ def main() -> None:
 def fleet_latencies(sock: Path, queries: list[str], n: int, rounds: int) -> tuple[list, int]:
     """Seconds from connecting to the reply of `n` clients released together, each
     with its own connection and one query by path; and how many were answered."""
-    from disco_cli.client import Client, ClientError
+    from disco_cli.service.client import Client, ClientError
 
     times: list[float] = []
     answered = 0

@@ -108,7 +108,7 @@ def main() -> None:
 
     import torch
 
-    from disco_cli.loop_detector import LoopDetector
+    from disco_cli.query.loop_detector import LoopDetector
 
     print_header("bench_soak")
     print(f"torch threads {torch.get_num_threads()}; OMP_NUM_THREADS "
@@ -174,7 +174,7 @@ def soak_queries(args) -> None:
     import tempfile
     from pathlib import Path
 
-    from disco_cli.map import Map
+    from disco_cli.maps.facade import Map
 
     n = args.queries
     every = args.every or max(1, n // 20)

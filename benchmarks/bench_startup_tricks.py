@@ -54,14 +54,14 @@ if sys.argv[2] == "1":  # M_MMAP_THRESHOLD (-3) 32 MiB, M_TRIM_THRESHOLD (-1) ne
     mallopt = ctypes.CDLL("libc.so.6").mallopt
     mallopt(-3, 32 << 20)
     mallopt(-1, 2**31 - 1)
-from disco_cli.threads import set_threads
+from disco_cli.runtime.threads import set_threads
 set_threads(1)
 import numpy as np
 from bench_query import polar_bev_of
 from _common import synthetic_scan
-from disco_cli.database import Database
+from disco_cli.maps.database import Database
 from disco_cli.model import load_model
-from disco_cli.search import SignatureIndex, match_queries
+from disco_cli.query.search import SignatureIndex, match_queries
 model = load_model("default")
 db = Database.open(sys.argv[1])
 ids, sigs = db.signatures()
@@ -81,7 +81,7 @@ print(float(np.median(wall[2:])), float(np.median(cpu[2:])), cpu[0])
 _BLAS = """
 import sys, time, contextlib
 if sys.argv[1] == "disco":
-    from disco_cli.threads import set_threads
+    from disco_cli.runtime.threads import set_threads
     set_threads(1)
 import numpy as np
 import disco_cli.model.disco as dm

@@ -16,7 +16,7 @@ import numpy as np
 from _common import REALDATA, interleaved_medians_ms, print_header
 
 from disco_cli import _core
-from disco_cli.bev import BEVConfig, polar_bev, polar_bev_batch
+from disco_cli.model.bev import BEVConfig, polar_bev, polar_bev_batch
 
 KITTI = REALDATA / "kitti00" / "velodyne"
 

@@ -14,7 +14,7 @@ Each WORLD holds sessions 00 (the map) and 01 (the queries); a match is true wit
 Prints one line per model: Recall@1 / Recall@5 / mean yaw error (deg) and the misses of
 Recall@1 per world. `--rerank-wider 0 --snap-radius 0` gives the network's search as it
 was before those two steps. `--policy` sets any field of the query stage's `QueryPolicy`
-(disco_cli/query_policy.py) for an ablation, e.g. `--policy signature_weight=0
+(disco_cli/query/query_policy.py) for an ablation, e.g. `--policy signature_weight=0
 view_offsets= yaw_check_below=0` (a tuple as comma-separated numbers, empty for none).
 """
 
@@ -93,7 +93,7 @@ def main() -> int:
 
     import torch
 
-    from disco_cli.query_policy import policy_for
+    from disco_cli.query.query_policy import policy_for
 
     torch.set_num_threads(args.threads)
     for name in args.models:

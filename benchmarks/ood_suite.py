@@ -283,8 +283,8 @@ def rz(deg: float) -> np.ndarray:
 
 
 def load_session(folder: Path) -> tuple[list[Path], np.ndarray]:
-    from disco_cli.poses import read_kitti_poses
-    from disco_cli.readers import list_scans
+    from disco_cli.io.poses import read_kitti_poses
+    from disco_cli.io.readers import list_scans
 
     calib = folder / "calib.txt"
     poses = read_kitti_poses(folder / "poses.txt", calib if calib.is_file() else None)
@@ -317,7 +317,7 @@ class Queries:
         return r
 
     def points(self, i: int) -> np.ndarray:
-        from disco_cli.readers import read_scan
+        from disco_cli.io.readers import read_scan
         from disco_cli.training.augment import tilt
 
         pts = read_scan(self.paths[i])
@@ -357,7 +357,7 @@ class RealTransform:
 
 
 def embed(model, clouds_fn, n: int, threads: int, batch: int = 32):
-    from disco_cli.bev import polar_bev_batch
+    from disco_cli.model.bev import polar_bev_batch
 
     sigs, feats = [], []
     for s in range(0, n, batch):
@@ -396,7 +396,7 @@ def add_world_arguments(ap: argparse.ArgumentParser) -> None:
 def embed_world(model, folder: Path, tilt_deg: float = 0.0, threads: int = 2) -> EmbeddedWorld:
     """`folder` (from `disco simulate`) embedded as the suite queries it; `tilt_deg` adds
     a random query tilt seeded by the world's own seed (the benchmarks' --tilt)."""
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     seed = int(json.loads((folder / "world.json").read_text())["seed"])
     map_paths, map_poses = load_session(folder / "00")
@@ -423,13 +423,13 @@ def evaluate(
     `refine_yaw` matches get the parallax-free yaw (`disco query --refine-yaw`); the
     query stage runs under `policy` (a `QueryPolicy`; None: the model's), so that an
     ablation is `dataclasses.replace(model.query_policy, rule=0)`."""
-    from disco_cli.database import Database, ModelInfo, ScanBatch
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
-    from disco_cli.map_side_views import index_for, seen_from, side_offsets
-    from disco_cli.poses import xy_yaw
-    from disco_cli.query_policy import policy_for
-    from disco_cli.readers import read_scan
-    from disco_cli.search import match_queries
+    from disco_cli.io.poses import xy_yaw
+    from disco_cli.io.readers import read_scan
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
+    from disco_cli.maps.map_side_views import index_for, seen_from, side_offsets
+    from disco_cli.query.query_policy import policy_for
+    from disco_cli.query.search import match_queries
 
     m_sig, m_feat = embed(model, lambda i: read_scan(map_paths[i]), len(map_paths), threads)
     offsets = side_offsets(side_views)
@@ -565,7 +565,7 @@ def cached_rows(out: Path, data: str, model, name: str, compute, refine_yaw: int
         from disco_cli.model.yaw_refine import VERSION
 
         head["refine_version"] = VERSION
-    from disco_cli.search import effective_policy
+    from disco_cli.query.search import effective_policy
 
     p = effective_policy(model)
     depth = p.rerank_candidates

@@ -46,8 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from disco_cli.poses import read_kitti_poses, write_kitti_poses
-from disco_cli.readers import read_scan
+from disco_cli.io.poses import read_kitti_poses, write_kitti_poses
+from disco_cli.io.readers import read_scan
 
 src, out = Path(sys.argv[1]), Path(sys.argv[2])
 frames = [int(p.stem) for p in sorted((src / "velodyne").glob("*.bin"))]
@@ -120,10 +120,10 @@ from pathlib import Path
 
 import numpy as np
 
-from disco_cli.bev import polar_bev_batch
-from disco_cli.poses import read_kitti_poses
-from disco_cli.readers import list_scans, read_scan
-from disco_cli.scancontext import ScanContextModel, ring_keys
+from disco_cli.model.bev import polar_bev_batch
+from disco_cli.io.poses import read_kitti_poses
+from disco_cli.io.readers import list_scans, read_scan
+from disco_cli.model.scancontext import ScanContextModel, ring_keys
 
 model = ScanContextModel()
 print("| data | revisits: median distance to the nearest map scan | true place among the 10 nearest ring keys: occupancy (paper) | mean height (ours) |")

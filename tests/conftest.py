@@ -139,8 +139,8 @@ def short_training(train_data, held_out, out: Path, radius: float, max_queries: 
     metrics after). `options` completes the TrainOptions (steps, d_pos, d_neg, ...)."""
     import torch
 
-    from disco_cli.bev import BEVConfig
     from disco_cli.model import load_model
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.model.disco import DiscoModel, build_net, default_model_config
     from disco_cli.training.evaluate import retrieval_metrics
     from disco_cli.training.loop import TrainOptions, train

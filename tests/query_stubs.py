@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.model.interface import Abilities, Unable
-from disco_cli.query_policy import NO_RERANKING, QueryPolicy
+from disco_cli.query.query_policy import NO_RERANKING, QueryPolicy
 
 
 class StubModel(Unable):

@@ -160,8 +160,8 @@ def test_loop_detector_by_seconds_equals_disco_loops(samples: Path, seq_paths) -
 def test_exclude_distance_against_numpy(samples: Path, seq_paths) -> None:
     """Each scan's loop is its nearest signature among the scans at least D metres of
     travel back (path lengths from poses.txt, signatures from the model itself)."""
-    from disco_cli.bev import polar_bev
-    from disco_cli.poses import read_kitti_poses
+    from disco_cli.io.poses import read_kitti_poses
+    from disco_cli.model.bev import polar_bev
 
     poses = read_kitti_poses(samples / "00" / "poses.txt")
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
@@ -184,7 +184,7 @@ def test_exclude_distance_against_numpy(samples: Path, seq_paths) -> None:
 def test_loop_detector_feature_store_across_blocks() -> None:
     """The detector's features live in fixed blocks (no copy as it grows, for the
     soak): rows asked for in any order, across block edges, are the arrays added."""
-    from disco_cli.loop_detector import _Features
+    from disco_cli.query.loop_detector import _Features
 
     rng = np.random.default_rng(5)
     added = rng.normal(size=(3 * _Features.BLOCK + 7, 2, 3)).astype(np.float32)
@@ -314,7 +314,7 @@ def test_public_names() -> None:
 
 
 def test_poses_near_exclude_overwrite_and_query_many(samples: Path, seq_paths, tmp_path) -> None:
-    from disco_cli.poses import read_kitti_poses
+    from disco_cli.io.poses import read_kitti_poses
 
     poses = read_kitti_poses(samples / "00" / "poses.txt")
     path = tmp_path / "posed.db"

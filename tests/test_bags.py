@@ -28,8 +28,8 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from disco_cli.cli import app  # noqa: E402
 from disco_cli.errors import ScanReadError  # noqa: E402
-from disco_cli.readers import bags, list_scans, read_scan  # noqa: E402
-from disco_cli.readers.pointcloud2 import PointField, decode_pointcloud2  # noqa: E402
+from disco_cli.io.readers import bags, list_scans, read_scan  # noqa: E402
+from disco_cli.io.readers.pointcloud2 import PointField, decode_pointcloud2  # noqa: E402
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data" / "samples"
 MAP_FRAMES = list(range(10))  # session 00
@@ -615,7 +615,7 @@ def test_topic_errors_list_the_topics(data: Path) -> None:
 
 
 def test_odometry_topic_poses_by_time(data: Path) -> None:
-    from disco_cli.database import Database
+    from disco_cli.maps.database import Database
 
     db = data / "odom.db"
     bag = data / "map.bag"
@@ -637,7 +637,7 @@ def test_odometry_topic_poses_by_time(data: Path) -> None:
 
 
 def test_tum_file_poses_bag_scans_by_time(data: Path) -> None:
-    from disco_cli.database import Database
+    from disco_cli.maps.database import Database
 
     # The odometry's trajectory as a TUM file: t tx ty tz qx qy qz qw.
     lines = []
@@ -663,8 +663,8 @@ def test_tum_file_poses_bag_scans_by_time(data: Path) -> None:
 
 
 def test_pose_stamped_topic_and_eval(data: Path, bin_db: Path) -> None:
-    from disco_cli.database import Database
-    from disco_cli.poses import xy_yaw
+    from disco_cli.io.poses import xy_yaw
+    from disco_cli.maps.database import Database
 
     db = data / "posed_db3.db"
     code, _, err = run("build-db", data / "map_db3", "--pose-topic", "/pose", "-o", db, *MODEL)
@@ -723,7 +723,7 @@ def test_loops_on_a_bag_times_scans_by_their_stamps(data: Path) -> None:
 
 
 def test_bev_of_a_bag_is_its_first_scan(data: Path) -> None:
-    from disco_cli.bev import BEVConfig, polar_bev
+    from disco_cli.model.bev import BEVConfig, polar_bev
 
     out = data / "bev.npy"
     code, _, err = run("bev", data / "map.bag", "--topic", "/os_cloud_node/points", "-o", out)

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from disco_cli import _core
-from disco_cli.bev import (
+from disco_cli.errors import DiscoError
+from disco_cli.model.bev import (
     BEVConfig,
     BEVConfigError,
     BEVInputError,
@@ -23,7 +24,6 @@ from disco_cli.bev import (
     polar_bev,
     polar_bev_batch,
 )
-from disco_cli.errors import DiscoError
 
 MODES = ("occupancy", "density", "max_height")
 

@@ -14,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.png import BACKGROUND, colormap, encode_png, upscale
+from disco_cli.io.png import BACKGROUND, colormap, encode_png, upscale
 
 runner = CliRunner()
 
@@ -87,7 +87,7 @@ def _stderr(result) -> str:
 
 
 def test_npy_output_is_the_bev_of_the_points(scan: Path, tmp_path: Path) -> None:
-    from disco_cli.bev import BEVConfig, polar_bev
+    from disco_cli.model.bev import BEVConfig, polar_bev
 
     out = tmp_path / "out" / "bev.npy"
     out.parent.mkdir()  # a missing folder is refused, as by every -o (test_output_paths.py)
@@ -108,7 +108,7 @@ def test_npy_output_is_the_bev_of_the_points(scan: Path, tmp_path: Path) -> None
 
 @pytest.mark.parametrize("mode", ["density", "max_height"])
 def test_npy_output_follows_the_mode(scan: Path, tmp_path: Path, mode: str) -> None:
-    from disco_cli.bev import BEVConfig, polar_bev
+    from disco_cli.model.bev import BEVConfig, polar_bev
 
     out = tmp_path / f"{mode}.npy"
     result = runner.invoke(app, ["bev", str(scan), "-o", str(out), "--bev-mode", mode])
@@ -118,8 +118,8 @@ def test_npy_output_follows_the_mode(scan: Path, tmp_path: Path, mode: str) -> N
 
 
 def test_model_option_uses_that_models_bev_config(scan: Path, tmp_path: Path) -> None:
-    from disco_cli.bev import polar_bev
     from disco_cli.model import load_model
+    from disco_cli.model.bev import polar_bev
 
     config = load_model("scancontext").bev_config
     out = tmp_path / "sc.npy"
@@ -135,7 +135,7 @@ def test_model_option_uses_that_models_bev_config(scan: Path, tmp_path: Path) ->
 
 
 def test_png_shows_the_occupied_cells(scan: Path, tmp_path: Path) -> None:
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
 
     c = BEVConfig(mode="occupancy")
     out = tmp_path / "bev.png"
@@ -155,7 +155,7 @@ def test_png_shows_the_occupied_cells(scan: Path, tmp_path: Path) -> None:
 
 
 def test_polar_png_puts_points_where_they_are(scan: Path, tmp_path: Path) -> None:
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
 
     c = BEVConfig(mode="occupancy")
     out = tmp_path / "polar.png"
@@ -224,7 +224,7 @@ def test_points_outside_the_window_are_reported(tmp_path: Path) -> None:
 
 
 def test_real_scan_bev(realdata: Path, tmp_path: Path) -> None:
-    from disco_cli.bev import BEVConfig, polar_bev
+    from disco_cli.model.bev import BEVConfig, polar_bev
 
     scan = realdata / "kitti00" / "velodyne" / "000000.bin"
     out = tmp_path / "real.png"

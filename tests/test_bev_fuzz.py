@@ -13,7 +13,7 @@ from hypothesis.extra import numpy as hnp  # noqa: E402
 from test_bev import reference_bev  # noqa: E402
 
 from disco_cli import _core  # noqa: E402
-from disco_cli.bev import (  # noqa: E402
+from disco_cli.model.bev import (  # noqa: E402
     MODES,
     BEVConfig,
     BEVInputError,

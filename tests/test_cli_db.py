@@ -23,7 +23,7 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.database import FORMAT_VERSION, Database
+from disco_cli.maps.database import FORMAT_VERSION, Database
 
 N_SCENES = 8
 TURN_DEG = 30.0  # a whole number of 3-degree sectors
@@ -114,9 +114,9 @@ def jsonl(text: str) -> list[dict]:
 
 
 def query_signature(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    from disco_cli.bev import polar_bev
+    from disco_cli.io.readers import read_scan
     from disco_cli.model import load_model
-    from disco_cli.readers import read_scan
+    from disco_cli.model.bev import polar_bev
 
     model = load_model("spectral")
     sig, feat = model.embed(polar_bev(read_scan(path), model.bev_config)[None])
@@ -476,9 +476,9 @@ def test_bad_databases(map_db: Path, queries: Path, tmp_path: Path) -> None:
 
 
 def test_scancontext_rerank_through_the_database(seq: Path, queries: Path, tmp_path: Path) -> None:
-    from disco_cli.bev import polar_bev
+    from disco_cli.io.readers import read_scan
     from disco_cli.model import load_model
-    from disco_cli.readers import read_scan
+    from disco_cli.model.bev import polar_bev
 
     out = tmp_path / "sc.db"
     code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "scancontext")
@@ -505,9 +505,9 @@ def test_scancontext_rerank_through_the_database(seq: Path, queries: Path, tmp_p
 def test_default_model_reranks_the_nearest_signatures(
     seq: Path, queries: Path, tmp_path: Path
 ) -> None:
-    from disco_cli.bev import polar_bev
+    from disco_cli.io.readers import read_scan
     from disco_cli.model import load_model
-    from disco_cli.readers import read_scan
+    from disco_cli.model.bev import polar_bev
 
     out = tmp_path / "default.db"
     code, _, err = run("build-db", str(seq), "-o", str(out), "--model", "default")
@@ -689,7 +689,7 @@ def test_info_and_check(map_db: Path, tmp_path: Path) -> None:
 
 def _gt_relative(samples: Path, query: tuple[str, int], match: tuple[str, int]) -> np.ndarray:
     """T_match<-query from the sessions' poses.txt (the simulator's truth)."""
-    from disco_cli.poses import read_kitti_poses
+    from disco_cli.io.poses import read_kitti_poses
 
     Tq = read_kitti_poses(samples / query[0] / "poses.txt")[query[1]]
     Tm = read_kitti_poses(samples / match[0] / "poses.txt")[match[1]]
@@ -705,7 +705,7 @@ def _angle_diff(a: float, b: float) -> float:
 
 
 def test_quaternion_of_known_rotations() -> None:
-    from disco_cli.loop_export import quaternion
+    from disco_cli.io.loop_export import quaternion
 
     rng = np.random.default_rng(0)
     for _ in range(20):
@@ -835,7 +835,7 @@ def test_bad_device_is_one_line(seq: Path, tmp_path: Path) -> None:
 def test_real_kitti_folder_with_a_few_frames(realdata: Path, tmp_path: Path) -> None:
     """KITTI 00 with 12 of its 4541 frames: poses, calibration and times come from the
     folder by frame number; a turned copy of frame 15 finds frame 15 with its yaw."""
-    from disco_cli.poses import read_kitti_poses, read_times
+    from disco_cli.io.poses import read_kitti_poses, read_times
 
     seq = realdata / "kitti00"
     out = tmp_path / "kitti.db"
@@ -849,7 +849,7 @@ def test_real_kitti_folder_with_a_few_frames(realdata: Path, tmp_path: Path) -> 
     np.testing.assert_allclose(poses[:, :3], T[:, :3, 3], atol=1e-9)
     np.testing.assert_allclose(poses[:, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0]), atol=1e-9)
     np.testing.assert_allclose(times, read_times(seq / "times.txt")[frames])
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     turn(read_scan(seq / "velodyne" / "000015.bin"), 90.0).tofile(tmp_path / "q.bin")
     code, out_text, err = run(
@@ -865,7 +865,7 @@ def test_loops_go_on_past_a_pair_without_pose(
 ) -> None:
     # One pair whose relative pose cannot be estimated (here forced) is named on stderr;
     # the other loops are still printed and exported, and the exit status says it.
-    import disco_cli.relative_pose as rp_module
+    import disco_cli.query.relative_pose as rp_module
     from disco_cli.errors import DiscoError
 
     real = rp_module.estimate_relative_pose

@@ -18,7 +18,7 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.database import Database
+from disco_cli.maps.database import Database
 
 
 def _disco() -> str:

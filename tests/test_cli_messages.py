@@ -14,7 +14,7 @@ from conftest import package_path
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.console import progress_line
+from disco_cli.runtime.console import progress_line
 
 
 def _disco(*args: object, env: dict | None = None) -> subprocess.CompletedProcess:

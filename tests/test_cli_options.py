@@ -93,7 +93,7 @@ def test_calib_takes_a_file_everywhere() -> None:
 def test_bev_takes_scan_format_and_bev_mode(tmp_path) -> None:
     import numpy as np
 
-    from disco_cli.bev import BEVConfig, polar_bev
+    from disco_cli.model.bev import BEVConfig, polar_bev
 
     rng = np.random.default_rng(0)
     pts = np.c_[rng.uniform(-30, 30, (500, 2)), rng.uniform(-1, 3, 500), rng.random(500)]

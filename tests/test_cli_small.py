@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from disco_cli import console
 from disco_cli.cli import app
+from disco_cli.runtime import console
 
 
 def _disco() -> str:

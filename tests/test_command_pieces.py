@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from disco_cli.console import in_blocks
 from disco_cli.errors import DiscoError
-from disco_cli.localize import Match
-from disco_cli.loop_detector import loop_columns
-from disco_cli.map import AddResult, QueryResult
+from disco_cli.maps.facade import QueryResult
+from disco_cli.maps.writing import AddResult
+from disco_cli.query.localize import Match
+from disco_cli.query.loop_detector import loop_columns
+from disco_cli.runtime.console import in_blocks
 
 
 def test_in_blocks_joins_groups_at_the_boundaries_and_skips_empty_blocks() -> None:

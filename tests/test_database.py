@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from disco_cli.database import FORMAT_VERSION, Database, ModelInfo, ScanBatch
 from disco_cli.errors import DatabaseError
+from disco_cli.maps.database import FORMAT_VERSION, Database, ModelInfo, ScanBatch
 
 INFO = ModelInfo("spectral", "abc123", {"dim": 16}, {"rings": 4, "sectors": 8})
 
@@ -180,7 +180,7 @@ def test_empty_database_refused_for_search(tmp_path: Path) -> None:
 def _set_scan(path: Path, rid: int, **values: object) -> None:
     """Change columns of one scan row and give it the checksum of its new values: a row
     that passes its checksum, so that only the value checks can find it."""
-    from disco_cli.database import _SCAN_ROW, _scan_crc
+    from disco_cli.maps.database import _SCAN_ROW, _scan_crc
 
     with sqlite3.connect(path) as conn:
         for col, v in values.items():
@@ -284,7 +284,7 @@ def test_damage_is_found_by_the_check_by_writers_and_by_the_read_that_meets_it(
 def test_a_stray_sqlite_error_is_one_line() -> None:
     import typer
 
-    from disco_cli.console import handle_errors
+    from disco_cli.runtime.console import handle_errors
 
     @handle_errors
     def command() -> None:
@@ -338,7 +338,7 @@ def test_rows_read_again_after_a_rewrite_give_the_new_row(tmp_path: Path) -> Non
 
 
 def test_rows_all_damaged_raise_damaged_rows(tmp_path: Path) -> None:
-    from disco_cli.database import DamagedRows
+    from disco_cli.maps.database import DamagedRows
 
     path = _made(tmp_path, n=3)
     with sqlite3.connect(path) as conn:

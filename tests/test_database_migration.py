@@ -21,8 +21,8 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.database import Database, backup_path
 from disco_cli.errors import DatabaseError
+from disco_cli.maps.database import Database, backup_path
 
 D = 64  # signature dimension of the synthetic maps
 FEATURES = (2, 5, 12)
@@ -145,7 +145,7 @@ def test_migration_keeps_the_original_and_rounds_as_documented(old_map) -> None:
 
 
 def test_the_migrated_map_finds_each_scan_at_its_rounding_distance(old_map) -> None:
-    from disco_cli.search import SignatureIndex
+    from disco_cli.query.search import SignatureIndex
 
     db, truth = old_map
     with Database.open(db, writable=True) as new:
@@ -174,7 +174,7 @@ def test_build_db_migrates_a_real_format1_map_and_says_where_the_original_is(
     samples: Path, tmp_path: Path
 ) -> None:
     from disco_cli import load_model, read_scan, signature
-    from disco_cli.database import ModelInfo
+    from disco_cli.maps.database import ModelInfo
 
     model = load_model("spectral")
     info = ModelInfo.of(model)

@@ -115,7 +115,7 @@ def _library_error(db: Path, writable: bool) -> subprocess.CompletedProcess:
     """`Database.open(db, writable)` as uid 65534; its DatabaseError printed on stdout."""
     script = (
         "import sys\n"
-        "from disco_cli.database import Database\n"
+        "from disco_cli.maps.database import Database\n"
         "from disco_cli.errors import DatabaseError\n"
         "try:\n"
         f"    Database.open(sys.argv[1], writable={writable})\n"
@@ -172,7 +172,7 @@ def test_eval_on_a_read_only_map(site: Path, samples: Path) -> None:
 
 
 def test_serve_on_a_read_only_map(site: Path, samples: Path) -> None:
-    from disco_cli.client import Client
+    from disco_cli.service.client import Client
 
     db = _read_only_map(site, "folder")
     sock = site / "work" / "disco.sock"

@@ -89,7 +89,7 @@ def run(*args: str):
 
 @pytest.fixture(scope="module")
 def databases(tiny_world, tmp_path_factory) -> dict[str, Path]:
-    pytest.importorskip("disco_cli.bev")
+    pytest.importorskip("disco_cli.model.bev")
     out = {}
     for model in ("spectral", "scancontext"):
         db = tmp_path_factory.mktemp("db") / f"{model}.db"
@@ -170,7 +170,7 @@ def test_scancontext_finds_the_reverse_revisits(tiny_world, databases, tmp_path)
 
 
 def test_eval_loops_runs(tiny_world, tmp_path):
-    pytest.importorskip("disco_cli.bev")
+    pytest.importorskip("disco_cli.model.bev")
     # One sequence: session 00 then 01 again as later frames; frames 21+ revisit frames 0-20.
     seq = tmp_path / "seq"
     (seq / "velodyne").mkdir(parents=True)
@@ -229,7 +229,7 @@ def test_eval_pose_count_mismatch(tiny_world, databases, tmp_path):
 
 
 def test_eval_needs_a_database_with_poses(tiny_world, tmp_path):
-    pytest.importorskip("disco_cli.bev")
+    pytest.importorskip("disco_cli.model.bev")
     bare = tmp_path / "bare"
     (bare / "velodyne").mkdir(parents=True)
     for f in sorted((tiny_world / "00" / "velodyne").glob("*.bin"))[:3]:
@@ -317,7 +317,7 @@ def test_tsv_output(capsys):
 
 
 def report_format(name: str):
-    from disco_cli.console import OutputFormat
+    from disco_cli.runtime.console import OutputFormat
 
     return OutputFormat(name)
 
@@ -350,9 +350,9 @@ def test_rerank_wider_with_a_model_that_has_none(tiny_world, databases):
 def test_query_of_an_unseen_place_re_ranks_wider(tiny_world, tmp_path):
     """Query 21 lies 170 m beyond the map: none of its 10 nearest signatures re-ranks
     within 0.7, so the search re-ranks all 21 map scans, unless --rerank-wider 0."""
-    from disco_cli.bev import polar_bev
+    from disco_cli.io.readers import read_scan
     from disco_cli.model import load_model
-    from disco_cli.readers import read_scan
+    from disco_cli.model.bev import polar_bev
 
     db = tmp_path / "default.db"
     assert run("build-db", tiny_world / "00", "-o", db, "--model", "default").exit_code == 0

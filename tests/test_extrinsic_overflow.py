@@ -8,7 +8,7 @@ import warnings
 import pytest
 
 from disco_cli.errors import DiscoError
-from disco_cli.poses.scans import read_extrinsic
+from disco_cli.io.poses.scans import read_extrinsic
 
 
 @pytest.mark.parametrize("first", ["1e308", "-1e308", "2.0"])

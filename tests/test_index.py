@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 
 from disco_cli.cli import app
 from disco_cli.errors import DiscoError
-from disco_cli.index import INSTALL_HINT, choose_kind, sidecar_path
-from disco_cli.search import brute_force_topk
+from disco_cli.maps.index import INSTALL_HINT, choose_kind, sidecar_path
+from disco_cli.query.search import brute_force_topk
 
 
 def clustered(n: int, dim: int, seed: int) -> np.ndarray:
@@ -72,7 +72,7 @@ def test_query_index_ann_without_faiss_is_one_line(samples_spectral_db, samples,
 
 def test_full_recall_gives_the_exact_top_k():
     pytest.importorskip("faiss")
-    from disco_cli.index.ann import AnnIndex, AnnParams
+    from disco_cli.maps.index.ann import AnnIndex, AnnParams
 
     x = clustered(3000, 64, seed=1)
     rng = np.random.default_rng(2)
@@ -95,7 +95,7 @@ def test_full_recall_gives_the_exact_top_k():
 
 def test_default_codes_find_the_near_rows_and_scanning_less_finds_fewer():
     pytest.importorskip("faiss")
-    from disco_cli.index.ann import AnnIndex, default_params
+    from disco_cli.maps.index.ann import AnnIndex, default_params
 
     x = clustered(20000, 128, seed=3)
     rng = np.random.default_rng(4)
@@ -165,7 +165,7 @@ def test_a_sidecar_faiss_cannot_read_is_refused_not_raised(tmp_path):
     import hashlib
     import struct
 
-    from disco_cli.index.ann import AnnIndex, SidecarError
+    from disco_cli.maps.index.ann import AnnIndex, SidecarError
 
     # Well-formed around a body that is no faiss index (another faiss's, say): the
     # checksum holds, faiss refuses it, and so does the loader, with a reason.

@@ -21,10 +21,10 @@ from conftest import package_path  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from disco_cli.cli import app  # noqa: E402
-from disco_cli.database import Database, ScanBatch  # noqa: E402
-from disco_cli.map import Map  # noqa: E402
-from disco_cli.milvus_address import INSTALL_HINT, parse_address  # noqa: E402
-from disco_cli.milvus_store import MilvusDatabase  # noqa: E402
+from disco_cli.maps.database import Database, ScanBatch  # noqa: E402
+from disco_cli.maps.facade import Map  # noqa: E402
+from disco_cli.maps.milvus_address import INSTALL_HINT, parse_address  # noqa: E402
+from disco_cli.maps.milvus_store import MilvusDatabase  # noqa: E402
 
 
 def _cli(*args: str) -> tuple[int, str]:
@@ -148,8 +148,8 @@ def test_append_keeps_earlier_answers(maps, samples: Path, tmp_path: Path) -> No
 
 def _damage(address: str, rid: int) -> None:
     """Change scan `rid`'s stored x without its checksum, through Milvus itself."""
-    from disco_cli.milvus_address import connect, disconnect
-    from disco_cli.milvus_schema import load_collections
+    from disco_cli.maps.milvus_address import connect, disconnect
+    from disco_cli.maps.milvus_schema import load_collections
 
     where = parse_address(address)
     client = connect(where)
@@ -300,7 +300,7 @@ def test_serve_answers_from_a_milvus_map(maps, samples: Path, tmp_path: Path) ->
     """`disco serve --db milvus:...` replies what `disco query` prints for the SQLite map."""
     import json
 
-    from disco_cli.client import Client
+    from disco_cli.service.client import Client
 
     sqlite_map, milvus_map = maps
     scans = [str(samples / "01" / "velodyne" / f"{i:06d}.bin") for i in (5, 12, 18)]
@@ -357,8 +357,8 @@ def test_hnsw_from_a_size(maps, samples: Path, tmp_path: Path, monkeypatch) -> N
     """Past HNSW_MIN_ROWS scans the map's vector index becomes HNSW (here lowered to 20),
     and Milvus's search through it gives the SQLite map's answers on the samples."""
     pytest.importorskip("faiss")
-    import disco_cli.milvus_store as store
-    from disco_cli.milvus_address import connect, disconnect
+    import disco_cli.maps.milvus_store as store
+    from disco_cli.maps.milvus_address import connect, disconnect
 
     sqlite_map, _ = maps
     fleet = f"milvus:{tmp_path / 'fleet.db'}"

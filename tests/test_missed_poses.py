@@ -90,7 +90,7 @@ def test_a_lone_scan_folder_gets_no_line(tmp_path: Path, seq: Path) -> None:
 
 @pytest.fixture
 def no_embedding(monkeypatch: pytest.MonkeyPatch) -> list:
-    import disco_cli.pipeline as pipeline
+    import disco_cli.io.pipeline as pipeline
 
     calls: list = []
 

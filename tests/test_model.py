@@ -24,7 +24,7 @@ def random_bevs(n: int, seed: int = 0, density: float = 0.08) -> np.ndarray:
 
 
 def tiny_model(width: int = 4, seed: int = 0) -> DiscoModel:
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
 
     torch.manual_seed(seed)
     config = default_model_config(H, width)

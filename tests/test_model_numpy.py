@@ -20,14 +20,14 @@ torch = pytest.importorskip("torch")
 
 from conftest import package_path  # noqa: E402
 
-from disco_cli.bev import BEVConfig, polar_bev  # noqa: E402
 from disco_cli.errors import ModelError  # noqa: E402
+from disco_cli.io.readers import list_scans, read_scan  # noqa: E402
 from disco_cli.model import DEFAULT_WEIGHTS, load_model, npz_beside  # noqa: E402
+from disco_cli.model.bev import BEVConfig, polar_bev  # noqa: E402
 from disco_cli.model.checkpoint import read_checkpoint  # noqa: E402
 from disco_cli.model.disco import DiscoModel, build_net, default_model_config  # noqa: E402
 from disco_cli.model.unet_numpy import FrozenUNet  # noqa: E402
 from disco_cli.model.weights_npz import file_sha256, read_npz, save_npz  # noqa: E402
-from disco_cli.readers import list_scans, read_scan  # noqa: E402
 
 H, R, S = 20, 40, 120
 needs_default = pytest.mark.skipif(

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from disco_cli.cli import app
 from disco_cli.errors import DiscoError
-from disco_cli.output_paths import (
+from disco_cli.io.output_paths import (
     atomic_path,
     check_output_file,
     check_output_folder,
@@ -56,7 +56,7 @@ class Never:
 @pytest.fixture
 def no_embedding(monkeypatch: pytest.MonkeyPatch) -> Never:
     """Every scan-embedding path of the commands (build-db, query, loops, eval)."""
-    import disco_cli.pipeline as pipeline
+    import disco_cli.io.pipeline as pipeline
 
     never = Never()
     monkeypatch.setattr(pipeline, "embedded", never)
@@ -151,7 +151,7 @@ def test_train_resume_accepts_what_the_advice_names(
     """With --resume a checkpoint of the same network passes the check and training is
     reached."""
     import disco_cli.training.data as data
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.model.checkpoint import save_checkpoint
     from disco_cli.model.disco import default_model_config
 
@@ -173,7 +173,7 @@ def test_train_resume_accepts_what_the_advice_names(
 def test_train_resume_of_a_file_that_cannot_be_resumed_fails_before_training(
     samples: Path, tmp_path: Path, no_training: Never
 ) -> None:
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.model.checkpoint import save_checkpoint
     from disco_cli.model.disco import default_model_config
 
@@ -194,7 +194,7 @@ def test_train_resume_of_a_file_that_cannot_be_resumed_fails_before_training(
 
 @pytest.fixture
 def no_loops(monkeypatch: pytest.MonkeyPatch) -> Never:
-    from disco_cli.loop_detector import LoopDetector
+    from disco_cli.query.loop_detector import LoopDetector
 
     never = Never()
     monkeypatch.setattr(LoopDetector, "add_files", never)
@@ -222,7 +222,7 @@ def test_loops_into_a_missing_folder_fails_before_computing(samples: Path, no_lo
 def test_bev_into_a_missing_folder_fails_before_reading(
     samples: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import disco_cli.readers as readers
+    import disco_cli.io.readers as readers
 
     never = Never()
     monkeypatch.setattr(readers, "read_scan", never)
@@ -269,7 +269,7 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path: Path) -> 
 
 
 def test_a_failed_loop_export_leaves_nothing(tmp_path: Path, monkeypatch) -> None:
-    import disco_cli.loop_export as export
+    import disco_cli.io.loop_export as export
 
     def half(path: Path, *args) -> None:
         path.write_text("EDGE_SE3:QUAT 0 1")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from disco_cli.errors import PoseFileError
-from disco_cli.poses import (
+from disco_cli.io.poses import (
     gt_pairs,
     gt_pairs_within,
     nearest_distance,

@@ -13,8 +13,8 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.database import Database
-from disco_cli.poses import read_kitti_poses, write_kitti_poses, xy_yaw
+from disco_cli.io.poses import read_kitti_poses, write_kitti_poses, xy_yaw
+from disco_cli.maps.database import Database
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data" / "samples"
 FRAMES = [3, 4, 5, 6, 7, 8]
@@ -111,7 +111,7 @@ def test_eval_on_a_partial_sequence_and_self_match_excluded(kitti_seq, tmp_path)
 
 
 def test_scan_beyond_max_time_gap_has_no_pose(tmp_path):
-    from disco_cli.poses.tum import write_tum_poses
+    from disco_cli.io.poses.tum import write_tum_poses
 
     velo = read_kitti_poses(SAMPLES / "00" / "poses.txt")
     folder = tmp_path / "run"

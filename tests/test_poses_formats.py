@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from disco_cli.errors import DiscoError, PoseFileError
-from disco_cli.poses import guess_poses_format, read_poses
+from disco_cli.io.poses import guess_poses_format, read_poses
 
 
 def rot_z(a: float) -> np.ndarray:
@@ -83,9 +83,9 @@ def test_nclt_relative_poses_map_returned_points_onto_each_other(tmp_path):
     """Two NCLT scans of one world, written in NCLT's encoding (z-down Velodyne frame)
     with body poses in NCLT's z-down world: the relative transform of the returned
     (z-up) poses maps the returned points of one scan onto those of the other."""
-    from disco_cli.poses import poses_for_scans
-    from disco_cli.poses.nclt import body_to_velo, write_nclt_poses
-    from disco_cli.readers import read_scan
+    from disco_cli.io.poses import poses_for_scans
+    from disco_cli.io.poses.nclt import body_to_velo, write_nclt_poses
+    from disco_cli.io.readers import read_scan
 
     rng = np.random.default_rng(5)
     # NCLT's z-down world: ground-like points 0.5 to 1.5 m below the body origin.
@@ -136,7 +136,7 @@ def test_mulran_nanoseconds_and_ouster_extrinsic(tmp_path):
 
 
 def test_oxford_locations_and_submap(tmp_path):
-    from disco_cli.readers import list_scans, read_scan
+    from disco_cli.io.readers import list_scans, read_scan
 
     run = tmp_path / "oxford" / "2014-05-19-13-20-57"
     (run / "pointcloud_20m").mkdir(parents=True)
@@ -162,7 +162,7 @@ def test_oxford_locations_and_submap(tmp_path):
     # Metres at the default 20 m per unit, x negated back (PointNetVLAD negated all three).
     np.testing.assert_allclose(pts[:, :3], submap * [-20.0, 20.0, 20.0], atol=1e-4)
     assert np.all(pts[:, 3] == 0)
-    from disco_cli.readers import oxford
+    from disco_cli.io.readers import oxford
 
     with oxford.scale(5.0):
         np.testing.assert_allclose(read_scan(paths[0])[:, :3], submap * [-5, 5, 5], atol=1e-5)
@@ -233,7 +233,7 @@ def test_kitti360_frames_and_velodyne_calibration(tmp_path):
 
 
 def test_kitti_calib_and_extrinsic(tmp_path):
-    from disco_cli.poses import write_kitti_poses
+    from disco_cli.io.poses import write_kitti_poses
 
     T, _ = known_poses()
     write_kitti_poses(tmp_path / "poses.txt", T)

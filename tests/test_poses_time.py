@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from disco_cli.errors import PoseFileError
-from disco_cli.poses import interpolate_poses, poses_for_scans, slerp, write_kitti_poses
+from disco_cli.io.poses import interpolate_poses, poses_for_scans, slerp, write_kitti_poses
 
 
 def screw_pose(t: np.ndarray) -> np.ndarray:
@@ -42,7 +42,7 @@ def test_slerp_matches_scipy_on_random_rotations():
     s = rng.uniform(0, 1, 20)
     ref = Slerp([0.0, 1.0], R)(s).as_matrix()
     q = R.as_quat()
-    from disco_cli.poses import quat_to_matrix
+    from disco_cli.io.poses import quat_to_matrix
 
     got = quat_to_matrix(slerp(np.tile(q[0], (20, 1)), np.tile(q[1], (20, 1)), s))
     np.testing.assert_allclose(got, ref, atol=1e-10)
@@ -67,7 +67,7 @@ def test_gap_edges_and_unsorted_stamps():
 
 
 def write_tum(path, stamps, T):
-    from disco_cli.poses.tum import write_tum_poses
+    from disco_cli.io.poses.tum import write_tum_poses
 
     write_tum_poses(path, stamps, T)
 
@@ -95,7 +95,7 @@ def test_poses_for_scans_by_time_reports_a_far_scan_once(tmp_path):
 
 
 def test_nclt_scans_by_utime(tmp_path):
-    from disco_cli.poses.nclt import body_to_velo, write_nclt_poses
+    from disco_cli.io.poses.nclt import body_to_velo, write_nclt_poses
 
     utime = 1328388850000000 + 100_000 * np.arange(20)
     T = screw_pose((utime - utime[0]) * 1e-6)
@@ -133,7 +133,7 @@ def test_kitti_rule_rows_by_frame_number(tmp_path):
 
 
 def test_kitti360_scans_by_frame_number_with_gaps(tmp_path):
-    from disco_cli.poses import find_pose_file
+    from disco_cli.io.poses import find_pose_file
 
     frames = np.array([0, 1, 2, 3, 10, 11])  # the vehicle stood still over frames 4-9
     T = screw_pose(frames * 0.1)

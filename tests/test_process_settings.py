@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from disco_cli.blas_threads import _functions, blas_threads
+from disco_cli.runtime.blas_threads import _functions, blas_threads
 
 
 def test_blas_threads_sets_and_restores():

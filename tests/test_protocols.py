@@ -12,10 +12,10 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.poses import read_kitti_poses, write_kitti_poses
-from disco_cli.poses.nclt import body_to_velo, write_nclt_poses
-from disco_cli.poses.oxford import write_oxford_locations
-from disco_cli.protocols import PROTOCOLS, oxford_in_test_squares
+from disco_cli.evaluation.protocols import PROTOCOLS, oxford_in_test_squares
+from disco_cli.io.poses import read_kitti_poses, write_kitti_poses
+from disco_cli.io.poses.nclt import body_to_velo, write_nclt_poses
+from disco_cli.io.poses.oxford import write_oxford_locations
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data" / "samples"
 X = np.diag([1.0, -1.0, -1.0, 1.0])  # 180 degrees about x: z up <-> NCLT's z down
@@ -55,7 +55,7 @@ def write_nclt_session(root: Path, date: str, scans: list, poses: np.ndarray, t0
 
 @pytest.fixture(scope="module")
 def nclt_tree(tmp_path_factory):
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     root = tmp_path_factory.mktemp("nclt")
     files = sorted((SAMPLES / "00" / "velodyne").glob("*.bin"))
@@ -159,7 +159,7 @@ def test_protocols_hold_the_papers_settings():
 def test_train_protocol_uses_the_papers_session_and_distances(nclt_tree, tmp_path):
     import torch
 
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     root, map_poses, _ = nclt_tree
     out = tmp_path / "nclt.pt"
@@ -199,7 +199,7 @@ def test_mulran_protocol_reads_ouster_scans_by_nanoseconds(tmp_path):
     figures of `disco eval --radius 3 --topk 10` on those scans in KITTI layout."""
     import shutil
 
-    from disco_cli.poses.mulran import base_to_ouster, write_mulran_poses
+    from disco_cli.io.poses.mulran import base_to_ouster, write_mulran_poses
 
     root = tmp_path / "mulran"
     kitti = {}
@@ -305,8 +305,8 @@ def test_oxford_protocol_reads_normalized_submaps_in_metres(tmp_path):
     `eval --protocol oxford` reads them at --oxford-scale metres per unit and gives, for
     A, the mean of what `disco eval --radius 25 --topk 25` gives on the same rescaled
     submaps in KITTI layout against B and against C."""
-    from disco_cli.protocols import OXFORD_TEST_CENTRES, OXFORD_TEST_RUNS
-    from disco_cli.readers import read_scan
+    from disco_cli.evaluation.protocols import OXFORD_TEST_CENTRES, OXFORD_TEST_RUNS
+    from disco_cli.io.readers import read_scan
 
     scale = 25.0
     files = sorted((SAMPLES / "00" / "velodyne").glob("*.bin"))[:8]
@@ -386,8 +386,8 @@ def test_train_protocol_oxford_uses_pointnetvlad_training_split(tmp_path):
     10 m / 50 m, and no yaw loss (the locations have no heading)."""
     import torch
 
-    from disco_cli.protocols import OXFORD_TEST_CENTRES, training_setup
-    from disco_cli.readers import read_scan
+    from disco_cli.evaluation.protocols import OXFORD_TEST_CENTRES, training_setup
+    from disco_cli.io.readers import read_scan
 
     files = sorted((SAMPLES / "00" / "velodyne").glob("*.bin"))[:8]
     scans = [read_scan(f) for f in files]

@@ -10,8 +10,8 @@ import pytest
 
 from disco_cli.errors import DiscoError
 from disco_cli.model import load_model
-from disco_cli.query_policy import QueryPolicy, policy_for
-from disco_cli.search import effective_policy
+from disco_cli.query.query_policy import QueryPolicy, policy_for
+from disco_cli.query.search import effective_policy
 
 
 @pytest.mark.parametrize(

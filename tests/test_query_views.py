@@ -14,15 +14,15 @@ import pytest
 from query_stubs import StubModel
 from test_yaw_flip import _features, pose, street, wrap
 
-from disco_cli.database import MatchRows
+from disco_cli.maps.database import MatchRows
+from disco_cli.maps.signature_index import ProjectedSignatures, SignatureIndex, brute_force_topk
 from disco_cli.model import load_model
 from disco_cli.model import yaw_refine as yr
 from disco_cli.model.interface import Abilities
 from disco_cli.model.signature import signatures
 from disco_cli.model.verify import aligned_correlation, aligned_correlations
-from disco_cli.query_views import candidates_with_views, views_search
-from disco_cli.search import match_queries
-from disco_cli.signature_index import ProjectedSignatures, SignatureIndex, brute_force_topk
+from disco_cli.query.query_views import candidates_with_views, views_search
+from disco_cli.query.search import match_queries
 
 
 def _plain_corr(a: np.ndarray, b: np.ndarray) -> float:
@@ -218,7 +218,7 @@ def test_revisits_beside_the_route_are_found_with_their_yaw(model, monkeypatch) 
 
 def test_the_approximate_index_proposes_the_views_candidates_cheaply() -> None:
     pytest.importorskip("faiss")
-    from disco_cli.index.ann import AnnIndex, AnnParams
+    from disco_cli.maps.index.ann import AnnIndex, AnnParams
 
     both = _low_rank_signatures(4010, 1024, 24, seed=5)
     sigs, queries = both[:4000], both[4000:]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from disco_cli.errors import DiscoError, ScanReadError
-from disco_cli.readers import FORMATS, guess_format, list_scans, natural_key, read_scan
+from disco_cli.io.readers import FORMATS, guess_format, list_scans, natural_key, read_scan
 
 # Five points with distinct, exactly representable coordinates and intensities.
 XYZI = np.array(

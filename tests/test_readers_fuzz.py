@@ -35,7 +35,7 @@ from hypothesis import strategies as st  # noqa: E402
 from test_readers import _pcd_header, _ply_header, lzf_compress  # noqa: E402
 
 from disco_cli.errors import DiscoError, PoseFileError, ScanReadError  # noqa: E402
-from disco_cli.poses import (  # noqa: E402
+from disco_cli.io.poses import (  # noqa: E402
     kitti360,
     read_calib_tr,
     read_extrinsic,
@@ -43,8 +43,8 @@ from disco_cli.poses import (  # noqa: E402
     read_times,
     scan_times,
 )
-from disco_cli.readers import read_scan  # noqa: E402
-from disco_cli.readers.pointcloud2 import PointField, decode_message  # noqa: E402
+from disco_cli.io.readers import read_scan  # noqa: E402
+from disco_cli.io.readers.pointcloud2 import PointField, decode_message  # noqa: E402
 
 # A reader must not print NumPy's RuntimeWarnings (overflow, invalid cast) either.
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
@@ -192,7 +192,7 @@ def kitti_files(draw):
 
 @st.composite
 def nclt_files(draw):
-    from disco_cli.readers.nclt import RECORD
+    from disco_cli.io.readers.nclt import RECORD
 
     n = draw(st.integers(1, 30))
     raw = np.zeros(n, RECORD)
@@ -206,7 +206,7 @@ def nclt_files(draw):
 
 @st.composite
 def oxford_files(draw):
-    from disco_cli.readers.oxford import DEFAULT_SCALE
+    from disco_cli.io.readers.oxford import DEFAULT_SCALE
 
     n = draw(st.integers(1, 30))
     xyz = np.array(draw(values(3 * n, False)), np.float64).reshape(n, 3) / 100
@@ -506,7 +506,7 @@ def _rotations(draw, n: int) -> np.ndarray:
     q = np.array(draw(st.lists(st.integers(-9, 9), min_size=4 * n, max_size=4 * n)), float)
     q = q.reshape(n, 4)
     q[np.linalg.norm(q, axis=1) == 0] = [0, 0, 0, 1]
-    from disco_cli.poses.geometry import quat_to_matrix
+    from disco_cli.io.poses.geometry import quat_to_matrix
 
     return quat_to_matrix(q)
 

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from disco_cli import _core
 from disco_cli.errors import DiscoError
-from disco_cli.relative_pose import (
+from disco_cli.query.relative_pose import (
     PoseConfig,
     PoseError,
     RelativePose,
@@ -233,7 +233,7 @@ def test_real_consecutive_hdl32_scans(realdata):
 
 
 def _sample_pairs(samples: Path, min_abs_yaw: float) -> list[tuple[Path, Path, np.ndarray]]:
-    from disco_cli.poses import read_kitti_poses
+    from disco_cli.io.poses import read_kitti_poses
 
     p0 = read_kitti_poses(samples / "00" / "poses.txt")
     p1 = read_kitti_poses(samples / "01" / "poses.txt")
@@ -272,7 +272,7 @@ def test_consecutive_sample_scans_along_a_street(samples, hint_error):
     """Frames 17 and 18 of session 00 are 12.7 m apart on a street of look-alike facades:
     with the translation search limited to 10 m this pair was mis-registered a few metres
     short and accepted; within the default 15 m it must be recovered."""
-    from disco_cli.poses import read_kitti_poses
+    from disco_cli.io.poses import read_kitti_poses
 
     poses = read_kitti_poses(samples / "00" / "poses.txt")
     T = np.linalg.inv(poses[18]) @ poses[17]
@@ -308,7 +308,7 @@ def test_kitti_vs_elsewhere_rejected(kitti0, realdata):
 
 
 def test_far_apart_simulated_places_rejected(samples):
-    from disco_cli.poses import read_kitti_poses
+    from disco_cli.io.poses import read_kitti_poses
 
     poses = read_kitti_poses(samples / "00" / "poses.txt")
     i, j = 0, len(poses) // 2

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from query_stubs import StubModel
 
-from disco_cli.database import MatchRows
-from disco_cli.map_side_views import ViewIndex
-from disco_cli.readers import list_scans, read_scan
-from disco_cli.search import match_queries, ranking_score
+from disco_cli.io.readers import list_scans, read_scan
+from disco_cli.maps.database import MatchRows
+from disco_cli.maps.map_side_views import ViewIndex
+from disco_cli.query.search import match_queries, ranking_score
 
 
 def _order(rows, rerank_d, sig_d, weight):
@@ -84,7 +84,7 @@ def test_a_side_view_match_stays_first_through_re_ranking(weight: float) -> None
 def test_the_policy_reaches_the_report_run() -> None:
     from disco_cli.evaluation.report import model_run
     from disco_cli.model import load_model
-    from disco_cli.query_policy import policy_for
+    from disco_cli.query.query_policy import policy_for
 
     model = load_model("default")
     run = model_run(model)

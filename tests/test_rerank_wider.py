@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from query_stubs import StubModel
 
-from disco_cli.database import MatchRows
-from disco_cli.query_policy import policy_for
-from disco_cli.search import SignatureIndex, match_queries
+from disco_cli.maps.database import MatchRows
+from disco_cli.query.query_policy import policy_for
+from disco_cli.query.search import SignatureIndex, match_queries
 
 N = 12
 

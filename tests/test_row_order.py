@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from disco_cli.readers import list_scans, read_scan
+from disco_cli.io.readers import list_scans, read_scan
 
 
 @pytest.fixture(scope="module")
@@ -18,7 +18,7 @@ def sample_map(samples: Path, tmp_path_factory: pytest.TempPathFactory):
     """The shipped model's map of the sample town's session 00 (with poses, so the snap
     runs), and session 01's scans as queries."""
     from disco_cli import Map
-    from disco_cli.poses import read_kitti_poses
+    from disco_cli.io.poses import read_kitti_poses
 
     paths = list_scans(samples / "00")
     poses = read_kitti_poses(samples / "00" / "poses.txt")
@@ -63,8 +63,8 @@ def test_disco_serve_answers_under_the_policy_it_was_given(sample_map, samples: 
     """`ServeOptions.policy` reaches every request: with re-ranking off the rows are the
     plain signature order (the map's nearest signatures), sorted by what they show."""
     from disco_cli import Map
-    from disco_cli.pipeline import load_bev
-    from disco_cli.serve import QueryService, ServeOptions
+    from disco_cli.io.pipeline import load_bev
+    from disco_cli.service.serve import QueryService, ServeOptions
 
     path, _ = sample_map
     scan = str(list_scans(samples / "01")[3])

@@ -15,9 +15,9 @@ from typer.testing import CliRunner
 
 from disco_cli.cli import app
 from disco_cli.errors import ScanReadError
-from disco_cli.readers import read_scan
-from disco_cli.readers.nclt import RECORD
-from disco_cli.readers.plausible import layout_problem
+from disco_cli.io.readers import read_scan
+from disco_cli.io.readers.nclt import RECORD
+from disco_cli.io.readers.plausible import layout_problem
 
 LAYOUTS = ("kitti", "nclt", "oxford")
 RECORD_BYTES = {"kitti": 16, "nclt": 8, "oxford": 24}

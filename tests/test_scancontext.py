@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from disco_cli import scancontext as sc
+from disco_cli.model import scancontext as sc
 
 
 def naive_shift_distance(q: np.ndarray, c: np.ndarray, n: int) -> float:
@@ -110,12 +110,12 @@ def street_scan(seed: int = 0) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def model():
-    pytest.importorskip("disco_cli.bev")
+    pytest.importorskip("disco_cli.model.bev")
     return sc.ScanContextModel()
 
 
 def test_model_protocol(model):
-    from disco_cli.bev import polar_bev
+    from disco_cli.model.bev import polar_bev
 
     assert model.name == "scancontext"
     assert model.query_policy.rerank_candidates > 0
@@ -138,7 +138,7 @@ def json_roundtrip(d: dict) -> dict:
 
 @pytest.mark.parametrize("deg", [33.0, -90.0, 150.0, 178.0])
 def test_rotated_scan_gives_minus_the_rotation(model, deg):
-    from disco_cli.bev import polar_bev
+    from disco_cli.model.bev import polar_bev
 
     scan = street_scan(2)
     clouds = [scan, rotate(scan, deg), street_scan(3)]
@@ -152,8 +152,8 @@ def test_rotated_scan_gives_minus_the_rotation(model, deg):
 
 
 def test_real_scan_rotated(model, realdata):
-    from disco_cli.bev import polar_bev
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
+    from disco_cli.model.bev import polar_bev
 
     scan = read_scan(realdata / "kitti00" / "velodyne" / "000000.bin")
     for deg in (47.0, -120.0):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from disco_cli.search import SignatureIndex
+from disco_cli.query.search import SignatureIndex
 
 # Both first passes: the float32 BLAS product, and the compiled int8 scan.
 PASSES = {"blas": {"int8_min_rows": 10**12}, "int8": {"int8_min_rows": 0}}

@@ -18,7 +18,7 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.client import Client, ServerError
+from disco_cli.service.client import Client, ServerError
 
 QUERIES = ["01/velodyne/000005.bin", "01/velodyne/000012.bin", "01/velodyne/000018.bin"]
 
@@ -104,7 +104,7 @@ def test_replies_equal_disco_query_rows(served, samples: Path) -> None:
 
 def test_inline_points_match_the_file(served, samples: Path) -> None:
     db, sock, _ = served
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     scan = samples / QUERIES[1]
     pts = read_scan(str(scan))

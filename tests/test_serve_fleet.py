@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from test_serve import QUERIES, cli, start_server
 
-from disco_cli.client import Client, ClientError, ServerError
+from disco_cli.service.client import Client, ClientError, ServerError
 
 N_CLIENTS = 20
 
@@ -284,14 +284,14 @@ def test_the_command_line_client_sends_absolute_paths(
     scan = samples / QUERIES[1]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(__import__("sys").path)}
     res = subprocess.run(
-        [__import__("sys").executable, "-m", "disco_cli.client", "--socket",
+        [__import__("sys").executable, "-m", "disco_cli.service.client", "--socket",
          str(unix_server), "-k", "3", scan.name],
         cwd=scan.parent, capture_output=True, text=True, env=env, timeout=120,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)["rows"] == expected[str(scan)]
     res = subprocess.run(
-        [__import__("sys").executable, "-m", "disco_cli.client", "--socket",
+        [__import__("sys").executable, "-m", "disco_cli.service.client", "--socket",
          str(unix_server.parent / "none.sock"), "x.bin"],
         capture_output=True, text=True, env=env, timeout=120,
     )  # fmt: skip

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from test_serve import cli, start_server
 
-from disco_cli.client import Client, ClientError
+from disco_cli.service.client import Client, ClientError
 
 
 @pytest.fixture(scope="module")
@@ -163,9 +163,9 @@ def test_the_bytes_held_across_connections_are_bounded(strict: Path) -> None:
 def test_a_query_whose_client_left_stops(small_map: Path, monkeypatch) -> None:
     """In the server's own code path, with the client reported gone after the first
     check: of 20 matches' poses, at most one is estimated."""
-    from disco_cli import relative_pose
-    from disco_cli.map import Map
-    from disco_cli.serve import QueryService, ServeOptions
+    from disco_cli.maps.facade import Map
+    from disco_cli.query import relative_pose
+    from disco_cli.service.serve import QueryService, ServeOptions
 
     calls = []
     real = relative_pose.estimate_relative_pose

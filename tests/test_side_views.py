@@ -10,9 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.map_side_views import ViewIndex, side_offsets, side_view_bevs
-from disco_cli.readers import list_scans, read_scan
-from disco_cli.search import brute_force_topk
+from disco_cli.io.readers import list_scans, read_scan
+from disco_cli.maps.map_side_views import ViewIndex, side_offsets, side_view_bevs
+from disco_cli.query.search import brute_force_topk
 
 
 def run(*args: str) -> tuple[int, str]:
@@ -81,7 +81,7 @@ def test_side_offsets():
 def test_a_view_is_the_scan_seen_from_beside_it(samples):
     """Points seen from a sensor moved `offset` m along y: a point at (x, offset + dy, z)
     lands where (x, dy, z) lands seen from the real sensor."""
-    from disco_cli.bev import BEVConfig, polar_bev
+    from disco_cli.model.bev import BEVConfig, polar_bev
 
     cfg = BEVConfig()
     rng = np.random.default_rng(3)
@@ -137,7 +137,7 @@ def test_build_db_with_side_views_cli(samples, tmp_path):
     )
     assert code == 1 and "side-views 3" in out and "Traceback" not in out
     assert db.read_bytes() == before
-    from disco_cli.database import Database
+    from disco_cli.maps.database import Database
 
     with Database.open(db) as d:
         ids, sigs = d.side_signatures()

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from disco_cli.poses import read_kitti_poses
+from disco_cli.io.poses import read_kitti_poses
 from disco_cli.simulator import (
     ChangeParams,
     RobotParams,

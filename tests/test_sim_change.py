@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from disco_cli.cli import app
 from disco_cli.errors import DiscoError
-from disco_cli.poses import read_kitti_poses
+from disco_cli.io.poses import read_kitti_poses
 from disco_cli.simulator import (
     ChangeParams,
     RobotParams,

@@ -13,8 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from disco_cli.poses import read_kitti_poses
-from disco_cli.readers import read_scan
+from disco_cli.io.poses import read_kitti_poses
+from disco_cli.io.readers import read_scan
 from disco_cli.simulator import simulate
 from disco_cli.simulator.session import wobble
 

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.poses import gt_pairs, gt_pairs_within, read_kitti_poses, relative_yaw_deg
+from disco_cli.io.poses import gt_pairs, gt_pairs_within, read_kitti_poses, relative_yaw_deg
 from disco_cli.simulator import cast, get_sensor, plan_sessions, scan, simulate
 from disco_cli.simulator.world import (
     BOX,

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from query_stubs import StubModel
 
-from disco_cli.database import MatchRows
 from disco_cli.errors import DiscoError
+from disco_cli.maps.database import MatchRows
 from disco_cli.model.interface import Abilities
-from disco_cli.query_policy import policy_for
-from disco_cli.search import SignatureIndex, match_queries, snap_first
+from disco_cli.query.query_policy import policy_for
+from disco_cli.query.search import SignatureIndex, match_queries, snap_first
 
 
 class _Model(StubModel):
@@ -180,7 +180,7 @@ def test_snap_radius_checks() -> None:
 def offset_world(tmp_path_factory) -> tuple[Path, Path, np.ndarray, np.ndarray]:
     """A map scan every 2 m along y = 0; queries driven back 2 m and 4 m to the side,
     0.5 m past a map scan: the nearest map scan is one, the next 0.25-0.44 m farther."""
-    pytest.importorskip("disco_cli.bev")
+    pytest.importorskip("disco_cli.model.bev")
     from test_eval_cli import run, world_points, write_session
 
     root = tmp_path_factory.mktemp("offset")
@@ -234,8 +234,8 @@ def test_map_query_snap_radius(offset_world) -> None:
     order; a negative radius is one clear error."""
     from test_eval_cli import run
 
-    from disco_cli.map import Map
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
+    from disco_cli.maps.facade import Map
 
     root, db, map_xy, query_xy = offset_world
     scans = sorted((root / "01" / "velodyne").glob("*.bin"))

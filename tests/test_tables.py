@@ -12,7 +12,7 @@ from rich.console import Console
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
-from disco_cli.table_layout import PATH_COLUMNS, print_table, short_path
+from disco_cli.runtime.table_layout import PATH_COLUMNS, print_table, short_path
 
 WIDTHS = (60, 80, 120)
 

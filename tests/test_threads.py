@@ -19,9 +19,9 @@ import typer
 from conftest import package_path
 from typer.testing import CliRunner
 
-from disco_cli import threads as disco_threads
 from disco_cli.cli import app
 from disco_cli.errors import DiscoError
+from disco_cli.runtime import threads as disco_threads
 
 runner = CliRunner()
 COMPUTING = ["build-db", "query", "loops", "eval", "eval-loops", "train", "simulate", "serve"]
@@ -110,7 +110,7 @@ class _RecordingCore:
 def test_the_setting_reaches_the_c_core_search(monkeypatch: pytest.MonkeyPatch) -> None:
     import disco_cli
     from disco_cli import _core
-    from disco_cli.search import SignatureIndex
+    from disco_cli.query.search import SignatureIndex
 
     rec = _RecordingCore(_core)
     monkeypatch.setattr(disco_cli, "_core", rec)
@@ -126,7 +126,7 @@ def test_the_setting_reaches_the_c_core_search(monkeypatch: pytest.MonkeyPatch) 
 def default_db(samples: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A map of three sample scans by the shipped model (its NumPy U-Net: no torch)."""
     from disco_cli import Map
-    from disco_cli.readers import list_scans, read_scan
+    from disco_cli.io.readers import list_scans, read_scan
 
     path = tmp_path_factory.mktemp("threads") / "default.db"
     with Map.create(path, "default") as m:
@@ -138,7 +138,7 @@ def _query_records_threads(monkeypatch: pytest.MonkeyPatch) -> dict:
     """What a query's work runs on: the U-Net's BLAS threads (`blas_threads` around its
     products), the reading pool, and the setting the C++ search and FFTs read."""
     import disco_cli.model.disco as disco_model
-    from disco_cli.map import Map
+    from disco_cli.maps.facade import Map
 
     seen: dict = {"blas": []}
     shipped = disco_model.blas_threads
@@ -240,7 +240,7 @@ def test_bad_disco_threads_is_one_line(value: str, tmp_path: Path) -> None:
 CHECK_ORDER = """
 import sys
 from typer.testing import CliRunner
-import disco_cli.threads as t
+import disco_cli.runtime.threads as t
 from disco_cli.cli import app
 from disco_cli.errors import DiscoError
 

@@ -110,7 +110,7 @@ def test_yaw_loss_is_zero_only_for_the_true_shift():
 
 
 def test_loading_and_mining_follow_the_poses(world):
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
     from disco_cli.training.mining import PairMiner
 
@@ -141,7 +141,7 @@ def test_hard_negative_search_equals_a_full_sort():
 
 
 def test_verify_sets_start_with_the_nearest_scan_of_another_pass(world):
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
     from disco_cli.training.mining import PairMiner
 
@@ -166,8 +166,8 @@ def test_verify_sets_start_with_the_nearest_scan_of_another_pass(world):
 
 
 def test_training_with_the_verify_loss_records_it_and_reranks(world, tmp_path, one_thread):
-    from disco_cli.bev import BEVConfig
     from disco_cli.model import load_model
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
     from disco_cli.training.loop import TrainOptions, train
 
@@ -184,8 +184,8 @@ def test_training_with_the_verify_loss_records_it_and_reranks(world, tmp_path, o
 
 
 def test_training_without_poses_needs_self_supervised(tmp_path):
-    from disco_cli.bev import BEVConfig
     from disco_cli.errors import PoseFileError
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
 
     seq = tmp_path / "seq"
@@ -204,7 +204,7 @@ def test_training_without_poses_needs_self_supervised(tmp_path):
 
 
 def test_self_supervised_training_runs_and_finds_the_copies(tmp_path, one_thread):
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
     from disco_cli.training.loop import TrainOptions, train
 
@@ -225,7 +225,7 @@ def test_self_supervised_training_runs_and_finds_the_copies(tmp_path, one_thread
 
 
 def test_short_training_lowers_loss_and_beats_the_untrained_network(world, tmp_path, one_thread):
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
     from disco_cli.training.loop import train
 

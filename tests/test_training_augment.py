@@ -72,7 +72,7 @@ def test_rings_come_from_the_firing_order_and_decimation_keeps_every_kth():
 
 
 def test_rings_of_the_bundled_simulated_scan():
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     pts = read_scan(SAMPLE / "000000.bin")
     ring = scan_rings(pts)
@@ -81,7 +81,7 @@ def test_rings_of_the_bundled_simulated_scan():
 
 @pytest.mark.skipif(not (REALDATA / "kitti00").is_dir(), reason="no ../shared/realdata")
 def test_a_real_kitti_scan_has_64_rings_and_decimates_to_16():
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     pts = read_scan(REALDATA / "kitti00" / "velodyne" / "000000.bin")
     ring = scan_rings(pts)
@@ -222,7 +222,7 @@ def changed(tmp_path_factory) -> tuple[Path, Path]:
 
 
 def test_variants_share_their_scans_pose_and_are_never_anchors(changed):
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
 
     plain = load_training_data([changed[0]], BEVConfig())
@@ -246,7 +246,7 @@ def test_variants_share_their_scans_pose_and_are_never_anchors(changed):
 
 
 def test_short_training_under_change_beats_the_untrained_network(changed, tmp_path, one_thread):
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
 
     data = load_training_data([changed[0]], BEVConfig(), variants=1, seed=0)

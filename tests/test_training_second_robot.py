@@ -39,7 +39,7 @@ def _boulevard(out: Path, seed: int) -> Path:
 
 
 def test_short_training_on_boulevards_beats_the_untrained_network(tmp_path, one_thread):
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
 
     # Training seed 4190 and held-out seed 4193: the training range of docs/model.md#seeds.

@@ -111,9 +111,9 @@ def _models() -> list[str]:
 
 @pytest.mark.parametrize("name", _models())
 def test_real_scan_rotated_over_the_whole_circle(realdata, name):
-    from disco_cli.bev import polar_bev
+    from disco_cli.io.readers import read_scan
     from disco_cli.model import load_model
-    from disco_cli.readers import read_scan
+    from disco_cli.model.bev import polar_bev
 
     model = load_model(name)
     points = read_scan(realdata / "kitti00" / "velodyne" / "000000.bin")
@@ -132,10 +132,10 @@ def test_real_scan_rotated_over_the_whole_circle(realdata, name):
 
 @pytest.mark.parametrize("name", _models())
 def test_consecutive_real_frames_give_the_ground_truth_yaw(realdata, name):
-    from disco_cli.bev import polar_bev
+    from disco_cli.io.poses import read_kitti_poses, relative_yaw_deg
+    from disco_cli.io.readers import read_scan
     from disco_cli.model import load_model
-    from disco_cli.poses import read_kitti_poses, relative_yaw_deg
-    from disco_cli.readers import read_scan
+    from disco_cli.model.bev import polar_bev
 
     seq = realdata / "kitti00"
     poses = read_kitti_poses(seq / "poses.txt", seq / "calib.txt")

@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from disco_cli.bev import polar_bev_batch
-from disco_cli.database import MatchRows
+from disco_cli.maps.database import MatchRows
 from disco_cli.model import load_model
+from disco_cli.model.bev import polar_bev_batch
 from disco_cli.model.yaw import estimate_yaw_conf, margin, second_peak
-from disco_cli.search import SignatureIndex, match_queries
+from disco_cli.query.search import SignatureIndex, match_queries
 from disco_cli.simulator import scan
 from disco_cli.simulator.world import primitives_world
 

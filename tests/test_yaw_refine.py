@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from disco_cli.bev import BEVConfig, polar_bev
+from disco_cli.io.readers import read_scan
+from disco_cli.model.bev import BEVConfig, polar_bev
 from disco_cli.model.yaw import estimate_yaw, wrap_deg
 from disco_cli.model.yaw_refine import query_in_match_frame, recentre, refine_one, refine_yaw
-from disco_cli.readers import read_scan
 
 R, S, MAX_RANGE = 40, 120, 80.0
 
@@ -150,7 +150,7 @@ def test_refine_yaw_option_chooses_which_matches_are_refined(samples_spectral_db
     assert [r["match"] for r in two_rows] == matches
     plain, two = [r["yaw_deg"] for r in plain_rows], [r["yaw_deg"] for r in two_rows]
     # The truth, computed here: plain and re-centred yaw of the query's own images.
-    from disco_cli.bev import polar_bev
+    from disco_cli.model.bev import polar_bev
 
     model = load_model("spectral")
     query = polar_bev(read_scan(scan), model.bev_config).sum(axis=0)
@@ -178,7 +178,7 @@ def test_negative_refine_yaw_is_one_clear_error(samples_spectral_db, samples):
 def test_map_query_refines_the_yaw_of_as_many_matches_as_asked(samples, tmp_path):
     """Map.query(refine_yaw=N) changes the yaw of the N best matches only; the default
     is the best one."""
-    from disco_cli.map import Map
+    from disco_cli.maps.facade import Map
 
     points = read_scan(samples / "01" / "velodyne" / "000005.bin")
     with Map.create(tmp_path / "m.db", model="spectral") as m:

@@ -119,8 +119,8 @@ def main() -> None:
         sys.exit(0)
 
 
-from disco_cli.console import error  # noqa: E402
 from disco_cli.errors import DiscoError  # noqa: E402
+from disco_cli.runtime.console import error  # noqa: E402
 
 # Loaded: Ctrl-C is a KeyboardInterrupt again, which main() and the commands handle.
 if _sigint_before is not None:

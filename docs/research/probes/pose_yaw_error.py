@@ -26,7 +26,7 @@ def yaw_deg(T: np.ndarray) -> float:
 
 
 def main() -> int:
-    from disco_cli.poses import read_kitti_poses
+    from disco_cli.io.poses import read_kitti_poses
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("world", type=Path, help="a simulated world: sessions 00 (map) and 01")

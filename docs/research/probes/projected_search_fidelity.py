@@ -36,9 +36,9 @@ def main() -> None:
     print_header("projected_search_fidelity")
     from query_side_views_probe import World
 
-    from disco_cli import signature_index
+    from disco_cli.maps import signature_index
+    from disco_cli.maps.signature_index import SignatureIndex
     from disco_cli.model import load_model
-    from disco_cli.signature_index import SignatureIndex
 
     model = load_model("default")
     rows, views = [], []

@@ -102,7 +102,7 @@ class QueryViewIndex:
     2k rows, by distance): the wider re-ranking pass then sees today's candidates."""
 
     def __init__(self, signatures: np.ndarray, factor: float = 1.0, keep_own: bool = False):
-        from disco_cli.search import SignatureIndex
+        from disco_cli.query.search import SignatureIndex
 
         self.inner = SignatureIndex(signatures)
         self.dim, self.factor, self.keep_own = self.inner.dim, factor, keep_own
@@ -168,7 +168,7 @@ def g_views(model, qf: np.ndarray, positions: np.ndarray) -> np.ndarray:
 def bev_views(model, points: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """(signatures, features) of the views embedded again from the query's points
     re-centred."""
-    from disco_cli.bev import polar_bev
+    from disco_cli.model.bev import polar_bev
 
     bevs = []
     for x, y in positions:
@@ -183,7 +183,7 @@ class World:
     def __init__(self, spec: str, cache: Path, model):
         import revisit_rerank_probe as rr
 
-        from disco_cli.database import MatchRows
+        from disco_cli.maps.database import MatchRows
 
         world, radius = spec.rsplit(":", 1)
         self.path, self.radius = Path(world), float(radius)
@@ -224,8 +224,8 @@ class World:
     ) -> tuple[float, int, list[float], int]:
         """Recall@1 of one variant; `policy`: the query stage's for `kind` "none" (default:
         the model's without its own views, as before they were built)."""
-        from disco_cli.map_side_views import ViewIndex
-        from disco_cli.search import SignatureIndex, match_queries
+        from disco_cli.maps.map_side_views import ViewIndex
+        from disco_cli.query.search import SignatureIndex, match_queries
 
         e = self.e
         if kind == "map":
@@ -293,7 +293,7 @@ def time_views(w: World, model, reps: int = 3) -> None:
     """Median time per query of `match_queries` today and with the TIMED query-side
     views (the re-centred images and their signatures included), interleaved."""
     from disco_cli.model.yaw_refine import recentre
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.query.search import SignatureIndex, match_queries
 
     e, rng = w.e, model.bev_config.max_range
     plain = SignatureIndex(e["ms"])

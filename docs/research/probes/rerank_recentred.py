@@ -37,11 +37,11 @@ def main() -> None:
 
     from _common import print_header
 
-    from disco_cli.database import Database, ModelInfo, ScanBatch
+    from disco_cli.io.poses import xy_yaw
+    from disco_cli.maps.database import Database, ModelInfo, ScanBatch
     from disco_cli.model import load_model
     from disco_cli.model.yaw_refine import refine_one
-    from disco_cli.poses import xy_yaw
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.query.search import SignatureIndex, match_queries
 
     print_header("rerank_recentred")
     model = load_model("default")

@@ -40,9 +40,9 @@ OFFSETS = (2.5, 4.0, 5.0, 6.0)
 def embedded(world: Path, cache: Path, model) -> dict[str, np.ndarray]:
     import ood_suite as suite
 
-    from disco_cli.map_side_views import seen_from
-    from disco_cli.poses import xy_yaw
-    from disco_cli.readers import read_scan
+    from disco_cli.io.poses import xy_yaw
+    from disco_cli.io.readers import read_scan
+    from disco_cli.maps.map_side_views import seen_from
 
     f = cache / f"{world.name}.npz"
     if f.is_file():
@@ -105,14 +105,14 @@ class Evaluated:
 
     def estimate(self, i: int, j: int) -> np.ndarray:
         if (i, j) not in self._estimates:
-            from disco_cli.search import query_on_map_conf
+            from disco_cli.query.search import query_on_map_conf
 
             _, xy, _ = query_on_map_conf(self.model, self.e["qf"][i], self.e["mf"][j], self.mp[j])
             self._estimates[(i, j)] = xy
         return self._estimates[(i, j)]
 
     def recall(self, rule) -> tuple[float, int, list[float]]:
-        from disco_cli.query_policy import QueryPolicy
+        from disco_cli.query.query_policy import QueryPolicy
 
         shipped = QueryPolicy()
         RERANK_WIDER_ABOVE = shipped.rerank_wider_above  # noqa: N806
@@ -143,8 +143,8 @@ def time_rule(e: dict[str, np.ndarray], model, reps: int = 5) -> None:
     map in memory) with the shipped weight and with 0, interleaved in this process."""
     import time
 
-    from disco_cli.database import MatchRows
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.maps.database import MatchRows
+    from disco_cli.query.search import SignatureIndex, match_queries
 
     paths = [f"scan{i}" for i in range(len(e["ms"]))]
 

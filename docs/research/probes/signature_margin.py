@@ -45,7 +45,7 @@ FAR = 20.0  # another place: a map scan farther than this (m) from the query
 def margin_ratios(world, radius: float, far: float) -> np.ndarray:
     """d_other / d_true for each query of `world` (an `ood_suite.EmbeddedWorld`) that has
     a map scan within `radius` and one beyond `far`."""
-    from disco_cli.poses import xy_yaw
+    from disco_cli.io.poses import xy_yaw
 
     mx, my, _ = xy_yaw(world.map_poses)
     qx, qy, _ = xy_yaw(world.queries.poses)

@@ -44,7 +44,7 @@ class _MapRows:
         self.world, self.pose4 = world, pose4
 
     def rows(self, ids: np.ndarray):
-        from disco_cli.database import MatchRows
+        from disco_cli.maps.database import MatchRows
 
         ids = np.asarray(ids, np.int64)
         paths = [str(self.world.map_paths[i]) for i in ids]
@@ -52,8 +52,8 @@ class _MapRows:
 
 
 def measure(model, policy, world: S.EmbeddedWorld, name: str) -> dict[str, list]:
-    from disco_cli.poses import xy_yaw
-    from disco_cli.search import SignatureIndex, match_queries, query_on_map_conf
+    from disco_cli.io.poses import xy_yaw
+    from disco_cli.query.search import SignatureIndex, match_queries, query_on_map_conf
 
     mx, my, myaw = xy_yaw(world.map_poses)
     qx, qy, _ = xy_yaw(world.queries.poses)

@@ -89,7 +89,7 @@ def worlds(out: Path, disco: str) -> None:
 
 
 def export(out: Path, folders: list[Path], spacing: float, variants: int, seed: int) -> None:
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
 
     d = load_training_data(folders, BEVConfig(), spacing=spacing, seed=seed, variants=variants)
@@ -130,7 +130,7 @@ def load(path: Path):
 
 
 def train(a: argparse.Namespace) -> None:
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.loop import TrainOptions
     from disco_cli.training.loop import train as run
 

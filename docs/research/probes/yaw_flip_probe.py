@@ -40,8 +40,8 @@ def main() -> None:
     import torch
     from ood_suite import embed_world
 
+    from disco_cli.io.poses import xy_yaw
     from disco_cli.model import load_model
-    from disco_cli.poses import xy_yaw
 
     torch.set_num_threads(2)
     model = load_model(args.model)

@@ -36,10 +36,10 @@ def main() -> None:
 
     from _common import print_header
 
+    from disco_cli.io.poses import xy_yaw
     from disco_cli.model import load_model
     from disco_cli.model.yaw import estimate_yaw, wrap_deg
     from disco_cli.model.yaw_refine import refine_one
-    from disco_cli.poses import xy_yaw
 
     print_header("yaw_refine_images")
     model = load_model(args.model)

@@ -14,7 +14,7 @@ from typing import Annotated, Any
 import typer
 
 from disco_cli.commands.options import ScanFormatOpt, TopicOpt, model_option, output_option
-from disco_cli.console import fail, handle_errors, stderr, warn
+from disco_cli.runtime.console import fail, handle_errors, stderr, warn
 
 
 class BEVMode(str, Enum):
@@ -25,7 +25,7 @@ class BEVMode(str, Enum):
 
 def _write(output: Path, save: Any) -> None:
     """`save(tmp)`, renamed onto `output`; one error line if that fails."""
-    from disco_cli.output_paths import write_atomic
+    from disco_cli.io.output_paths import write_atomic
 
     write_atomic(output, save)
 
@@ -77,7 +77,7 @@ def bev(
         raise fail(f"{output}: the output must end in .png or .npy")
     if polar and suffix != ".png":
         raise fail("--polar draws a picture: give an output ending in .png")
-    from disco_cli.output_paths import check_output_file
+    from disco_cli.io.output_paths import check_output_file
 
     check_output_file(output, what="the BEV")
 
@@ -85,9 +85,9 @@ def bev(
 
     import numpy as np
 
-    from disco_cli.bev import BEVConfig, polar_bev
-    from disco_cli.bev_image import in_window, picture
-    from disco_cli.readers import guess_format, is_bag, list_scans, read_scan
+    from disco_cli.io.bev_image import in_window, picture
+    from disco_cli.io.readers import guess_format, is_bag, list_scans, read_scan
+    from disco_cli.model.bev import BEVConfig, polar_bev
 
     if is_bag(scan):
         scan = list_scans(scan, topic=topic)[0]
@@ -120,7 +120,7 @@ def bev(
         _write(output, lambda tmp: np.save(tmp, grid))
         what = f"BEV {shape} float32 ({cell_mode})"
     else:
-        from disco_cli.png import write_png
+        from disco_cli.io.png import write_png
 
         image, top = picture(grid, cell_mode, config, polar, scale)
         _write(output, lambda tmp: write_png(tmp, image))

@@ -38,7 +38,7 @@ from disco_cli.commands.options import (
     poses_option,
     times_option,
 )
-from disco_cli.console import fail, handle_errors, plural, rate_bar, say, stderr, warn
+from disco_cli.runtime.console import fail, handle_errors, plural, rate_bar, say, stderr, warn
 
 MODEL_OF_NEW_MAP = "default, spectral, scancontext or a checkpoint; default: an existing map's."
 
@@ -77,17 +77,18 @@ def build_db(
     quiet: QuietOpt = False,
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
-    from disco_cli.threads import set_threads
+    from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
-    from disco_cli.map import Interrupted, open_for_adding
-    from disco_cli.output_paths import check_map_output
-    from disco_cli.pipeline import check_device, collect_scans
+    from disco_cli.io.output_paths import check_map_output
+    from disco_cli.io.pipeline import check_device, collect_scans
+    from disco_cli.maps.build import open_for_adding
+    from disco_cli.maps.writing import Interrupted
 
     check_device(device)
     if copy_from is not None:  # a copy between stores: nothing is embedded
-        from disco_cli.milvus_copy import copy_command
+        from disco_cli.maps.milvus_copy import copy_command
 
         return say(copy_command(copy_from, output, inputs, warn))
     inputs = inputs or []
@@ -100,7 +101,7 @@ def build_db(
     if not scans.paths:
         raise fail("no scans given")
     if repair:  # rewrite the damaged rows only (docs/database.md)
-        from disco_cli.map import repair_files
+        from disco_cli.maps.build import repair_files
 
         done = repair_files(output, scans, model, fmt, batch, threads, device)
         return stderr.print(done, soft_wrap=True)

@@ -19,7 +19,7 @@ from disco_cli.commands.options import (
     PosesFormatOpt,
     pose_options,
 )
-from disco_cli.console import RowWriter, fail, handle_errors, stderr
+from disco_cli.runtime.console import RowWriter, fail, handle_errors, stderr
 
 COLUMNS = ["query_seq", "query", "match_seq", "match", "distance_m", "yaw_deg"]
 
@@ -49,7 +49,7 @@ def gt_loops(
     fmt: OutputFormatOpt = None,
 ) -> None:
     """List true revisit pairs (ground truth) within or between sequences."""
-    from disco_cli.poses import find_pose_file, read_poses, revisit_pairs
+    from disco_cli.io.poses import find_pose_file, read_poses, revisit_pairs
 
     if not seqs:
         raise fail("give at least one sequence folder")

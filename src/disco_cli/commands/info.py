@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from disco_cli.commands.options import OutputFormatOpt
-from disco_cli.console import handle_errors, stderr
+from disco_cli.runtime.console import handle_errors, stderr
 
 
 def _size(n: int) -> str:
@@ -35,9 +35,9 @@ def info(
     """Show a map database's scans, model, configuration and size."""
     import json
 
-    from disco_cli.console import OutputFormat, RowWriter, resolve_format
-    from disco_cli.map_side_views import side_views_m
-    from disco_cli.milvus_copy import open_database  # a file, or a milvus: address
+    from disco_cli.maps.map_side_views import side_views_m
+    from disco_cli.maps.milvus_copy import open_database  # a file, or a milvus: address
+    from disco_cli.runtime.console import OutputFormat, RowWriter, resolve_format
 
     with open_database(db_path) as db:
         rows = [

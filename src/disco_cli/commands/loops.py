@@ -2,7 +2,7 @@
 
 Each scan is searched only against the scans at least N frames (or S seconds) before
 it, as a robot would when it reaches that scan. The work is `LoopDetector.add_files`
-(disco_cli/loop_detector.py), the class a Python program feeds scan by scan.
+(disco_cli/query/loop_detector.py), the class a Python program feeds scan by scan.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from disco_cli.commands.options import (
     model_option,
     topk_option,
 )
-from disco_cli.console import error, fail, handle_errors, plural, say, warn
-from disco_cli.query_policy import policy_for
+from disco_cli.query.query_policy import policy_for
+from disco_cli.runtime.console import error, fail, handle_errors, plural, say, warn
 
 MODEL_OF_SEQUENCE = "default, spectral, scancontext or a checkpoint; default: the --db map's."
 
@@ -77,18 +77,18 @@ def loops(
 
     query_index and match_index are positions in the sequence, from 0 (query's match_id: from 1).
     """  # noqa: E501
-    from disco_cli.threads import set_threads
+    from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
     import numpy as np
 
-    from disco_cli.console import RowWriter, in_blocks, steps
-    from disco_cli.loop_detector import LoopDetector, loop_columns
-    from disco_cli.loop_export import check_loop_file, write_loops
-    from disco_cli.map import Map, stored_embeddings
-    from disco_cli.pipeline import sequence_times
-    from disco_cli.readers import list_scans
+    from disco_cli.io.loop_export import check_loop_file, write_loops
+    from disco_cli.io.pipeline import sequence_times
+    from disco_cli.io.readers import list_scans
+    from disco_cli.maps.facade import Map, stored_embeddings
+    from disco_cli.query.loop_detector import LoopDetector, loop_columns
+    from disco_cli.runtime.console import RowWriter, in_blocks, steps
 
     if exclude_frames is not None and exclude_seconds is not None:
         raise fail("give --exclude-frames or --exclude-seconds, not both")

@@ -22,8 +22,8 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from disco_cli.console import OutputFormat, set_quiet
-from disco_cli.readers import FormatName
+from disco_cli.io.readers import FormatName
+from disco_cli.runtime.console import OutputFormat, set_quiet
 
 PANEL_RUN = "Running"
 PANEL_OUT = "Output"
@@ -119,7 +119,7 @@ PoseTopicOpt = Annotated[
         rich_help_panel="Poses",
     ),
 ]
-# `--threads N` on every command that computes (disco_cli/threads.py applies it).
+# `--threads N` on every command that computes (disco_cli/runtime/threads.py applies it).
 ThreadsOpt = Annotated[
     Optional[int],
     typer.Option(
@@ -360,8 +360,8 @@ MaxTimeGapOpt = Annotated[
 def pose_options(
     poses_format: str | None, calib: str | None, extrinsic: Path | None, max_time_gap: float | None
 ) -> dict:
-    """The keyword arguments of `disco_cli.poses.ScanPoser` from the four options above."""
-    from disco_cli.poses.scans import calib_arg
+    """The keyword arguments of `disco_cli.io.poses.ScanPoser` from the four options above."""
+    from disco_cli.io.poses.scans import calib_arg
 
     return {
         "poses_format": poses_format,

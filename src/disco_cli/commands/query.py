@@ -13,8 +13,6 @@ from typing import Annotated, Optional
 
 import typer
 
-from disco_cli.columns import POSE_COLUMNS
-from disco_cli.columns import RESULT_COLUMNS as COLUMNS
 from disco_cli.commands.options import (
     MODEL_OF_MAP,
     PANEL_FILTER,
@@ -43,8 +41,10 @@ from disco_cli.commands.options import (
     poses_option,
     topk_option,
 )
-from disco_cli.console import error, fail, handle_errors, note, warn
-from disco_cli.query_policy import policy_for
+from disco_cli.query.query_policy import policy_for
+from disco_cli.runtime.columns import POSE_COLUMNS
+from disco_cli.runtime.columns import RESULT_COLUMNS as COLUMNS
+from disco_cli.runtime.console import error, fail, handle_errors, note, warn
 
 
 @handle_errors
@@ -94,13 +94,13 @@ def query(
     build-db stored them (info and --repair count the same way). disco loops instead
     numbers a sequence's scans by position, from 0.
     """
-    from disco_cli.threads import set_threads
+    from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
-    from disco_cli.console import RowWriter
-    from disco_cli.map import Map
-    from disco_cli.pipeline import QueryPoses, query_paths
+    from disco_cli.io.pipeline import QueryPoses, query_paths
+    from disco_cli.maps.facade import Map
+    from disco_cli.runtime.console import RowWriter
 
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --poses")

@@ -1,7 +1,7 @@
 """`disco serve`: keep one map and its model loaded and answer queries over a local
 socket (JSON lines, docs/serve.md), for programs that ask many times over their life.
-The requests are `disco_cli/serve.py`, the connections `disco_cli/serve_net.py`; the
-client is `disco_cli/client.py`."""
+The requests are `disco_cli/service/serve.py`, the connections `disco_cli/service/serve_net.py`; the
+client is `disco_cli/service/client.py`."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from disco_cli.commands.options import (
     model_option,
     topk_option,
 )
-from disco_cli.console import handle_errors, stderr, warn
+from disco_cli.runtime.console import handle_errors, stderr, warn
 
 PANEL_LIMITS = "Limits"
 
@@ -130,7 +130,7 @@ def serve(
             "--idle-timeout",
             min=0,
             help="Seconds a connection may sit without a request before it is closed "
-            "(disco_cli.client reconnects by itself); 0: never.",
+            "(disco_cli.service.client reconnects by itself); 0: never.",
             rich_help_panel=PANEL_LIMITS,
         ),
     ] = 600.0,
@@ -138,14 +138,14 @@ def serve(
     threads: ThreadsOpt = None,
 ) -> None:
     """Answer queries against one map over a local socket, loading it and the model once."""
-    from disco_cli.threads import set_threads
+    from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
     from disco_cli.errors import DiscoError
-    from disco_cli.map import Map
-    from disco_cli.serve import QueryService, ServeOptions
-    from disco_cli.serve_net import NetOptions, make_server, serve_forever, write_token
+    from disco_cli.maps.facade import Map
+    from disco_cli.service.serve import QueryService, ServeOptions
+    from disco_cli.service.serve_net import NetOptions, make_server, serve_forever, write_token
 
     if port is None and socket_path is None:
         socket_path = Path("disco.sock")

@@ -14,7 +14,7 @@ from typing import Annotated, Optional
 import typer
 
 from disco_cli.commands.options import QuietOpt, ThreadsOpt
-from disco_cli.console import fail, handle_errors, progress, stderr
+from disco_cli.runtime.console import fail, handle_errors, progress, stderr
 
 
 class Style(str, Enum):
@@ -209,7 +209,7 @@ def simulate(
     quiet: QuietOpt = False,
 ) -> None:
     """Simulate a LiDAR driving through a procedural town, in several sessions."""
-    from disco_cli.threads import set_threads
+    from disco_cli.runtime.threads import set_threads
 
     threads = set_threads(threads)  # first: torch and BLAS read it as they load
 

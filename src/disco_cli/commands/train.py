@@ -17,7 +17,7 @@ from disco_cli.commands.options import (
     TopicOpt,
     output_option,
 )
-from disco_cli.console import fail, handle_errors, progress, stderr
+from disco_cli.runtime.console import fail, handle_errors, progress, stderr
 
 
 def _command_line(ctx: typer.Context, data: list[Path], output: Path) -> str:
@@ -193,14 +193,14 @@ def train(
     quiet: QuietOpt = False,
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
-    from disco_cli.threads import set_threads
+    from disco_cli.runtime.threads import set_threads
 
     threads = set_threads(threads)  # first: torch and BLAS read it as they load
 
-    from disco_cli.bev import BEVConfig
-    from disco_cli.output_paths import check_output_file
-    from disco_cli.pipeline import check_device
-    from disco_cli.readers import oxford
+    from disco_cli.io.output_paths import check_output_file
+    from disco_cli.io.pipeline import check_device
+    from disco_cli.io.readers import oxford
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
     from disco_cli.training.loop import TrainOptions, resumable_checkpoint
     from disco_cli.training.loop import train as run_training
@@ -218,10 +218,10 @@ def train(
         hint="pass --resume to continue it or choose another --output",
     )
     if protocol is not None:
-        # The paper's training sessions and distances (disco_cli.protocols) replace
+        # The paper's training sessions and distances (disco_cli.evaluation.protocols) replace
         # DATA, --d-pos, --d-neg and --spacing (Oxford: --lambda-yaw too).
-        from disco_cli.console import warn
-        from disco_cli.protocols import training_setup
+        from disco_cli.evaluation.protocols import training_setup
+        from disco_cli.runtime.console import warn
 
         if len(data) != 1:
             raise fail("--protocol takes one dataset folder")

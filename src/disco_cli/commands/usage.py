@@ -84,7 +84,7 @@ def usage_line(exc: Any) -> str:
 
 def _renamed(command: Any, args: Sequence[str]) -> list[str]:
     """`args` with deprecated option names replaced by their new ones, one warning each."""
-    from disco_cli.console import warn
+    from disco_cli.runtime.console import warn
 
     have = {o for p in command.params for o in p.opts + p.secondary_opts}
     out: list[str] = []
@@ -171,19 +171,19 @@ class DiscoGroup(TyperGroup):
             # Typer exit 1: for us a reader that had enough is a normal end, exit 0.
             closed = isinstance(exc.__context__, BrokenPipeError)
             if exc.code == 1 and (closed or isinstance(sys.stdout, PacifyFlushWrapper)):
-                from disco_cli.console import stdout_closed
+                from disco_cli.runtime.console import stdout_closed
 
                 raise SystemExit(stdout_closed().exit_code) from None
             raise
         except ce.NoArgsIsHelpError:
             sys.exit(2)  # the help is printed already
         except ce.ClickException as exc:
-            from disco_cli.console import error
+            from disco_cli.runtime.console import error
 
             error(usage_line(exc))
             sys.exit(exc.exit_code)
         except typer.Abort:
-            from disco_cli.console import error
+            from disco_cli.runtime.console import error
 
             error("aborted")
             sys.exit(1)

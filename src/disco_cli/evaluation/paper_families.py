@@ -125,14 +125,14 @@ def submap(points: np.ndarray, mount_height: float, seed: int, crop_m: float) ->
 
 
 def load_run(folder: Path) -> tuple[list[Path], np.ndarray]:
-    from disco_cli.poses import read_kitti_poses
-    from disco_cli.readers import list_scans
+    from disco_cli.io.poses import read_kitti_poses
+    from disco_cli.io.readers import list_scans
 
     return list_scans(folder), read_kitti_poses(folder / "poses.txt")
 
 
 def scan_points(fam: Family, path: Path, mount_height: float, seed: int) -> np.ndarray:
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     pts = read_scan(path)
     return submap(pts, mount_height, seed, fam.crop_m) if fam.submap else pts
@@ -141,8 +141,8 @@ def scan_points(fam: Family, path: Path, mount_height: float, seed: int) -> np.n
 def evaluate(fam: Family, folder: Path, method: str) -> list[dict]:
     """One row per query of run 01 against a map of run 00 (see the module's docstring)."""
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
-    from disco_cli.map import Map
-    from disco_cli.poses import xy_yaw
+    from disco_cli.io.poses import xy_yaw
+    from disco_cli.maps.facade import Map
 
     world = json.loads((folder / "world.json").read_text())
     mount = float(world["sensor"]["mount_height"])
@@ -217,7 +217,7 @@ def oracle_rows(fam: Family, folder: Path) -> list[dict]:
 
 
 def xy_yaw_of(poses: np.ndarray) -> tuple:
-    from disco_cli.poses import xy_yaw
+    from disco_cli.io.poses import xy_yaw
 
     return xy_yaw(poses)
 
@@ -257,7 +257,7 @@ def summarize(rows: list[dict]) -> dict[str, float]:
 def write_submaps(world: Path) -> int:
     """Rewrite every scan of a simulated world as its Oxford-like submap (`submap`), in
     place, for training on that family; returns how many scans were rewritten."""
-    from disco_cli.readers import read_scan
+    from disco_cli.io.readers import read_scan
 
     meta = json.loads((Path(world) / "world.json").read_text())
     mount = float(meta["sensor"]["mount_height"])

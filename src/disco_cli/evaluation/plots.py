@@ -31,7 +31,7 @@ def write_plots(directory: Path, ev: Evaluation, title: str = "") -> list[Path]:
     """Write the plots that this evaluation has data for; [] (and a warning) without matplotlib."""
     plt = _pyplot()
     if plt is None:
-        from disco_cli.console import warn
+        from disco_cli.runtime.console import warn
 
         warn(INSTALL_HINT)  # warn() prints "[plot]" as it is, not as rich markup
         return []
@@ -40,7 +40,7 @@ def write_plots(directory: Path, ev: Evaluation, title: str = "") -> list[Path]:
     suffix = f" ({title})" if title else ""
 
     def save(fig: Any, name: str) -> None:
-        from disco_cli.output_paths import write_atomic
+        from disco_cli.io.output_paths import write_atomic
 
         path = directory / name
         fig.tight_layout()

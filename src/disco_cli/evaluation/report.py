@@ -94,7 +94,7 @@ def write_report(directory: Path, ev: Evaluation, run: dict[str, Any]) -> list[P
     """Write metrics.json, curves.json, summary.md and the plots into `directory` (made
     if it is missing; its parent must exist), each file atomically."""
     from disco_cli.evaluation import plots
-    from disco_cli.output_paths import check_output_folder, write_text_atomic
+    from disco_cli.io.output_paths import check_output_folder, write_text_atomic
 
     directory = check_output_folder(directory, what="the report")
     try:
@@ -114,7 +114,7 @@ def write_report(directory: Path, ev: Evaluation, run: dict[str, Any]) -> list[P
 
 def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
     """The figures on stdout: a rich table, `metric<TAB>value` lines, or one JSON object."""
-    from disco_cli.console import OutputFormat, resolve_format
+    from disco_cli.runtime.console import OutputFormat, resolve_format
 
     fmt = resolve_format(fmt)
     if fmt is OutputFormat.jsonl:
@@ -142,7 +142,7 @@ def model_run(model: Any, policy: Any = None) -> dict[str, Any]:
     snap, how many matches per query got the parallax-free yaw, and the whole
     `QueryPolicy` it ran under (`policy`, None: the model's; less what the model cannot
     do)."""
-    from disco_cli.search import effective_policy
+    from disco_cli.query.search import effective_policy
 
     p = effective_policy(model, policy)
     depth = p.rerank_candidates
@@ -161,7 +161,7 @@ def model_run(model: Any, policy: Any = None) -> dict[str, Any]:
 def report_and_print(ev: Evaluation, run: dict[str, Any], directory: Path | None, fmt: Any) -> None:
     """`disco eval`'s ending: the report files into `directory` when given (said on
     stderr), then the figures on stdout (`print_metrics`)."""
-    from disco_cli.console import stderr
+    from disco_cli.runtime.console import stderr
 
     if directory is not None:
         written = write_report(directory, ev, run)

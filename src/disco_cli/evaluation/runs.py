@@ -1,5 +1,5 @@
 """The two evaluation runs, from scans and poses to an `Evaluation` (the paper's dataset
-settings that feed them are in `disco_cli/protocols.py`).
+settings that feed them are in `disco_cli/evaluation/protocols.py`).
 
 - `multi_session`: the paper's protocol. Scans of one session are queried against a
   map database of another; the database's stored poses are the ground truth.
@@ -36,10 +36,10 @@ def posed_scans(
     pose_topic: str | None = None,
 ) -> tuple[list[Any], np.ndarray]:
     """The scans that have a pose and their LiDAR poses: from a pose file
-    (`disco_cli.poses.ScanPoser`), or for scans in bags from the bags' `pose_topic` by
+    (`disco_cli.io.poses.ScanPoser`), or for scans in bags from the bags' `pose_topic` by
     time. The others are named in one `warn` and left out of the evaluation."""
     if pose_topic is not None:
-        from disco_cli.readers.bags import bag_poses
+        from disco_cli.io.readers.bags import bag_poses
 
         source = pose_topic
         gap, extrinsic = pose_opts["max_time_gap"], pose_opts["extrinsic"]
@@ -50,7 +50,7 @@ def posed_scans(
                 f"stamp (e.g. {missing[0]}) and are left out of the evaluation"
             )
     else:
-        from disco_cli.poses import ScanPoser
+        from disco_cli.io.poses import ScanPoser
 
         source = poses_file
         T, report = ScanPoser(poses_file, **pose_opts).poses(paths)
@@ -67,9 +67,9 @@ def posed_times(times_file: Any, all_paths: list[Any], paths: list[Any]) -> np.n
     have a pose): from `times_file` (one row per scan, or by frame number), else the
     header stamps of scans in bags. `PoseFileError` when there are none, or when they go
     backwards."""
-    from disco_cli.pipeline import frame_rows
-    from disco_cli.poses import read_times
-    from disco_cli.readers.bags import scan_stamps
+    from disco_cli.io.pipeline import frame_rows
+    from disco_cli.io.poses import read_times
+    from disco_cli.io.readers.bags import scan_stamps
 
     t = scan_stamps([str(p) for p in paths])  # scans in a bag carry their header stamp
     if times_file is not None or not np.isfinite(t).all():
@@ -101,16 +101,16 @@ def multi_session(
 ) -> Any:
     """Recall@1..topk, Recall@1%, PR AUC, F1max and yaw error of `paths` (with their
     `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`, searched
-    with the `index` kind (`disco_cli.index`; `note` hears of an index being built),
+    with the `index` kind (`disco_cli.maps.index`; `note` hears of an index being built),
     under the query stage's `policy` (None: the model's)."""
     from disco_cli.evaluation.metrics import one_percent_n
-    from disco_cli.index import index_for_database
-    from disco_cli.pipeline import embed_paths
-    from disco_cli.search import match_queries
+    from disco_cli.io.pipeline import embed_paths
+    from disco_cli.maps.index import index_for_database
+    from disco_cli.query.search import match_queries
 
     if len(query_poses) != len(paths):
         raise PoseFileError(f"{source}: {len(query_poses)} poses for {len(paths)} query scans")
-    from disco_cli.database import damaged_line
+    from disco_cli.maps.database import damaged_line
 
     def refuse_damaged() -> None:  # scores count map rows by position: no holes allowed
         if db.damaged:
@@ -201,7 +201,7 @@ def score_retrieval(
     matches within `radius` m in x, y of the `[N, 4, 4]` `query_poses`, with the map's
     scans as rows `[M, 4]` of x, y, z, yaw (radians); recall@N is cut at `topk`."""
     from disco_cli.evaluation.metrics import retrieval_evaluation, within_radius, wrap_deg
-    from disco_cli.poses import xy_yaw
+    from disco_cli.io.poses import xy_yaw
 
     retrieved = np.full((len(matches), depth), -1, np.int64)
     distances = np.full((len(matches), depth), np.inf)
@@ -250,11 +250,11 @@ def loop_closure(
     """Precision-recall, F1max and recall at 100% precision of loop closure along one
     sequence (`[N, 4, 4]` poses; scan i searches scans [0, limit[i])), under the query
     stage's `policy` (None: the model's)."""
-    from disco_cli.database import MatchRows
     from disco_cli.evaluation.metrics import loop_evaluation, within_radius
-    from disco_cli.pipeline import embed_paths
-    from disco_cli.poses import relative_yaw_deg
-    from disco_cli.search import SignatureIndex, match_queries
+    from disco_cli.io.pipeline import embed_paths
+    from disco_cli.io.poses import relative_yaw_deg
+    from disco_cli.maps.database import MatchRows
+    from disco_cli.query.search import SignatureIndex, match_queries
 
     n = len(paths)
     if len(poses) != n:

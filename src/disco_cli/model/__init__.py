@@ -40,7 +40,7 @@ def _spectral(device: str) -> Any:
 
 
 def _scancontext(device: str) -> Any:
-    module = importlib.import_module("disco_cli.scancontext")
+    module = importlib.import_module("disco_cli.model.scancontext")
     return module.ScanContextModel()
 
 
@@ -69,7 +69,7 @@ MODELS: dict[str, Callable[[str], Any]] = {
 
 def load_model(name_or_path: str | Path = "default", device: str = "cpu") -> Any:
     """A model by registry name or checkpoint path; ModelError naming the file on failure."""
-    from disco_cli.threads import ensure_threads
+    from disco_cli.runtime.threads import ensure_threads
 
     ensure_threads()  # before the model's first torch op
     key = str(name_or_path)
@@ -90,7 +90,7 @@ def load_npz_model(path: str | Path, name: str | None = None) -> Any:
 
 
 def _frozen_model(state: Any, bev: Any, model_config: Any, path: Path, name: str | None) -> Any:
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.model.disco import DiscoModel, to_numpy
     from disco_cli.model.unet_numpy import FrozenUNet
 
@@ -124,7 +124,7 @@ def load_checkpoint_model(path: str | Path, device: str = "cpu", name: str | Non
 def model_from_checkpoint(
     ckpt: dict[str, Any], path: str | Path, device: str = "cpu", name: str | None = None
 ) -> Any:
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
     from disco_cli.model.disco import DiscoModel, build_net
 
     if device == "cpu":

@@ -30,7 +30,7 @@ def is_authors_checkpoint(ckpt: dict[str, Any]) -> bool:
 
 def authors_bev_config() -> Any:
     """The paper's NCLT BEV: 20 heights x 40 rings x 120 sectors, occupancy, 80 m range."""
-    from disco_cli.bev import BEVConfig
+    from disco_cli.model.bev import BEVConfig
 
     return BEVConfig.from_dict(AUTHORS_BEV)
 

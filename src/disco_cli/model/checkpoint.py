@@ -27,7 +27,7 @@ FORMAT = "disco-cli/1"
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
     """Write a checkpoint atomically (a crash mid-write leaves the old file intact, and
     no temporary file); its folder must exist."""
-    from disco_cli.output_paths import atomic_path
+    from disco_cli.io.output_paths import atomic_path
 
     with atomic_path(path) as tmp:
         torch.save({"format": FORMAT, **payload}, tmp)

@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.blas_threads import blas_threads
 from disco_cli.errors import ModelError
 from disco_cli.model.interface import Abilities
 from disco_cli.model.signature import DEFAULT_CROP, signatures
@@ -27,7 +26,8 @@ from disco_cli.model.yaw_refine import (
     recentre_kept,
     refine_yaw_conf,
 )
-from disco_cli.query_policy import QueryPolicy
+from disco_cli.query.query_policy import QueryPolicy
+from disco_cli.runtime.blas_threads import blas_threads
 
 # Scans per forward pass at inference: large enough to amortize, small enough for memory.
 _BATCH = 64
@@ -148,7 +148,7 @@ class DiscoModel:
     def _forward(self, x: np.ndarray) -> np.ndarray:
         """Features of one batch of BEVs [B, H, R, S]."""
         if self.frozen:
-            from disco_cli.threads import get_threads
+            from disco_cli.runtime.threads import get_threads
 
             with blas_threads(get_threads()):
                 u = np.concatenate(

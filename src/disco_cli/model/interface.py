@@ -14,7 +14,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from disco_cli.errors import ModelError
-from disco_cli.query_policy import QueryPolicy
+from disco_cli.query.query_policy import QueryPolicy
 
 __all__ = ["Abilities", "QueryModel", "Unable"]
 

@@ -47,7 +47,7 @@ def signatures(
     if b == 0:
         return np.zeros((0, cr * cs), np.float32)
     if workers is None:
-        from disco_cli.threads import get_threads
+        from disco_cli.runtime.threads import get_threads
 
         workers = get_threads()
     spec = fft.fft2(g, axes=(1, 2), workers=workers)

@@ -18,7 +18,7 @@ from disco_cli.model.interface import Abilities, Unable
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
 from disco_cli.model.yaw_refine import CHECK_BELOW, refine_yaw_conf
-from disco_cli.query_policy import NO_RERANKING, QueryPolicy
+from disco_cli.query.query_policy import NO_RERANKING, QueryPolicy
 
 
 class SpectralModel(Unable):
@@ -30,7 +30,7 @@ class SpectralModel(Unable):
 
     def __init__(self, bev_config: Any = None, crop: tuple[int, int] = DEFAULT_CROP):
         if bev_config is None:
-            from disco_cli.bev import BEVConfig
+            from disco_cli.model.bev import BEVConfig
 
             bev_config = BEVConfig()
         self.name = "spectral"

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import ModelError
-from disco_cli.output_paths import atomic_path
+from disco_cli.io.output_paths import atomic_path
 
 FORMAT = "disco-cli-npz/1"
 _META = "__disco__"

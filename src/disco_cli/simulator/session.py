@@ -288,7 +288,7 @@ def simulate(
     the robots of later sessions differ from session 00's; `wobble_deg`, how far every
     session's platform rolls and pitches from scan to scan (`wobble`).
     """
-    from disco_cli.poses import write_kitti_poses, write_times
+    from disco_cli.io.poses import write_kitti_poses, write_times
 
     if sessions < 1:
         raise DiscoError("--sessions must be at least 1")

@@ -1,0 +1,434 @@
+"""`disco serve`'s requests: one map and one model, loaded once, answering the queries
+that arrive over a local socket (`disco_cli/service/serve_net.py` holds the socket side), so
+that programs that ask many times pay the start-up once.
+
+The protocol is JSON lines (docs/serve.md): each request is one JSON object on one
+line, each reply one JSON object on one line, in order, over one connection for as
+long as the client likes. A query names a scan file or carries the points inline:
+
+    {"id": 7, "scan": "/data/scans/000123.bin", "topk": 3}
+    {"id": 8, "points": {"shape": [N, 4], "data": "<base64 of float32 little-endian>"}}
+
+and is answered with the rows `disco query --format jsonl` prints for it:
+
+    {"id": 7, "ok": true, "query": "/data/scans/000123.bin", "rows": [{"query": ..., ...}]}
+
+A request that cannot be answered (not JSON, an unknown field, a scan that cannot be
+read) gets `{"id": ..., "ok": false, "error": "<one line>"}` and the server goes on.
+Scan files are read only under the server's scan root. Queries are answered one at a
+time, on the thread that opened the map (SQLite connections and the model stay on one
+thread; one query at a time is also what keeps latency flat on a shared CPU). A query
+whose client has gone is dropped, or stopped between two matches' poses.
+
+The map is opened read-only; before each query the server looks at the map file's
+size and modification time (and its WAL's) and takes a new snapshot when another
+process has appended to it.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import os
+import queue
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from disco_cli.errors import DiscoError
+from disco_cli.runtime.columns import POSE_COLUMNS, RESULT_COLUMNS
+
+__all__ = ["QueryService", "ServeOptions", "MAX_REQUEST_BYTES"]
+
+# A 130k-point scan inline is 2.8 MB of base64: 64 MiB leaves room for the largest
+# sensors and still bounds what one hostile line can make the server hold.
+MAX_REQUEST_BYTES = 64 * 1024 * 1024
+_QUERY_FIELDS = {
+    "id",
+    "op",
+    "scan",
+    "points",
+    "name",
+    "topk",
+    "pose",
+    "verify",
+    "max_distance",
+    "scan_format",
+    "token",
+}
+_MAX_TOPK = 10000
+
+
+class RequestError(DiscoError):
+    """A request the server cannot answer: its reply is one error line."""
+
+
+class Cancelled(Exception):
+    """The client of the request being answered has gone: stop its work (not a
+    DiscoError, so that nothing on the way mistakes it for a scan's problem)."""
+
+
+@dataclass
+class ServeOptions:
+    """What every request gets unless it says otherwise, and where scans may be read:
+    `scan_root` None reads any path (relative ones from the working folder). `policy`:
+    the query stage's `QueryPolicy` for every request (None: the map's model's)."""
+
+    topk: int = 10
+    max_request_bytes: int = MAX_REQUEST_BYTES
+    scan_root: Path | None = None
+    policy: Any = None
+
+
+def _plain(value: Any) -> Any:
+    """JSON-ready values, as `disco query --format jsonl` writes them."""
+    from disco_cli.runtime.console import _plain as plain
+
+    return plain(value)
+
+
+def _always() -> bool:
+    return True
+
+
+def _unless(alive: Callable[[], bool], stop: threading.Event) -> Callable[[], bool]:
+    """`alive`, and false once the server is stopping (SIGTERM stops a long query too)."""
+    return lambda: alive() and not stop.is_set()
+
+
+class QueryService:
+    """Answers requests against one open map. `handle_line` answers on the calling
+    thread; connection threads `submit` lines instead, and the thread that opened the
+    map answers them in `work`.
+
+    The map's warnings (damaged rows left out, a match's scan that cannot be read)
+    still go where they went and also into the reply of the query that met them;
+    damaged rows, once found, are named in every later reply too, since every answer
+    leaves them out."""
+
+    def __init__(self, map_: Any, options: ServeOptions | None = None):
+        self.map = map_
+        self.options = options or ServeOptions()
+        self._root = (
+            None if self.options.scan_root is None else os.path.realpath(self.options.scan_root)
+        )
+        self._lock = threading.Lock()
+        self._stamp = self._file_stamp()
+        self._queue: queue.Queue = queue.Queue()
+        self._alive: Callable[[], bool] = _always
+        self._notes: list[str] | None = None  # this query's warnings
+        self._damaged: list[str] = []  # every damaged-rows line so far
+        self.answered = 0
+        self.cancelled = 0
+        told_damaged, told_missing = map_.on_damaged, map_.on_missing_scan
+
+        def damaged(msg: str) -> None:
+            self._damaged.append(_one_line(msg))
+            told_damaged(msg)
+
+        def missing(msg: str) -> None:
+            if self._notes is not None:
+                self._notes.append(_one_line(msg))
+            told_missing(msg)
+
+        map_.on_damaged, map_.on_missing_scan = damaged, missing
+
+    def submit(self, line: bytes, alive: Callable[[], bool] = _always) -> dict[str, Any] | None:
+        """The reply to `line`, answered by the thread running `work` (blocks); None
+        when `alive()` turned false (the client left) before it was answered."""
+        done: Future = Future()
+        self._queue.put((line, alive, done))
+        return done.result()
+
+    def work(self, stop: threading.Event) -> None:
+        """Answer submitted lines until `stop` is set."""
+        while not stop.is_set():
+            try:
+                line, alive, done = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                done.set_result(self.handle_line(line, _unless(alive, stop)))
+            except BaseException as exc:  # never leave a connection waiting
+                done.set_result({"id": None, "ok": False, "error": "internal error"})
+                if not isinstance(exc, Exception):
+                    raise
+        while True:  # those still waiting get no answer: their connections close
+            try:
+                self._queue.get_nowait()[2].set_result(None)
+            except queue.Empty:
+                break
+
+    # -- the map on disk ----------------------------------------------------------
+
+    def _file_stamp(self) -> tuple:
+        """Size and mtime of the map file and its WAL: they change when another
+        process appends."""
+        db = self.map.database
+        if hasattr(db, "address"):  # a Milvus map: its generation counts every write
+            return (db.generation,)
+        stamp = []
+        for suffix in ("", "-wal"):
+            try:
+                st = os.stat(f"{self.map.path}{suffix}")
+                stamp.append((st.st_size, st.st_mtime_ns))
+            except OSError:
+                stamp.append(None)
+        return tuple(stamp)
+
+    def _refresh_if_changed(self) -> None:
+        stamp = self._file_stamp()
+        if stamp != self._stamp:
+            self.map.refresh()
+            self._stamp = stamp
+
+    # -- requests -------------------------------------------------------------------
+
+    def handle_line(
+        self, line: bytes, alive: Callable[[], bool] = _always
+    ) -> dict[str, Any] | None:
+        """The reply to one request line (never raises for a bad request); None when
+        `alive()` turned false before the answer was ready."""
+        rid = None
+        try:
+            if not alive():
+                raise Cancelled
+            if not line.strip():
+                raise RequestError("empty request: one JSON object per line")
+            try:
+                request = json.loads(line)
+            except (ValueError, UnicodeDecodeError) as exc:
+                raise RequestError(f"the request is not JSON ({exc})") from None
+            except RecursionError:
+                raise RequestError("the request is nested too deeply") from None
+            if not isinstance(request, dict):
+                raise RequestError("the request must be a JSON object")
+            rid = request.get("id")
+            if rid is not None and (not isinstance(rid, (int, str)) or isinstance(rid, bool)):
+                rid = None
+                raise RequestError("'id' must be a number or a string")
+            self._alive = alive
+            return {"id": rid, "ok": True, **self.handle(request)}
+        except Cancelled:
+            self.cancelled += 1
+            return None
+        except DiscoError as exc:
+            return {"id": rid, "ok": False, "error": _one_line(str(exc))}
+        except MemoryError:
+            return {"id": rid, "ok": False, "error": "the request needs more memory than is free"}
+        finally:
+            self._alive = _always
+
+    def handle(self, request: dict[str, Any]) -> dict[str, Any]:
+        """The reply's fields for a decoded request; raises `DiscoError` for bad ones."""
+        unknown = sorted(set(request) - _QUERY_FIELDS)
+        if unknown:
+            raise RequestError(f"unknown field {unknown[0]!r} (docs/serve.md lists the fields)")
+        op = request.get("op", "query")
+        if op == "ping":
+            return {"op": "ping"}
+        if op == "auth":  # the connection is past its check already (serve_net)
+            return {"op": "auth"}
+        if "token" in request:
+            raise RequestError("'token' goes in an 'auth' request only")
+        if op == "info":
+            with self._lock:
+                self._refresh_if_changed()
+                return {
+                    "op": "info",
+                    "map": str(self.map.path),
+                    "scans": len(self.map),
+                    "scan_root": self._root,
+                    "answered": self.answered,
+                    "cancelled": self.cancelled,
+                }
+        if op != "query":
+            raise RequestError(f"unknown op {op!r}: query, info or ping")
+        return self._query(request)
+
+    def _query(self, request: dict[str, Any]) -> dict[str, Any]:
+        topk = _int_field(request, "topk", self.options.topk, 1, _MAX_TOPK)
+        pose = _bool_field(request, "pose")
+        verify = _bool_field(request, "verify")
+        max_distance = request.get("max_distance")
+        if max_distance is not None and (
+            not isinstance(max_distance, (int, float))
+            or isinstance(max_distance, bool)
+            or not math.isfinite(max_distance)
+            or max_distance < 0
+        ):
+            raise RequestError("'max_distance' must be a finite number >= 0")
+        scan_format = request.get("scan_format")
+        if scan_format is not None and not isinstance(scan_format, str):
+            raise RequestError("'scan_format' must be a string")
+        has_scan, has_points = "scan" in request, "points" in request
+        if has_scan == has_points:
+            raise RequestError("give exactly one of 'scan' (a file path) or 'points'")
+        if has_scan and "name" in request:
+            raise RequestError("'name' names inline points; a scan is named by its path")
+        name = request.get("name", "points")
+        if not isinstance(name, str):
+            raise RequestError("'name' must be a string")
+        with_pose = pose or verify
+        keys = RESULT_COLUMNS + (POSE_COLUMNS + ["T"] if with_pose else [])
+        with self._lock:
+            self._refresh_if_changed()
+            self._notes = []
+            try:
+                if has_scan:
+                    name = self._scan_path(request["scan"])
+                    result = self._query_file(name, topk, with_pose, max_distance, scan_format)
+                else:
+                    result = self._query_points(
+                        request["points"], name, topk, with_pose, verify, max_distance
+                    )
+                rows, errors = result.rows(self.map.shown, keys, verify=verify)
+                notes = self._notes
+            finally:
+                self._notes = None
+            self.answered += 1
+        reply: dict[str, Any] = {
+            "query": name,
+            "rows": [{k: _plain(v) for k, v in row.items()} for row in rows],
+        }
+        warnings = list(dict.fromkeys(_one_line(e) for e in errors + notes + self._damaged))
+        if warnings:
+            reply["warnings"] = warnings
+        return reply
+
+    def _scan_path(self, scan: Any) -> str:
+        """The file a request's `scan` names, when the server may read it: under the
+        scan root (relative paths from it; links followed before the check). The
+        refusal is the same whether the file exists or not."""
+        from disco_cli.io.readers import is_bag
+
+        if not isinstance(scan, str) or not scan or "\0" in scan:
+            raise RequestError("'scan' must be a file path")
+        if self._root is None:
+            path = scan
+        else:
+            path = os.path.join(self._root, scan)  # an absolute scan replaces the root
+            # A bag message is BAG#TOPIC@STAMP: its bag must lie under the root too.
+            parts = [path, path.rpartition("@")[0].rpartition("#")[0]]
+            if not all(_inside(self._root, p) for p in parts if p):
+                raise RequestError(
+                    f"{scan}: outside the folder this server reads scans from "
+                    "(disco serve --scan-root)"
+                )
+        if os.path.isdir(path) and not is_bag(path):
+            raise RequestError(f"{scan}: a folder, not a scan file: send one scan per request")
+        return path
+
+    def _query_file(self, path, topk, pose, max_distance, scan_format) -> Any:
+        result = next(
+            iter(
+                self.map.query_files(
+                    [path],
+                    topk=topk,
+                    max_distance=max_distance,
+                    scan_format=scan_format,
+                    policy=self.options.policy,
+                )
+            )
+        )
+        if result.error is not None:
+            raise result.error
+        if pose:
+            from disco_cli.io.readers import read_scan
+
+            # Read again rather than kept by query_files: the poses are refined here,
+            # one match at a time, so that a client who leaves stops them.
+            points = read_scan(path, scan_format)
+            result.matches = self._refine(result.matches, points, verify=False)
+        return result
+
+    def _query_points(self, field, name, topk, pose, verify, max_distance) -> Any:
+        from disco_cli.io.pipeline import array_points
+        from disco_cli.maps.facade import QueryResult
+
+        points = array_points(_decode_points(field), name)
+        matches = self.map.query(
+            points, topk=topk, max_distance=max_distance, name=name, policy=self.options.policy
+        )
+        if pose:
+            matches = self._refine(matches, points, verify=verify)
+        return QueryResult(0, name, matches)
+
+    def _refine(self, matches: list, points: np.ndarray, verify: bool) -> list:
+        """`Map.query(..., pose=True)`'s poses of `matches`, checking between two that
+        the client is still there (a `topk` of 10,000 with poses is 10,000 ICPs)."""
+        from disco_cli.query.localize import refine_matches
+
+        read_match = self.map._points.get  # the map's own cache of its scans' points
+        out = []
+        for m in matches:
+            if not self._alive():
+                raise Cancelled
+            out += refine_matches([_Found(m)], points, read_match, verify=verify)
+        return out
+
+
+class _Found:
+    """A `Match` without a pose, as the search result `refine_matches` takes."""
+
+    def __init__(self, m: Any):
+        self.path, self.rank, self.match_id = m.name, m.rank, m.match_id
+        self.distance, self.yaw_deg = m.distance, m.yaw_deg
+        self.yaw_conf = float("nan") if m.yaw_conf is None else m.yaw_conf
+
+
+def _inside(root: str, path: str) -> bool:
+    real = os.path.realpath(path)
+    return real == root or real.startswith(root.rstrip(os.sep) + os.sep)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _int_field(request: dict, key: str, default: int, lo: int, hi: int) -> int:
+    value = request.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise RequestError(f"'{key}' must be an integer from {lo} to {hi}")
+    return value
+
+
+def _bool_field(request: dict, key: str) -> bool:
+    value = request.get(key, False)
+    if not isinstance(value, bool):
+        raise RequestError(f"'{key}' must be true or false")
+    return value
+
+
+def _decode_points(field: Any) -> np.ndarray:
+    """`{"shape": [N, C], "data": base64 float32 LE}` (C = 3 or 4) as an array."""
+    if not isinstance(field, dict) or set(field) - {"shape", "data", "dtype"}:
+        raise RequestError('\'points\' must be {"shape": [N, 3|4], "data": "<base64>"}')
+    if field.get("dtype", "float32") != "float32":
+        raise RequestError("'points' must be float32 (dtype 'float32')")
+    shape, data = field.get("shape"), field.get("data")
+    if (
+        not isinstance(shape, list)
+        or len(shape) != 2
+        or not all(isinstance(s, int) and not isinstance(s, bool) for s in shape)
+        or shape[0] < 1
+        or shape[1] not in (3, 4)
+    ):
+        raise RequestError("'points.shape' must be [N, 3] or [N, 4] with N >= 1")
+    if not isinstance(data, str):
+        raise RequestError("'points.data' must be a base64 string")
+    try:
+        raw = base64.b64decode(data, validate=True)
+    except ValueError:
+        raise RequestError("'points.data' is not valid base64") from None
+    if len(raw) != shape[0] * shape[1] * 4:
+        raise RequestError(
+            f"'points.data' holds {len(raw)} bytes, not {shape[0]} x {shape[1]} float32"
+        )
+    return np.frombuffer(raw, dtype="<f4").reshape(shape).astype(np.float32)
