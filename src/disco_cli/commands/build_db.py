@@ -2,7 +2,7 @@
 
 Ctrl-C or a crash keeps every finished batch; running the same command again
 resumes, skipping the scans already stored (by absolute path). The work is
-`Map.add_files` (disco_cli/map.py).
+`Map.add_files` (disco_cli/maps/writing.py).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Queries stream: each scan's matches are written and flushed as soon as they are
 ready, so `find . -name '*.bin' | disco query - --db map.db | head` works. A scan
 that cannot be read gets one error line on stderr; the others go on, and the exit
-status is 1 at the end. The work is `Map.query_files` (disco_cli/map.py).
+status is 1 at the end. The work is `Map.query_files` (disco_cli/maps/facade.py).
 """
 
 from __future__ import annotations
