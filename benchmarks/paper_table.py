@@ -65,7 +65,7 @@ FAMILIES_SHIPPED = dict(FAMILIES)
 
 
 def world_folder(out: Path, fam: Family, seed: int, quick: bool) -> Path:
-    tag = "-q" if quick else ""
+    tag = ""  # quick mode runs the first seed of the set, the same world as the full mode
     shipped = FAMILIES_SHIPPED[fam.name]
     sim = (fam.simulate_args(seed, quick), fam.town_toml())
     if sim != (shipped.simulate_args(seed, quick), shipped.town_toml()):
@@ -98,7 +98,7 @@ def cached_rows(out: Path, fam: Family, seed: int, quick: bool, method: str, thr
     if method == "oracle":  # no model: the map scan nearest the query's real position
         return oracle_rows(fam, folder)
     model = load_model(method)
-    key = {"family": asdict(fam), "seed": seed, "quick": quick, "method": method}
+    key = {"family": asdict(fam), "seed": seed, "method": method}
     key["fingerprint"] = str(getattr(model, "fingerprint", method))
     variant = hashlib.sha1(repr(fam).encode()).hexdigest()[:8]
     f = out / "rows" / f"{folder.name}--{variant}--{Path(method).stem}.jsonl"
