@@ -65,7 +65,7 @@ FAMILIES_SHIPPED = dict(FAMILIES)
 
 
 def world_folder(out: Path, fam: Family, seed: int, quick: bool) -> Path:
-    tag = "-q" if quick else ""
+    tag = ""  # quick mode runs the first seed of the set, the same world as the full mode
     shipped = FAMILIES_SHIPPED[fam.name]
     sim = (fam.simulate_args(seed, quick), fam.town_toml())
     if sim != (shipped.simulate_args(seed, quick), shipped.town_toml()):
@@ -91,23 +91,27 @@ def world_folder(out: Path, fam: Family, seed: int, quick: bool) -> Path:
 # -- evaluation ------------------------------------------------------------------------
 
 
-def cached_rows(out: Path, fam: Family, seed: int, quick: bool, method: str, threads: int):
+def cached_rows(out: Path, fam: Family, seed: int, quick: bool, method: str, policy: dict):
     from disco_cli.model import load_model
 
     folder = world_folder(out, fam, seed, quick)
     if method == "oracle":  # no model: the map scan nearest the query's real position
         return oracle_rows(fam, folder)
     model = load_model(method)
-    key = {"family": asdict(fam), "seed": seed, "quick": quick, "method": method}
+    key = {"family": asdict(fam), "seed": seed, "method": method}
+    if policy:  # an ablation: cached apart
+        key["policy"] = policy
     key["fingerprint"] = str(getattr(model, "fingerprint", method))
     variant = hashlib.sha1(repr(fam).encode()).hexdigest()[:8]
+    if policy:
+        variant += "-" + hashlib.sha1(repr(sorted(policy.items())).encode()).hexdigest()[:8]
     f = out / "rows" / f"{folder.name}--{variant}--{Path(method).stem}.jsonl"
     if f.is_file():
         lines = f.read_text().splitlines()
         if json.loads(lines[0]) == json.loads(json.dumps(key)):
             return [json.loads(x) for x in lines[1:]]
     t0 = time.monotonic()
-    rows = evaluate(fam, folder, method)
+    rows = evaluate(fam, folder, method, policy)
     f.parent.mkdir(parents=True, exist_ok=True)
     tmp = f.with_suffix(".partial")
     tmp.write_text("\n".join(json.dumps(r) for r in [key, *rows]) + "\n")
@@ -197,6 +201,15 @@ def override(families: dict[str, Family], item: str) -> tuple[str, Family]:
     return name, replace(fam, **{key: conv[kind](value)})
 
 
+def policy_field(item: str) -> tuple[str, object]:
+    """`FIELD=VALUE` of a QueryPolicy: a number, or a comma list for view_offsets."""
+    name, _, value = item.partition("=")
+    if name == "view_offsets":
+        return name, tuple(float(v) for v in value.split(",") if v)
+    number = float(value)
+    return name, int(number) if number.is_integer() and name != "snap_radius" else number
+
+
 def write_between(doc: Path, mark: str, text: str) -> None:
     """Replace what lies between `<!-- MARK:begin -->` and `<!-- MARK:end -->` in `doc`."""
     begin, end = f"<!-- {mark}:begin -->", f"<!-- {mark}:end -->"
@@ -236,7 +249,16 @@ def main() -> None:
         metavar="FAMILY.FIELD=VALUE",
         help="calibration: change one family field (e.g. nclt.change=0.6); cached apart",
     )
+    ap.add_argument(
+        "--policy",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="ablation: change a field of the model's QueryPolicy (e.g. snap_radius=0, "
+        "view_offsets=); cached apart",
+    )
     args = ap.parse_args()
+    policy = dict(policy_field(item) for item in args.policy)
     for item in args.set:
         FAMILIES.update([override(FAMILIES, item)])
     os.environ.setdefault("DISCO_THREADS", str(args.threads))
@@ -247,7 +269,7 @@ def main() -> None:
         for method in args.models:
             rows = []
             for seed in seeds:
-                rows += cached_rows(args.out, FAMILIES[fam], seed, args.quick, method, args.threads)
+                rows += cached_rows(args.out, FAMILIES[fam], seed, args.quick, method, policy)
             results[(fam, method)] = summarize(rows)
     mode = "quick" if args.quick else "full"
     head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}"

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -138,8 +138,9 @@ def scan_points(fam: Family, path: Path, mount_height: float, seed: int) -> np.n
     return submap(pts, mount_height, seed, fam.crop_m) if fam.submap else pts
 
 
-def evaluate(fam: Family, folder: Path, method: str) -> list[dict]:
-    """One row per query of run 01 against a map of run 00 (see the module's docstring)."""
+def evaluate(fam: Family, folder: Path, method: str, policy: dict | None = None) -> list[dict]:
+    """One row per query of run 01 against a map of run 00 (`benchmarks/paper_table.py`
+    says what is in a row); `policy`: fields of the model's `QueryPolicy` to change."""
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
     from disco_cli.io.poses import xy_yaw
     from disco_cli.maps.facade import Map
@@ -162,11 +163,12 @@ def evaluate(fam: Family, folder: Path, method: str) -> list[dict]:
         m.add_many(items)
         m.close()
         with Map.open(Path(tmp) / "map.db") as m:
+            rule = replace(m.model.query_policy, **policy) if policy else None
             for i, p in enumerate(q_paths):
                 if i % fam.query_every:
                     continue
                 pts = scan_points(fam, p, mount, 10**6 + i)
-                matches = m.query(pts, topk=max(n1p, 1), name=str(p))
+                matches = m.query(pts, topk=max(n1p, 1), name=str(p), policy=rule)
                 d_all = np.hypot(mx - qx[i], my - qy[i])
                 rowsof = [row_of[mt.name] for mt in matches]
                 hits = [bool(d_all[r] <= fam.radius) for r in rowsof]
