@@ -30,7 +30,7 @@ def _imports(path: Path, top_level_only: bool) -> set[str]:
             found |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             found.add(node.module)
-            # `from disco_cli import map` imports the module disco_cli.maps
+            # `from disco_cli import maps` imports the module disco_cli.maps
             found |= {f"{node.module}.{a.name}" for a in node.names}
         elif isinstance(node, ast.If) and top_level_only:  # `if TYPE_CHECKING:` is no import
             continue
