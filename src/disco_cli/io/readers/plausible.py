@@ -49,6 +49,10 @@ AT_SENSOR_M = 1e-3  # a point this close to the sensor is the sensor itself
 # Shares of a handful of points say nothing; the smallest real scans here are Oxford's
 # 4096-point submaps (a test's few-point file is left alone).
 MIN_POINTS = 1000
+# The shares above are judged on an even stride of at most this many points: the
+# margins (99 % against 21 %, none against 65 %) dwarf a sample's error, and every
+# query reads its scan through here (the whole scan cost about 4 ms at 120k points).
+SAMPLE = 4096
 
 
 def layout_problem(points: np.ndarray) -> str | None:
@@ -56,7 +60,7 @@ def layout_problem(points: np.ndarray) -> str | None:
     (always None under MIN_POINTS points)."""
     if len(points) < MIN_POINTS:
         return None
-    xyz = points[:, :3]
+    xyz = points[:: max(1, len(points) // SAMPLE), :3]
     with np.errstate(invalid="ignore", over="ignore"):
         finite = np.isfinite(xyz).all(axis=1)
         size = np.abs(xyz).max(axis=1, initial=0.0)
