@@ -368,7 +368,7 @@ def serve_forever(
     on_ready: Callable[[], None],
     token_file: Path | None = None,
 ) -> None:
-    """Serve until Ctrl-C (KeyboardInterrupt) or SIGTERM (returns): connections on
+    """Serve until Ctrl-C or SIGTERM (either returns, after the query in hand): connections on
     background threads, queries on this one. The socket file and the token file are
     removed on the way out."""
     service = server.service  # type: ignore[attr-defined]
@@ -380,7 +380,12 @@ def serve_forever(
     old = None
     if threading.current_thread() is threading.main_thread():
         # A service manager stops servers with SIGTERM: leave as cleanly as on Ctrl-C.
-        old = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        # Ctrl-C is taken the same way, whatever disposition the server inherited (a
+        # shell's background job starts with SIGINT ignored, and Python keeps that).
+        old = {
+            sig: signal.signal(sig, lambda *_: stop.set())
+            for sig in (signal.SIGTERM, signal.SIGINT)
+        }
     try:
         on_ready()
         service.work(stop)
@@ -388,8 +393,8 @@ def serve_forever(
         stop.set()
         server.shutdown()
         server.server_close()
-        if old is not None:
-            signal.signal(signal.SIGTERM, old)
+        for sig, handler in (old or {}).items():
+            signal.signal(sig, handler)
         if isinstance(server, _UnixServer):
             try:
                 os.unlink(server.server_address)  # type: ignore[arg-type]
