@@ -114,9 +114,9 @@ class Database(RowReader):
     view) was found damaged by a read so far to what names it (its stored path); `check()`
     fills it for the whole file."""
 
-    def __init__(self, path: Path, conn: sqlite3.Connection, meta: dict[str, str]):
-        self.path = path
-        self._conn = conn
+    def _take_meta(self, meta: dict[str, str]) -> None:
+        """What every store reads from its meta (checked before it is opened): the
+        format, the model, the signature and feature sizes; no row damaged yet."""
         self.meta = meta
         self.format_version = int(meta["format_version"])
         self.model = ModelInfo(
@@ -128,6 +128,11 @@ class Database(RowReader):
         self.signature_dim = int(meta["signature_dim"])
         self.feature_shape = tuple(int(v) for v in json.loads(meta["feature_shape"]))
         self.damaged: dict[int, str] = {}
+
+    def __init__(self, path: Path, conn: sqlite3.Connection, meta: dict[str, str]):
+        self.path = path
+        self._conn = conn
+        self._take_meta(meta)
         # rows(): the last rows read, decoded (id -> path, pose, features), valid while
         # the file's generation is the one they were read at.
         self._cache: OrderedDict[int, tuple] = OrderedDict()

@@ -85,18 +85,8 @@ class MilvusDatabase(Database):
         self.address = address
         self._client = client
         self._conn = None  # type: ignore[assignment]
-        self.meta = meta
-        self.format_version = int(meta["format_version"])
-        self.model = ModelInfo(
-            name=meta["model_name"],
-            fingerprint=meta["fingerprint"],
-            model_config=json.loads(meta["model_config"]),
-            bev_config=json.loads(meta["bev_config"]),
-        )
-        self.signature_dim = int(meta["signature_dim"])
-        self.feature_shape = tuple(int(v) for v in json.loads(meta["feature_shape"]))
+        self._take_meta(meta)
         self.side_offsets = tuple(float(o) for o in json.loads(meta.get("side_views_m", "[]")))
-        self.damaged: dict[int, str] = {}
         self._nsig = self.signature_dim * 4
         self._nfeat = int(np.prod(self.feature_shape)) * 2
         self.migrated = None
