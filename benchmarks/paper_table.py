@@ -64,18 +64,20 @@ FAMILIES_SHIPPED = dict(FAMILIES)
 # -- worlds ----------------------------------------------------------------------------
 
 
-def world_folder(out: Path, fam: Family, seed: int, quick: bool) -> Path:
-    tag = ""  # quick mode runs the first seed of the set, the same world as the full mode
+def world_folder(out: Path, fam: Family, seed: int) -> Path:
+    """The world of `fam` at `seed` under `out`, simulated on first use (quick mode runs
+    the first seed of the set: the same world as the full table's)."""
+    name = f"{fam.name}-{seed}"
     shipped = FAMILIES_SHIPPED[fam.name]
-    sim = (fam.simulate_args(seed, quick), fam.town_toml())
-    if sim != (shipped.simulate_args(seed, quick), shipped.town_toml()):
+    sim = (fam.simulate_args(seed), fam.town_toml())
+    if sim != (shipped.simulate_args(seed), shipped.town_toml()):
         # a calibration variant of what is simulated: a folder of its own
-        tag += "-" + hashlib.sha1(repr(sim).encode()).hexdigest()[:8]
-    folder = out / "worlds" / f"{fam.name}-{seed}{tag}"
+        name += "-" + hashlib.sha1(repr(sim).encode()).hexdigest()[:8]
+    folder = out / "worlds" / name
     if (folder / "world.json").is_file():
         return folder
     disco = str(Path(sys.executable).parent / "disco")
-    cmd = [disco, "simulate", str(folder), *fam.simulate_args(seed, quick), "-q", "--force"]
+    cmd = [disco, "simulate", str(folder), *fam.simulate_args(seed), "-q", "--force"]
     toml = fam.town_toml()
     if toml is not None:
         town = out / "worlds" / f"{folder.name}.toml"
@@ -91,10 +93,10 @@ def world_folder(out: Path, fam: Family, seed: int, quick: bool) -> Path:
 # -- evaluation ------------------------------------------------------------------------
 
 
-def cached_rows(out: Path, fam: Family, seed: int, quick: bool, method: str, policy: dict):
+def cached_rows(out: Path, fam: Family, seed: int, method: str, policy: dict):
     from disco_cli.model import load_model
 
-    folder = world_folder(out, fam, seed, quick)
+    folder = world_folder(out, fam, seed)
     if method == "oracle":  # no model: the map scan nearest the query's real position
         return oracle_rows(fam, folder)
     model = load_model(method)
@@ -269,7 +271,7 @@ def main() -> None:
         for method in args.models:
             rows = []
             for seed in seeds:
-                rows += cached_rows(args.out, FAMILIES[fam], seed, args.quick, method, policy)
+                rows += cached_rows(args.out, FAMILIES[fam], seed, method, policy)
             results[(fam, method)] = summarize(rows)
     mode = "quick" if args.quick else "full"
     head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}"

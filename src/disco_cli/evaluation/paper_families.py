@@ -17,6 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from disco_cli.evaluation.metrics import one_percent_n, precision_recall, wrap_deg
+from disco_cli.io.poses import read_kitti_poses, xy_yaw
+from disco_cli.io.readers import list_scans, read_scan
+from disco_cli.maps.facade import Map
+
 # Seeds, fixed before any calibration or tuning (one use each; 8601-8699 is this table's).
 SEEDS = {
     "calibration": (8611, 8612, 8613),
@@ -58,7 +63,7 @@ class Family:
     gt_lag_m: float = 0.0
     extra: tuple[str, ...] = field(default_factory=tuple)
 
-    def simulate_args(self, seed: int, quick: bool) -> list[str]:
+    def simulate_args(self, seed: int) -> list[str]:
         length = self.length_m
         cmd = ["--sessions", "2", "--length-m", f"{length:g}", "--step-m", f"{self.step_m:g}"]
         cmd += ["--sensor", self.sensor, "--seed", str(seed), "--style", self.style]
@@ -125,33 +130,30 @@ def submap(points: np.ndarray, mount_height: float, seed: int, crop_m: float) ->
 
 
 def load_run(folder: Path) -> tuple[list[Path], np.ndarray]:
-    from disco_cli.io.poses import read_kitti_poses
-    from disco_cli.io.readers import list_scans
-
     return list_scans(folder), read_kitti_poses(folder / "poses.txt")
 
 
 def scan_points(fam: Family, path: Path, mount_height: float, seed: int) -> np.ndarray:
-    from disco_cli.io.readers import read_scan
-
     pts = read_scan(path)
     return submap(pts, mount_height, seed, fam.crop_m) if fam.submap else pts
+
+
+def labelled_xy(fam: Family, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> tuple:
+    """Where the query run's ground truth puts its scans: `gt_lag_m` behind them along
+    their heading (the scans themselves are where they are)."""
+    return x - fam.gt_lag_m * np.cos(yaw), y - fam.gt_lag_m * np.sin(yaw)
 
 
 def evaluate(fam: Family, folder: Path, method: str, policy: dict | None = None) -> list[dict]:
     """One row per query of run 01 against a map of run 00 (`benchmarks/paper_table.py`
     says what is in a row); `policy`: fields of the model's `QueryPolicy` to change."""
-    from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
-    from disco_cli.io.poses import xy_yaw
-    from disco_cli.maps.facade import Map
-
     world = json.loads((folder / "world.json").read_text())
     mount = float(world["sensor"]["mount_height"])
     map_paths, map_poses = load_run(folder / "00")
     q_paths, q_poses = load_run(folder / "01")
     mx, my, myaw = xy_yaw(map_poses)
     qx, qy, qyaw = xy_yaw(q_poses)
-    qx, qy = qx - fam.gt_lag_m * np.cos(qyaw), qy - fam.gt_lag_m * np.sin(qyaw)
+    qx, qy = labelled_xy(fam, qx, qy, qyaw)
     n1p = one_percent_n(len(map_paths))
     row_of = {str(p): i for i, p in enumerate(map_paths)}
     rows = []
@@ -196,9 +198,9 @@ def oracle_rows(fam: Family, folder: Path) -> list[dict]:
     distance in metres). Below 1 only where the ground truth lags (`gt_lag_m`)."""
     map_paths, map_poses = load_run(folder / "00")
     q_paths, q_poses = load_run(folder / "01")
-    mx, my, _ = xy_yaw_of(map_poses)
-    qx, qy, qyaw = xy_yaw_of(q_poses)
-    hx, hy = qx - fam.gt_lag_m * np.cos(qyaw), qy - fam.gt_lag_m * np.sin(qyaw)
+    mx, my, _ = xy_yaw(map_poses)
+    qx, qy, qyaw = xy_yaw(q_poses)
+    hx, hy = labelled_xy(fam, qx, qy, qyaw)
     rows = []
     for i in range(0, len(q_paths), fam.query_every):
         real = np.hypot(mx - qx[i], my - qy[i])
@@ -218,16 +220,8 @@ def oracle_rows(fam: Family, folder: Path) -> list[dict]:
     return rows
 
 
-def xy_yaw_of(poses: np.ndarray) -> tuple:
-    from disco_cli.io.poses import xy_yaw
-
-    return xy_yaw(poses)
-
-
 def summarize(rows: list[dict]) -> dict[str, float]:
     """The table's metrics over one family's rows (all its seeds together)."""
-    from disco_cli.evaluation.metrics import precision_recall
-
     nan = float("nan")
     has = np.array([r["has"] for r in rows], bool)
     n = int(has.sum())
@@ -259,8 +253,6 @@ def summarize(rows: list[dict]) -> dict[str, float]:
 def write_submaps(world: Path) -> int:
     """Rewrite every scan of a simulated world as its Oxford-like submap (`submap`), in
     place, for training on that family; returns how many scans were rewritten."""
-    from disco_cli.io.readers import read_scan
-
     meta = json.loads((Path(world) / "world.json").read_text())
     mount = float(meta["sensor"]["mount_height"])
     n = 0
