@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +62,7 @@ class AddResult:
     written: int = 0  # scans added
     already: int = 0  # scans skipped because the map holds them already
     bad: list[str] | None = None  # unreadable scans skipped (skip_bad=True)
+    ids: list[int] = field(default_factory=list)  # the added scans' ids, in the order given
 
     def summary(self, seconds: float) -> str:
         """The line "wrote N scans in S s (R scans/s)" for a build that took `seconds`,
@@ -176,7 +177,7 @@ class MapWriting:
                         result.bad.append(item.path)  # type: ignore[union-attr]
                     if chunk.items:
                         rows = [todo[it.index] for it in chunk.items]
-                        self._append(
+                        result.ids += self._append(
                             ScanBatch(
                                 paths=[absolute[r] for r in rows],
                                 rel_paths=[rel_paths[r] for r in rows],
