@@ -19,7 +19,7 @@ from disco_cli.commands.options import (
     model_option,
     topk_option,
 )
-from disco_cli.runtime.console import handle_errors, stderr, warn
+from disco_cli.runtime.console import handle_errors, plural, stderr, warn
 
 PANEL_LIMITS = "Limits"
 
@@ -82,6 +82,15 @@ def serve(
         ),
     ] = None,
     topk: Annotated[int, topk_option("Matches per query when a request does not say.")] = 10,
+    allow_append: Annotated[
+        bool,
+        typer.Option(
+            "--allow-append",
+            help="Also take append requests: the scans they send (files under "
+            "--scan-root, or points inline) are embedded and added to the map, one "
+            "request at a time. Off: the map is opened read-only.",
+        ),
+    ] = False,
     max_request_mb: Annotated[
         float,
         typer.Option(
@@ -164,7 +173,10 @@ def serve(
     if port is not None and not _loopback(host):
         warn(f"listening on {host}:{port}: any host that reaches it and has the token can query")
     options = ServeOptions(
-        topk=topk, max_request_bytes=int(max_request_mb * 1024 * 1024), scan_root=root
+        topk=topk,
+        max_request_bytes=int(max_request_mb * 1024 * 1024),
+        scan_root=root,
+        allow_append=allow_append,
     )
     net = NetOptions(
         max_clients=max_clients,
@@ -172,9 +184,13 @@ def serve(
         read_timeout=read_timeout,
         idle_timeout=idle_timeout or None,
     )
-    with Map.open(db_path, model=model, scan_root=scan_root) as m:
+    # Appends go through this process's own writer (the map's writable connection).
+    with Map.open(db_path, writable=allow_append, model=model, scan_root=scan_root) as m:
         m.on_missing_scan = warn
         m.on_damaged = warn
+        migrated = m.database.migrated_line() if allow_append else ""  # type: ignore[union-attr]
+        if migrated:
+            stderr.print(migrated, soft_wrap=True, highlight=False)
         service = QueryService(m, options)
         if port is not None:
             token_file = token_file or Path(f"disco-{port}.token")
@@ -190,9 +206,10 @@ def serve(
             where += f", token in {token_file}"
 
         def ready() -> None:
+            takes = "; appends taken" if allow_append else ""
             stderr.print(
                 f"{db_path}: {len(m)} scans; listening on {where}; scans read under "
-                f"{os.path.realpath(root)} (Ctrl-C stops)",
+                f"{os.path.realpath(root)}{takes} (Ctrl-C stops)",
                 soft_wrap=True,
                 highlight=False,
             )
@@ -202,4 +219,5 @@ def serve(
         except KeyboardInterrupt:
             pass
         # Ctrl-C and SIGTERM (a service manager's stop) end the same way.
-        stderr.print(f"stopped after {service.answered} queries")
+        added = f" and {plural(service.appended, 'scan')} appended" if allow_append else ""
+        stderr.print(f"stopped after {service.answered} queries{added}")

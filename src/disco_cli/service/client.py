@@ -10,6 +10,9 @@ and from a shell, one reply line (JSON) per scan path read from the arguments or
 
     find scans -name '*.bin' | python -m disco_cli.service.client --socket disco.sock -
 
+A server started with `--allow-append` also adds scans to its map: `c.append(scan)`
+(`--append` from a shell).
+
 Scan paths are sent absolute, resolved from this process's folder. Every failure is a
 `ClientError` (the server's refusal of one request a `ServerError`, its subclass).
 """
@@ -140,7 +143,8 @@ class Client:
         reply = self._exchange(fields)
         if reply is None:
             # Closed while this was sent: the server timed out an idle connection,
-            # or was restarted. Queries change nothing, so asking again is safe.
+            # or was restarted. Queries change nothing and an append of a scan the
+            # map holds already adds nothing, so asking again is safe.
             self.close()
             self._open()
             reply = self._exchange(fields)
@@ -157,17 +161,7 @@ class Client:
         absolute, read by the server) or an N x 3 / N x 4 array of points (sent
         inline). The reply's warnings are in `self.warnings` and raised as Python
         warnings."""
-        req: dict[str, Any] = dict(fields)
-        if isinstance(scan, (str, Path)):
-            req["scan"] = os.path.abspath(scan)
-        else:
-            import numpy as np
-
-            pts = np.ascontiguousarray(scan, dtype="<f4")
-            req["points"] = {
-                "shape": list(pts.shape),
-                "data": base64.b64encode(pts.tobytes()).decode(),
-            }
+        req: dict[str, Any] = {**fields, **_scan_fields(scan)}
         if topk is not None:
             req["topk"] = topk
         if pose:
@@ -177,8 +171,71 @@ class Client:
             raise ServerError(reply.get("error", "refused"))
         return reply["rows"]
 
+    def append(
+        self,
+        scan: Any,
+        *,
+        name: str | None = None,
+        pose: Any = None,
+        time: float | None = None,
+        scan_format: str | None = None,
+    ) -> dict[str, Any]:
+        """Add one scan to the map of a server started with `--allow-append`: a file
+        path (sent absolute, read by the server) or an N x 3 / N x 4 array of points
+        with its `name` (its path in the map, unique there). `pose`: the sensor's 4 x 4
+        pose in the map's frame; `time` in seconds. Returns the reply: `scan_ids` (the
+        scan's id, in a list), `added` (0 when the map held it already: a resend adds
+        nothing) and `scans` (the map's size now)."""
+        item = _append_item({"scan": scan, "name": name, "pose": pose, "time": time})
+        return self._append({**item, "scan_format": scan_format})
+
+    def append_many(self, scans: Any, *, scan_format: str | None = None) -> dict[str, Any]:
+        """Add several scans in one request, all or none: each a file path, or a dict of
+        `append`'s arguments (`scan`, `name`, `pose`, `time`). `scan_ids` are in the
+        order given."""
+        items = [_append_item(s if isinstance(s, dict) else {"scan": s}) for s in scans]
+        return self._append({"scans": items, "scan_format": scan_format})
+
+    def _append(self, fields: dict[str, Any]) -> dict[str, Any]:
+        req = {"op": "append", **{k: v for k, v in fields.items() if v is not None}}
+        reply = self.request(req)
+        if not reply.get("ok"):
+            raise ServerError(reply.get("error", "refused"))
+        return {k: reply[k] for k in ("scan_ids", "added", "scans")}
+
     def ping(self) -> bool:
         return bool(self.request({"op": "ping"}).get("ok"))
+
+
+def _scan_fields(scan: Any) -> dict[str, Any]:
+    """A scan as a request sends it: a file path made absolute, or points inline."""
+    if isinstance(scan, (str, Path)):
+        return {"scan": os.path.abspath(scan)}
+    import numpy as np  # deferred: only callers with arrays have numpy to pay for
+
+    pts = np.ascontiguousarray(scan, dtype="<f4")
+    return {"points": {"shape": list(pts.shape), "data": base64.b64encode(pts.tobytes()).decode()}}
+
+
+def _append_item(item: dict[str, Any]) -> dict[str, Any]:
+    """One scan of an append request from `Client.append`'s arguments."""
+    unknown = sorted(set(item) - {"scan", "name", "pose", "time"})
+    if unknown:
+        raise ClientError(f"append: unknown field {unknown[0]!r}")
+    if item.get("scan") is None:
+        raise ClientError("append: give a scan file path or an array of points")
+    out = _scan_fields(item["scan"])
+    for key in ("name", "time"):
+        if item.get(key) is not None:
+            out[key] = item[key]
+    pose = item.get("pose")
+    if pose is not None:
+        # A NumPy array or nested sequences, as JSON rows of plain numbers.
+        try:
+            out["pose"] = [[float(v) for v in row] for row in pose]
+        except (TypeError, ValueError) as exc:
+            raise ClientError(f"append: 'pose' must be 4 rows of 4 numbers ({exc})") from None
+    return out
 
 
 def _read_token(port: int, token_file: str | Path | None) -> str:
@@ -255,7 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     resolved from this process's folder)."""
     ap = argparse.ArgumentParser(
         prog="python -m disco_cli.service.client",
-        description="Ask a running `disco serve` about scans: one JSON reply line per scan.",
+        description="Ask a running `disco serve` about scans (or add them to its map, "
+        "--append): one JSON reply line per scan.",
     )
     ap.add_argument("scans", nargs="+", help="scan files, or - to read paths from stdin")
     ap.add_argument("--socket", help="the server's Unix socket (default: disco.sock)")
@@ -267,7 +325,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--topk", "-k", type=int, help="matches per query (server's default)")
     ap.add_argument("--pose", action="store_true", help="add the verified relative pose")
+    ap.add_argument(
+        "--append",
+        action="store_true",
+        help="add the scans to the map instead (a server started with --allow-append)",
+    )
     args = ap.parse_args(argv)
+    if args.append and (args.topk is not None or args.pose):
+        ap.error("--topk and --pose are for queries, not --append")
     sock = None if args.port is not None else (args.socket or "disco.sock")
     paths = (
         (line.strip() for line in sys.stdin if line.strip())
@@ -279,6 +344,8 @@ def main(argv: list[str] | None = None) -> int:
         with Client(sock, host=args.host, port=args.port, token_file=args.token_file) as c:
             for path in paths:
                 req: dict[str, Any] = {"scan": os.path.abspath(path)}
+                if args.append:
+                    req["op"] = "append"
                 if args.topk is not None:
                     req["topk"] = args.topk
                 if args.pose:

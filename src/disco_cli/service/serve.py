@@ -20,9 +20,12 @@ time, on the thread that opened the map (SQLite connections and the model stay o
 thread; one query at a time is also what keeps latency flat on a shared CPU). A query
 whose client has gone is dropped, or stopped between two matches' poses.
 
-The map is opened read-only; before each query the server looks at the map file's
-size and modification time (and its WAL's) and takes a new snapshot when another
-process has appended to it.
+The map is opened read-only unless the server takes appends (`--allow-append`;
+`disco_cli/service/appends.py`): those are answered on the same thread as the queries,
+one request at a time, so that several writers never collide on ids. Before each query
+the server looks at the map file's size and modification time (and its WAL's; a
+Milvus map's generation) and takes a new snapshot when another process has written to
+it.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ import numpy as np
 
 from disco_cli.errors import DiscoError
 from disco_cli.runtime.columns import POSE_COLUMNS, RESULT_COLUMNS
+from disco_cli.service.appends import APPEND_FIELDS, Appender
 
 __all__ = ["QueryService", "ServeOptions", "MAX_REQUEST_BYTES"]
 
@@ -78,12 +82,14 @@ class Cancelled(Exception):
 class ServeOptions:
     """What every request gets unless it says otherwise, and where scans may be read:
     `scan_root` None reads any path (relative ones from the working folder). `policy`:
-    the query stage's `QueryPolicy` for every request (None: the map's model's)."""
+    the query stage's `QueryPolicy` for every request (None: the map's model's).
+    `allow_append`: take `append` requests (the map must be open for writing)."""
 
     topk: int = 10
     max_request_bytes: int = MAX_REQUEST_BYTES
     scan_root: Path | None = None
     policy: Any = None
+    allow_append: bool = False
 
 
 def _plain(value: Any) -> Any:
@@ -126,6 +132,11 @@ class QueryService:
         self._damaged: list[str] = []  # every damaged-rows line so far
         self.answered = 0
         self.cancelled = 0
+        self.appender = (
+            Appender(map_, self._scan_path, _decode_points, RequestError)
+            if self.options.allow_append
+            else None
+        )
         told_damaged, told_missing = map_.on_damaged, map_.on_missing_scan
 
         def damaged(msg: str) -> None:
@@ -227,10 +238,11 @@ class QueryService:
 
     def handle(self, request: dict[str, Any]) -> dict[str, Any]:
         """The reply's fields for a decoded request; raises `DiscoError` for bad ones."""
-        unknown = sorted(set(request) - _QUERY_FIELDS)
+        op = request.get("op", "query")
+        fields = APPEND_FIELDS if op == "append" else _QUERY_FIELDS
+        unknown = sorted(set(request) - fields)
         if unknown:
             raise RequestError(f"unknown field {unknown[0]!r} (docs/serve.md lists the fields)")
-        op = request.get("op", "query")
         if op == "ping":
             return {"op": "ping"}
         if op == "auth":  # the connection is past its check already (serve_net)
@@ -247,10 +259,25 @@ class QueryService:
                     "scan_root": self._root,
                     "answered": self.answered,
                     "cancelled": self.cancelled,
+                    "appends": self.appender is not None,
+                    "appended": self.appended,
                 }
+        if op == "append":
+            if self.appender is None:
+                raise RequestError(
+                    "this server takes no appends: its map is read-only unless it is "
+                    "started with disco serve --allow-append"
+                )
+            with self._lock:
+                return self.appender.append(request)
         if op != "query":
-            raise RequestError(f"unknown op {op!r}: query, info or ping")
+            raise RequestError(f"unknown op {op!r}: query, append, info or ping")
         return self._query(request)
+
+    @property
+    def appended(self) -> int:
+        """Scans this server has added to its map."""
+        return 0 if self.appender is None else self.appender.added
 
     def _query(self, request: dict[str, Any]) -> dict[str, Any]:
         topk = _int_field(request, "topk", self.options.topk, 1, _MAX_TOPK)
