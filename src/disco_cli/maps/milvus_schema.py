@@ -62,7 +62,8 @@ def read_meta(address: MilvusAddress, client: Any) -> dict[str, str]:
         raise
     except Exception as exc:
         raise DatabaseError(address, f"Milvus error ({reason_of(exc)})") from None
-    meta = {r["key"]: r["value"] for r in got}
+    # Writers' claims (`milvus_lock.py`) share the collection; they are no meta.
+    meta = {r["key"]: r["value"] for r in got if not r["key"].startswith("lock:")}
     needed = (
         "format_version",
         "model_name",

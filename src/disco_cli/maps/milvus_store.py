@@ -17,9 +17,11 @@ Three collections, named `<NAME>_scans`, `<NAME>_views` and `<NAME>_meta` (NAME 
   next id), one row each.
 
 Milvus has no multi-collection transactions: an append inserts its scan rows in one
-request, then raises `next_id` and `generation`. Rows a crash left past `next_id` are
-found when the map is next opened for writing and counted in. Milvus Lite takes one
-process per map folder; several writers need a server (docs/scaling.md).
+request, then raises `next_id` and `generation`, holding the map's writers' lock
+(`milvus_lock.py`: without it two appends at once took the same ids, and Milvus let the
+later rows replace the earlier ones). Rows a crash left past `next_id` are found by the
+next append, or when the map is next opened for writing, and counted in. Milvus Lite
+takes one process per map folder; several writers need a server (docs/scaling.md).
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ from disco_cli.maps.milvus_address import (
     require_extra,
 )
 from disco_cli.maps.milvus_address import milvus_errors as _milvus_errors
+from disco_cli.maps.milvus_lock import WriteLock
 from disco_cli.maps.milvus_schema import (
     create_collections,
     encode_rows,
@@ -120,7 +123,7 @@ class MilvusDatabase(Database):
             meta = read_meta(address, client)
             db = cls(address, client, meta)
             if writable:
-                db._count_in_orphans()
+                db._open_for_writing()
             return db
         except BaseException:
             disconnect(address, client)
@@ -189,20 +192,26 @@ class MilvusDatabase(Database):
         if not batch.paths:
             return []
         self.check_batch_shapes(batch)
-        if _meta_first is None:
-            # Another process may have appended since this one last did (one at a time).
+        if _meta_first is not None:  # a new map: no other writer knows it yet
+            ids = self._append_rows(batch)
+            self._write_meta(self.meta)
+            self._choose_index()
+            return ids
+        with WriteLock(self._client, self._meta_c):
+            # Another process may have appended since this one last did.
             self._read_counters()
             self._count_in_orphans()
+            ids = self._append_rows(batch)
+            self._write_meta({k: self.meta[k] for k in ("next_id", "generation")})
+            self._choose_index()
+        return ids
+
+    def _append_rows(self, batch: ScanBatch) -> list[int]:
         start = int(self.meta["next_id"])
         ids = list(range(start, start + len(batch.paths)))
         self._insert(ids, batch)
         self.meta["next_id"] = str(start + len(ids))
         self.meta["generation"] = str(int(self.meta["generation"]) + 1)
-        if _meta_first is not None:
-            self._write_meta(self.meta)
-        else:
-            self._write_meta({k: self.meta[k] for k in ("next_id", "generation")})
-        self._choose_index()
         return ids
 
     @_milvus_errors
@@ -214,11 +223,13 @@ class MilvusDatabase(Database):
         if not ids:
             return
         self.check_batch_shapes(batch)
-        if self.side_offsets:
-            self._client.delete(self._views_c, filter=f"scan_id in {ids}")
-        self._insert(ids, batch, upsert=True)
-        self.meta["generation"] = str(int(self.meta["generation"]) + 1)
-        self._write_meta({"generation": self.meta["generation"]})
+        with WriteLock(self._client, self._meta_c):
+            if self.side_offsets:
+                self._client.delete(self._views_c, filter=f"scan_id in {ids}")
+            self._insert(ids, batch, upsert=True)
+            self._read_counters()
+            self.meta["generation"] = str(int(self.meta["generation"]) + 1)
+            self._write_meta({"generation": self.meta["generation"]})
         for i in ids:
             self.damaged.pop(i, None)
 
@@ -245,6 +256,18 @@ class MilvusDatabase(Database):
         )
         self.meta.update({r["key"]: r["value"] for r in got})
 
+    @_milvus_errors
+    def _open_for_writing(self) -> None:
+        lock = WriteLock(self._client, self._meta_c)
+        if self.address.lite:
+            # One process per Milvus Lite folder: every claim there is a dead writer's.
+            lock.clear()
+            self._count_in_orphans()
+            return
+        with lock:
+            self._read_counters()
+            self._count_in_orphans()
+
     def _count_in_orphans(self) -> None:
         """Rows an interrupted append inserted before raising `next_id`: counted in."""
         start = int(self.meta["next_id"])
@@ -256,7 +279,11 @@ class MilvusDatabase(Database):
 
     def _choose_index(self) -> None:
         """FLAT (exact) below `HNSW_MIN_ROWS` scans, HNSW from there on."""
-        if self.meta.get("index_type") == "HNSW" or len(self) < HNSW_MIN_ROWS:
+        # next_id - 1 bounds the rows (ids are never reused): no count per append below
+        # the threshold (a count reads every row in Milvus Lite: 0.4 s at 40,000).
+        if self.meta.get("index_type") == "HNSW" or int(self.meta["next_id"]) - 1 < HNSW_MIN_ROWS:
+            return
+        if len(self) < HNSW_MIN_ROWS:
             return
         c = self._client
         c.release_collection(self._scans)
