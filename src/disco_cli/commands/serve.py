@@ -147,10 +147,12 @@ def serve(
     threads: ThreadsOpt = None,
 ) -> None:
     """Answer queries against one map over a local socket, loading it and the model once."""
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
+    # deferred: after set_threads, which must come before torch and BLAS load
     from disco_cli.errors import DiscoError
     from disco_cli.maps.facade import Map
     from disco_cli.service.serve import QueryService, ServeOptions

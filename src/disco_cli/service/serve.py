@@ -45,7 +45,12 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError
+from disco_cli.io.pipeline import array_points
+from disco_cli.io.readers import is_bag, read_scan
+from disco_cli.maps.facade import QueryResult
+from disco_cli.query.localize import refine_matches
 from disco_cli.runtime.columns import POSE_COLUMNS, RESULT_COLUMNS
+from disco_cli.runtime.console import _plain
 from disco_cli.service.appends import APPEND_FIELDS, Appender
 
 __all__ = ["QueryService", "ServeOptions", "MAX_REQUEST_BYTES"]
@@ -90,13 +95,6 @@ class ServeOptions:
     scan_root: Path | None = None
     policy: Any = None
     allow_append: bool = False
-
-
-def _plain(value: Any) -> Any:
-    """JSON-ready values, as `disco query --format jsonl` writes them."""
-    from disco_cli.runtime.console import _plain as plain
-
-    return plain(value)
 
 
 def _always() -> bool:
@@ -333,8 +331,6 @@ class QueryService:
         """The file a request's `scan` names, when the server may read it: under the
         scan root (relative paths from it; links followed before the check). The
         refusal is the same whether the file exists or not."""
-        from disco_cli.io.readers import is_bag
-
         if not isinstance(scan, str) or not scan or "\0" in scan:
             raise RequestError("'scan' must be a file path")
         if self._root is None:
@@ -367,8 +363,6 @@ class QueryService:
         if result.error is not None:
             raise result.error
         if pose:
-            from disco_cli.io.readers import read_scan
-
             # Read again rather than kept by query_files: the poses are refined here,
             # one match at a time, so that a client who leaves stops them.
             points = read_scan(path, scan_format)
@@ -376,9 +370,6 @@ class QueryService:
         return result
 
     def _query_points(self, field, name, topk, pose, verify, max_distance) -> Any:
-        from disco_cli.io.pipeline import array_points
-        from disco_cli.maps.facade import QueryResult
-
         points = array_points(_decode_points(field), name)
         matches = self.map.query(
             points, topk=topk, max_distance=max_distance, name=name, policy=self.options.policy
@@ -390,8 +381,6 @@ class QueryService:
     def _refine(self, matches: list, points: np.ndarray, verify: bool) -> list:
         """`Map.query(..., pose=True)`'s poses of `matches`, checking between two that
         the client is still there (a `topk` of 10,000 with poses is 10,000 ICPs)."""
-        from disco_cli.query.localize import refine_matches
-
         read_match = self.map._points.get  # the map's own cache of its scans' points
         out = []
         for m in matches:
