@@ -28,6 +28,7 @@ from disco_cli.model.yaw_refine import (
 )
 from disco_cli.query.query_policy import QueryPolicy
 from disco_cli.runtime.blas_threads import blas_threads
+from disco_cli.runtime.threads import get_threads
 
 # Scans per forward pass at inference: large enough to amortize, small enough for memory.
 _BATCH = 64
@@ -50,7 +51,7 @@ def default_model_config(in_channels: int, width: int = 16) -> dict[str, Any]:
 
 def build_net(model_config: dict[str, Any]) -> Any:
     """The torch DiscoNet of a model configuration."""
-    from disco_cli.model.unet import DiscoNet
+    from disco_cli.model.unet import DiscoNet  # deferred: imports torch (0.5 s and more)
 
     return DiscoNet(
         in_channels=int(model_config["in_channels"]),
@@ -148,8 +149,6 @@ class DiscoModel:
     def _forward(self, x: np.ndarray) -> np.ndarray:
         """Features of one batch of BEVs [B, H, R, S]."""
         if self.frozen:
-            from disco_cli.runtime.threads import get_threads
-
             with blas_threads(get_threads()):
                 u = np.concatenate(
                     [
@@ -160,7 +159,7 @@ class DiscoModel:
             if self.two_channel:
                 return np.stack([u + x.sum(axis=1), u], axis=1)
             return u
-        import torch
+        import torch  # deferred: only a torch model gets here; CPU queries never load it
 
         with torch.no_grad():
             t = torch.from_numpy(x).to(self.device)
