@@ -38,8 +38,8 @@ __all__ = ["__version__", *_LAZY]
 
 
 def _version() -> str:
-    # importlib.metadata and the scan of installed packages cost 50-150 ms, a tenth of
-    # a one-scan query: only `--version` and writing a map need the version.
+    # deferred: importlib.metadata and the scan of installed packages cost 50-150 ms, a
+    # tenth of a one-scan query: only `--version` and writing a map need the version.
     from importlib.metadata import PackageNotFoundError, version
 
     try:

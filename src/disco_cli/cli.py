@@ -74,9 +74,11 @@ app.command("train", rich_help_panel="Model")(train.train)
 def _print_version(value: bool) -> None:
     if not value:
         return
+    # deferred: __version__ reads importlib.metadata (50-150 ms); only --version needs it
     from disco_cli import __version__
 
     try:
+        # deferred: a core that cannot load is reported here, not as a traceback at start-up
         from disco_cli import _core
     except ImportError as exc:
         typer.echo(

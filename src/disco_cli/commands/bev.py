@@ -7,6 +7,7 @@ BEV window, and draws the BEV so that a wrong format or unit is plain to see.
 
 from __future__ import annotations
 
+import dataclasses
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any
@@ -14,6 +15,8 @@ from typing import Annotated, Any
 import typer
 
 from disco_cli.commands.options import ScanFormatOpt, TopicOpt, model_option, output_option
+from disco_cli.io import readers
+from disco_cli.io.readers import guess_format, is_bag, list_scans
 from disco_cli.runtime.console import fail, handle_errors, stderr, warn
 
 
@@ -25,6 +28,7 @@ class BEVMode(str, Enum):
 
 def _write(output: Path, save: Any) -> None:
     """`save(tmp)`, renamed onto `output`; one error line if that fails."""
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.io.output_paths import write_atomic
 
     write_atomic(output, save)
@@ -77,24 +81,23 @@ def bev(
         raise fail(f"{output}: the output must end in .png or .npy")
     if polar and suffix != ".png":
         raise fail("--polar draws a picture: give an output ending in .png")
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.io.output_paths import check_output_file
 
     check_output_file(output, what="the BEV")
 
-    import dataclasses
-
+    # deferred: numpy and the voxelizer (~0.2 s) load when the command runs, not for --help
     import numpy as np
 
     from disco_cli.io.bev_image import in_window, picture
-    from disco_cli.io.readers import guess_format, is_bag, list_scans, read_scan
     from disco_cli.model.bev import BEVConfig, polar_bev
 
     if is_bag(scan):
         scan = list_scans(scan, topic=topic)[0]
-    points = read_scan(scan, format=scan_format)
+    points = readers.read_scan(scan, format=scan_format)  # tests replace read_scan
     fmt = scan_format.value if scan_format else guess_format(scan)
     if model is not None:
-        from disco_cli.model import load_model
+        from disco_cli.model import load_model  # deferred: --model only, not for --help
 
         config = load_model(model).bev_config
     else:
@@ -120,7 +123,7 @@ def bev(
         _write(output, lambda tmp: np.save(tmp, grid))
         what = f"BEV {shape} float32 ({cell_mode})"
     else:
-        from disco_cli.io.png import write_png
+        from disco_cli.io.png import write_png  # deferred: .png output only, not for --help
 
         image, top = picture(grid, cell_mode, config, polar, scale)
         _write(output, lambda tmp: write_png(tmp, image))

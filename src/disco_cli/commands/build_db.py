@@ -77,18 +77,20 @@ def build_db(
     quiet: QuietOpt = False,
 ) -> None:
     """Build (or resume, or extend) a map database from scans."""
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
+    # deferred: numpy and the map code (~0.2 s) load when the command runs, not for --help
     from disco_cli.io.output_paths import check_map_output
     from disco_cli.io.pipeline import check_device, collect_scans
-    from disco_cli.maps.build import open_for_adding
+    from disco_cli.maps.build import open_for_adding, repair_files
     from disco_cli.maps.writing import Interrupted
 
     check_device(device)
     if copy_from is not None:  # a copy between stores: nothing is embedded
-        from disco_cli.maps.milvus_copy import copy_command
+        from disco_cli.maps.milvus_copy import copy_command  # deferred: --copy-from only
 
         return say(copy_command(copy_from, output, inputs, warn))
     inputs = inputs or []
@@ -101,8 +103,6 @@ def build_db(
     if not scans.paths:
         raise fail("no scans given")
     if repair:  # rewrite the damaged rows only (docs/database.md)
-        from disco_cli.maps.build import repair_files
-
         done = repair_files(output, scans, model, fmt, batch, threads, device)
         return stderr.print(done, soft_wrap=True)
     # An existing map (resumed or --append) keeps its own model unless --model names one.

@@ -36,8 +36,9 @@ from disco_cli.commands.options import (
     pose_options,
     poses_option,
 )
+from disco_cli.errors import DiscoError
 from disco_cli.query.query_policy import policy_for
-from disco_cli.runtime.console import handle_errors
+from disco_cli.runtime.console import handle_errors, steps, warn
 
 
 @handle_errors
@@ -96,10 +97,11 @@ def evaluate_loops(
     quiet: QuietOpt = False,
 ) -> None:
     """Loop closure along one sequence: precision-recall, F1max, recall at 100% precision."""
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
-    from disco_cli.errors import DiscoError
+    # deferred: numpy and the evaluation code (~0.2 s) load when it runs, not for --help
     from disco_cli.evaluation.report import model_run, report_and_print
     from disco_cli.evaluation.runs import (
         check_loop_queries,
@@ -113,7 +115,6 @@ def evaluate_loops(
     from disco_cli.io.output_paths import check_output_folder
     from disco_cli.io.pipeline import file_beside, scan_paths
     from disco_cli.model import load_model
-    from disco_cli.runtime.console import steps, warn
 
     check_output_folder(report, what="the report")  # before the work it would lose
     if exclude_seconds is not None and exclude_frames is not None:

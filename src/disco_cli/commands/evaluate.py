@@ -42,8 +42,9 @@ from disco_cli.commands.options import (
     poses_option,
     topk_option,
 )
+from disco_cli.errors import DiscoError, PoseFileError
 from disco_cli.query.query_policy import policy_for
-from disco_cli.runtime.console import handle_errors
+from disco_cli.runtime.console import RowWriter, handle_errors, stderr, steps, warn
 
 
 @handle_errors
@@ -90,10 +91,11 @@ def evaluate(
     quiet: QuietOpt = False,
 ) -> None:
     """Multi-session evaluation: Recall@N, Recall@1%, PR AUC, F1max, yaw error vs a database."""
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
-    from disco_cli.errors import DiscoError, PoseFileError
+    # deferred: numpy and the evaluation code (~0.2 s) load when it runs, not for --help
     from disco_cli.evaluation.protocols import TABLE_COLUMNS, run_protocol, table_rows
     from disco_cli.evaluation.report import model_run, report_and_print
     from disco_cli.evaluation.runs import multi_session, posed_scans
@@ -102,7 +104,6 @@ def evaluate(
     from disco_cli.io.pipeline import file_beside, scan_paths
     from disco_cli.maps.facade import Map
     from disco_cli.model import load_model
-    from disco_cli.runtime.console import RowWriter, stderr, steps, warn
 
     check_output_folder(report, what="the report")  # before the work it would lose
     settings = dict(rerank=rerank, rerank_wider=rerank_wider, snap_radius=snap_radius)

@@ -49,6 +49,7 @@ def gt_loops(
     fmt: OutputFormatOpt = None,
 ) -> None:
     """List true revisit pairs (ground truth) within or between sequences."""
+    # deferred: numpy and the pose readers load when the command runs, not for --help
     from disco_cli.io.poses import find_pose_file, read_poses, revisit_pairs
 
     if not seqs:

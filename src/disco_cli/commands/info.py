@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from disco_cli.commands.options import OutputFormatOpt
-from disco_cli.runtime.console import handle_errors, stderr
+from disco_cli.runtime.console import (
+    OutputFormat,
+    RowWriter,
+    handle_errors,
+    resolve_format,
+    stderr,
+)
 
 
 def _size(n: int) -> str:
@@ -33,11 +40,9 @@ def info(
     fmt: OutputFormatOpt = None,
 ) -> None:
     """Show a map database's scans, model, configuration and size."""
-    import json
-
+    # deferred: numpy and the map code (~0.2 s) load when the command runs, not for --help
     from disco_cli.maps.map_side_views import side_views_m
     from disco_cli.maps.milvus_copy import open_database  # a file, or a milvus: address
-    from disco_cli.runtime.console import OutputFormat, RowWriter, resolve_format
 
     with open_database(db_path) as db:
         rows = [

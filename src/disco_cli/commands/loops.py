@@ -35,6 +35,7 @@ from disco_cli.commands.options import (
     model_option,
     topk_option,
 )
+from disco_cli.io.readers import list_scans
 from disco_cli.query.query_policy import policy_for
 from disco_cli.runtime.console import error, fail, handle_errors, plural, say, warn
 
@@ -77,18 +78,17 @@ def loops(
 
     query_index and match_index are positions in the sequence, from 0 (query's match_id: from 1).
     """  # noqa: E501
-    from disco_cli.runtime.threads import set_threads
+    from disco_cli.runtime.threads import set_threads  # deferred: not at start-up (--help)
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
-    import numpy as np
+    import numpy as np  # deferred: with the map code below (~0.2 s), not for --help
 
     from disco_cli.io.loop_export import check_loop_file, write_loops
     from disco_cli.io.pipeline import sequence_times
-    from disco_cli.io.readers import list_scans
     from disco_cli.maps.facade import Map, stored_embeddings
     from disco_cli.query.loop_detector import LoopDetector, loop_columns
-    from disco_cli.runtime.console import RowWriter, in_blocks, steps
+    from disco_cli.runtime.console import RowWriter, in_blocks, steps  # here: 150-line limit
 
     if exclude_frames is not None and exclude_seconds is not None:
         raise fail("give --exclude-frames or --exclude-seconds, not both")

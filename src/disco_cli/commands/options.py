@@ -361,6 +361,7 @@ def pose_options(
     poses_format: str | None, calib: str | None, extrinsic: Path | None, max_time_gap: float | None
 ) -> dict:
     """The keyword arguments of `disco_cli.io.poses.ScanPoser` from the four options above."""
+    # deferred: the pose readers load numpy (~0.1 s); every command imports this module
     from disco_cli.io.poses.scans import calib_arg
 
     return {

@@ -44,7 +44,7 @@ from disco_cli.commands.options import (
 from disco_cli.query.query_policy import policy_for
 from disco_cli.runtime.columns import POSE_COLUMNS
 from disco_cli.runtime.columns import RESULT_COLUMNS as COLUMNS
-from disco_cli.runtime.console import error, fail, handle_errors, note, warn
+from disco_cli.runtime.console import RowWriter, error, fail, handle_errors, note, warn
 
 
 @handle_errors
@@ -94,13 +94,14 @@ def query(
     build-db stored them (info and --repair count the same way). disco loops instead
     numbers a sequence's scans by position, from 0.
     """
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.runtime.threads import set_threads
 
     set_threads(threads)  # first: torch and BLAS read it as they load
 
+    # deferred: numpy and the map code (~0.2 s) load when the command runs, not for --help
     from disco_cli.io.pipeline import QueryPoses, query_paths
     from disco_cli.maps.facade import Map
-    from disco_cli.runtime.console import RowWriter
 
     if exclude_radius is not None and query_poses is None:
         raise fail("--exclude-radius needs --poses")

@@ -7,6 +7,7 @@ Each session `OUT/00`, `OUT/01`, ... holds `velodyne/NNNNNN.bin` scans, `poses.t
 
 from __future__ import annotations
 
+from dataclasses import replace
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
@@ -209,12 +210,12 @@ def simulate(
     quiet: QuietOpt = False,
 ) -> None:
     """Simulate a LiDAR driving through a procedural town, in several sessions."""
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.runtime.threads import set_threads
 
     threads = set_threads(threads)  # first: torch and BLAS read it as they load
 
-    from dataclasses import replace
-
+    # deferred: numpy and the simulator (~0.2 s) load when the command runs, not for --help
     from disco_cli.simulator import ChangeParams, RobotParams, TownParams
     from disco_cli.simulator import simulate as run
 

@@ -17,7 +17,7 @@ from disco_cli.commands.options import (
     TopicOpt,
     output_option,
 )
-from disco_cli.runtime.console import fail, handle_errors, progress, stderr
+from disco_cli.runtime.console import fail, handle_errors, progress, stderr, warn
 
 
 def _command_line(ctx: typer.Context, data: list[Path], output: Path) -> str:
@@ -193,10 +193,12 @@ def train(
     quiet: QuietOpt = False,
 ) -> None:
     """Train the DiSCO U-Net (quadruplet + yaw loss) and write a checkpoint."""
+    # deferred: loaded when the command runs, not at start-up (--help imports every command)
     from disco_cli.runtime.threads import set_threads
 
     threads = set_threads(threads)  # first: torch and BLAS read it as they load
 
+    # deferred: torch and the training code (~2 s) load when the command runs, not for --help
     from disco_cli.io.output_paths import check_output_file
     from disco_cli.io.pipeline import check_device
     from disco_cli.io.readers import oxford
@@ -220,8 +222,7 @@ def train(
     if protocol is not None:
         # The paper's training sessions and distances (disco_cli.evaluation.protocols) replace
         # DATA, --d-pos, --d-neg and --spacing (Oxford: --lambda-yaw too).
-        from disco_cli.evaluation.protocols import training_setup
-        from disco_cli.runtime.console import warn
+        from disco_cli.evaluation.protocols import training_setup  # deferred: --protocol only
 
         if len(data) != 1:
             raise fail("--protocol takes one dataset folder")

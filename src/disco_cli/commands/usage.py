@@ -17,7 +17,11 @@ from collections.abc import Sequence
 from typing import Any
 
 import typer
+from typer._click import exceptions as ce
+from typer._click.utils import PacifyFlushWrapper
 from typer.core import TyperCommand, TyperGroup
+
+from disco_cli.runtime.console import error, stdout_closed, warn
 
 # Old name -> new name (issue 26: one name per idea). Rewritten only in commands that
 # have the new name and not the old one.
@@ -61,8 +65,6 @@ def _bad_value(exc: Any) -> str:
 
 def usage_line(exc: Any) -> str:
     """One line for a usage error: the program, the option, the problem, where help is."""
-    from typer._click import exceptions as ce
-
     ctx = getattr(exc, "ctx", None)
     prog = _program(ctx)
     param = getattr(exc, "param", None)
@@ -84,8 +86,6 @@ def usage_line(exc: Any) -> str:
 
 def _renamed(command: Any, args: Sequence[str]) -> list[str]:
     """`args` with deprecated option names replaced by their new ones, one warning each."""
-    from disco_cli.runtime.console import warn
-
     have = {o for p in command.params for o in p.opts + p.secondary_opts}
     out: list[str] = []
     for i, arg in enumerate(args):
@@ -124,11 +124,9 @@ class DiscoCommand(TyperCommand):
         return option
 
     def parse_args(self, ctx: Any, args: list[str]) -> list[str]:
-        from typer._click.exceptions import UsageError
-
         try:
             return super().parse_args(ctx, _renamed(self, args))
-        except UsageError as exc:  # the parser's own errors may come without their command
+        except ce.UsageError as exc:  # the parser's own errors may come without their command
             exc.ctx = exc.ctx or ctx
             raise
 
@@ -159,9 +157,6 @@ class DiscoGroup(TyperGroup):
         standalone_mode: bool = True,
         **extra: Any,
     ) -> Any:
-        from typer._click import exceptions as ce
-        from typer._click.utils import PacifyFlushWrapper
-
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode, **extra)
         try:
@@ -171,20 +166,14 @@ class DiscoGroup(TyperGroup):
             # Typer exit 1: for us a reader that had enough is a normal end, exit 0.
             closed = isinstance(exc.__context__, BrokenPipeError)
             if exc.code == 1 and (closed or isinstance(sys.stdout, PacifyFlushWrapper)):
-                from disco_cli.runtime.console import stdout_closed
-
                 raise SystemExit(stdout_closed().exit_code) from None
             raise
         except ce.NoArgsIsHelpError:
             sys.exit(2)  # the help is printed already
         except ce.ClickException as exc:
-            from disco_cli.runtime.console import error
-
             error(usage_line(exc))
             sys.exit(exc.exit_code)
         except typer.Abort:
-            from disco_cli.runtime.console import error
-
             error("aborted")
             sys.exit(1)
         # Not standalone, Typer returns an Exit's status, or the command's value (None).
