@@ -12,16 +12,18 @@ from typing import Any
 import numpy as np
 
 from disco_cli.evaluation.metrics import Evaluation
+from disco_cli.io.output_paths import write_atomic
 
 INSTALL_HINT = "matplotlib is not installed, so no plots; pip install 'disco-cli[plot]'"
 
 
 def _pyplot() -> Any | None:
     try:
+        # deferred: optional extra (and ~0.7 s): only a report with plots loads it
         import matplotlib
 
         matplotlib.use("Agg")  # files only, never a window
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # deferred: optional extra, after use("Agg")
     except ImportError:
         return None
     return plt
@@ -31,6 +33,7 @@ def write_plots(directory: Path, ev: Evaluation, title: str = "") -> list[Path]:
     """Write the plots that this evaluation has data for; [] (and a warning) without matplotlib."""
     plt = _pyplot()
     if plt is None:
+        # deferred: the CLI's console (typer, rich); the library imports without them
         from disco_cli.runtime.console import warn
 
         warn(INSTALL_HINT)  # warn() prints "[plot]" as it is, not as rich markup
@@ -40,8 +43,6 @@ def write_plots(directory: Path, ev: Evaluation, title: str = "") -> list[Path]:
     suffix = f" ({title})" if title else ""
 
     def save(fig: Any, name: str) -> None:
-        from disco_cli.io.output_paths import write_atomic
-
         path = directory / name
         fig.tight_layout()
         try:

@@ -21,8 +21,17 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.errors import DiscoError
+from disco_cli.errors import DiscoError, ScanReadError
+from disco_cli.evaluation.metrics import one_percent_n
+from disco_cli.evaluation.runs import score_retrieval
+from disco_cli.io.poses import poses_for_scans, xy_yaw
 from disco_cli.io.poses.geometry import keep_by_spacing
+from disco_cli.io.poses.interpolate import EXACT_S
+from disco_cli.io.readers import list_scans, oxford, read_scan
+from disco_cli.maps.database import MatchRows
+from disco_cli.model.bev import polar_bev
+from disco_cli.query.search import SignatureIndex, match_queries
+from disco_cli.training.data import PosedScans
 
 __all__ = [
     "PROTOCOLS",
@@ -225,9 +234,6 @@ def load_session(
 ) -> Session:
     """A session's scans with a pose (poses by `disco_cli.io.poses.poses_for_scans`, with the
     dataset's published extrinsic), kept every `spacing` metres of travel."""
-    from disco_cli.io.poses import poses_for_scans
-    from disco_cli.io.readers import list_scans
-
     p = _protocol(protocol) if isinstance(protocol, str) else protocol
     folder, pose_file = find_session(p, root, name)
     scans = list_scans(folder, "oxford" if p.name == "oxford" else None)
@@ -246,10 +252,6 @@ def embed_session(
     session: Session, model: Any, protocol: Protocol, batch: int = 32, threads: int = 0
 ) -> None:
     """Signatures and features of a session's scans, in order (set on the session)."""
-    from disco_cli.errors import ScanReadError
-    from disco_cli.io.readers import read_scan
-    from disco_cli.model.bev import polar_bev
-
     fmt = "oxford" if protocol.name == "oxford" else None
     sigs, feats = [], []
     for start in range(0, len(session.scans), batch):
@@ -279,12 +281,6 @@ def evaluate_sessions(
     """`disco eval`'s figures for one query session against one map session: the same
     search (`match_queries` under `policy`, None: the model's), ground truth within
     `radius` metres in x, y, and `retrieval_evaluation`. `query_mask` picks the queries."""
-    from disco_cli.evaluation.metrics import one_percent_n
-    from disco_cli.evaluation.runs import score_retrieval
-    from disco_cli.io.poses import xy_yaw
-    from disco_cli.maps.database import MatchRows
-    from disco_cli.query.search import SignatureIndex, match_queries
-
     mx, my, myaw = xy_yaw(map_session.poses)
     map_rows = np.c_[mx, my, map_session.poses[:, 2, 3], myaw]
     m_feats = map_session.features
@@ -351,8 +347,6 @@ def run_protocol(
     (map session, query session) pair. `oxford_scale`: metres per unit of PointNetVLAD's
     normalized submaps (None: `disco_cli.io.readers.oxford.DEFAULT_SCALE`). `policy`: the
     query stage's `QueryPolicy` (None: the model's)."""
-    from disco_cli.io.readers import oxford
-
     with oxford.scale(oxford_scale):
         return _run_protocol(name, root, model, warn, progress, policy)
 
@@ -486,11 +480,6 @@ def oxford_training_sessions(
     pointcloud_20m_10overlap submaps that have a row in its locations CSV and lie outside
     the four test squares, as `PosedScans` of one world (UTM: pooled across runs).
     Runs without the training split are named in one warning and skipped."""
-    from disco_cli.io.poses import poses_for_scans
-    from disco_cli.io.poses.interpolate import EXACT_S
-    from disco_cli.io.readers import list_scans
-    from disco_cli.training.data import PosedScans
-
     root = Path(root)
     if (root / "oxford").is_dir():
         root = root / "oxford"

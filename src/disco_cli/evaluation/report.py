@@ -18,6 +18,9 @@ import numpy as np
 
 from disco_cli.errors import DiscoError
 from disco_cli.evaluation.metrics import Evaluation
+from disco_cli.evaluation.plots import write_plots
+from disco_cli.io.output_paths import check_output_folder, write_text_atomic
+from disco_cli.query.search import effective_policy
 
 # The figures shown on the terminal and in the summary, in this order, with their labels.
 FIGURES = [
@@ -93,9 +96,6 @@ def markdown_summary(metrics: dict[str, Any], run: dict[str, Any], plots: list[s
 def write_report(directory: Path, ev: Evaluation, run: dict[str, Any]) -> list[Path]:
     """Write metrics.json, curves.json, summary.md and the plots into `directory` (made
     if it is missing; its parent must exist), each file atomically."""
-    from disco_cli.evaluation import plots
-    from disco_cli.io.output_paths import check_output_folder, write_text_atomic
-
     directory = check_output_folder(directory, what="the report")
     try:
         directory.mkdir(exist_ok=True)
@@ -106,7 +106,7 @@ def write_report(directory: Path, ev: Evaluation, run: dict[str, Any]) -> list[P
     written = [directory / "metrics.json", directory / "curves.json"]
     write_text_atomic(written[0], json.dumps(metrics, indent=2) + "\n")
     write_text_atomic(written[1], json.dumps(curves_dict(ev)) + "\n")
-    pngs = plots.write_plots(directory, ev, title=str(run.get("model", "")))
+    pngs = write_plots(directory, ev, title=str(run.get("model", "")))
     summary = directory / "summary.md"
     write_text_atomic(summary, markdown_summary(ev.metrics, run, [str(p) for p in pngs]))
     return written + [summary] + pngs
@@ -114,6 +114,7 @@ def write_report(directory: Path, ev: Evaluation, run: dict[str, Any]) -> list[P
 
 def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
     """The figures on stdout: a rich table, `metric<TAB>value` lines, or one JSON object."""
+    # deferred: the CLI's console (typer, rich); the library imports without them
     from disco_cli.runtime.console import OutputFormat, resolve_format
 
     fmt = resolve_format(fmt)
@@ -124,7 +125,7 @@ def print_metrics(metrics: dict[str, Any], fmt: Any, title: str) -> None:
         out += [f"{key}\t{'' if v is None else v}" for key, _, v in rows(metrics)]
         sys.stdout.write("\n".join(out) + "\n")
     else:
-        from rich.console import Console
+        from rich.console import Console  # deferred: rich, as above
         from rich.table import Table
 
         table = Table(title=title, title_justify="left")
@@ -142,8 +143,6 @@ def model_run(model: Any, policy: Any = None) -> dict[str, Any]:
     snap, how many matches per query got the parallax-free yaw, and the whole
     `QueryPolicy` it ran under (`policy`, None: the model's; less what the model cannot
     do)."""
-    from disco_cli.query.search import effective_policy
-
     p = effective_policy(model, policy)
     depth = p.rerank_candidates
     run = {"model": model.name, "fingerprint": model.fingerprint, "rerank": depth}
@@ -161,7 +160,7 @@ def model_run(model: Any, policy: Any = None) -> dict[str, Any]:
 def report_and_print(ev: Evaluation, run: dict[str, Any], directory: Path | None, fmt: Any) -> None:
     """`disco eval`'s ending: the report files into `directory` when given (said on
     stderr), then the figures on stdout (`print_metrics`)."""
-    from disco_cli.runtime.console import stderr
+    from disco_cli.runtime.console import stderr  # deferred: as in print_metrics
 
     if directory is not None:
         written = write_report(directory, ev, run)

@@ -18,6 +18,20 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DatabaseError, DiscoError, PoseFileError
+from disco_cli.evaluation.metrics import (
+    loop_evaluation,
+    one_percent_n,
+    retrieval_evaluation,
+    within_radius,
+    wrap_deg,
+)
+from disco_cli.io import pipeline
+from disco_cli.io.pipeline import frame_rows
+from disco_cli.io.poses import ScanPoser, read_times, relative_yaw_deg, xy_yaw
+from disco_cli.io.readers.bags import bag_poses, scan_stamps
+from disco_cli.maps.database import MatchRows, damaged_line
+from disco_cli.maps.index import index_for_database
+from disco_cli.query.search import SignatureIndex, match_queries
 
 __all__ = [
     "multi_session",
@@ -39,8 +53,6 @@ def posed_scans(
     (`disco_cli.io.poses.ScanPoser`), or for scans in bags from the bags' `pose_topic` by
     time. The others are named in one `warn` and left out of the evaluation."""
     if pose_topic is not None:
-        from disco_cli.io.readers.bags import bag_poses
-
         source = pose_topic
         gap, extrinsic = pose_opts["max_time_gap"], pose_opts["extrinsic"]
         T, missing = bag_poses([str(p) for p in paths], pose_topic, gap, extrinsic)
@@ -50,8 +62,6 @@ def posed_scans(
                 f"stamp (e.g. {missing[0]}) and are left out of the evaluation"
             )
     else:
-        from disco_cli.io.poses import ScanPoser
-
         source = poses_file
         T, report = ScanPoser(poses_file, **pose_opts).poses(paths)
         if report.warning():
@@ -67,10 +77,6 @@ def posed_times(times_file: Any, all_paths: list[Any], paths: list[Any]) -> np.n
     have a pose): from `times_file` (one row per scan, or by frame number), else the
     header stamps of scans in bags. `PoseFileError` when there are none, or when they go
     backwards."""
-    from disco_cli.io.pipeline import frame_rows
-    from disco_cli.io.poses import read_times
-    from disco_cli.io.readers.bags import scan_stamps
-
     t = scan_stamps([str(p) for p in paths])  # scans in a bag carry their header stamp
     if times_file is not None or not np.isfinite(t).all():
         if times_file is None:
@@ -103,14 +109,8 @@ def multi_session(
     `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`, searched
     with the `index` kind (`disco_cli.maps.index`; `note` hears of an index being built),
     under the query stage's `policy` (None: the model's)."""
-    from disco_cli.evaluation.metrics import one_percent_n
-    from disco_cli.io.pipeline import embed_paths
-    from disco_cli.maps.index import index_for_database
-    from disco_cli.query.search import match_queries
-
     if len(query_poses) != len(paths):
         raise PoseFileError(f"{source}: {len(query_poses)} poses for {len(paths)} query scans")
-    from disco_cli.maps.database import damaged_line
 
     def refuse_damaged() -> None:  # scores count map rows by position: no holes allowed
         if db.damaged:
@@ -124,7 +124,8 @@ def multi_session(
     check_retrieval_queries(query_poses, db_poses, radius)  # before the work
     ids, searched = index_for_database(db, index, note)
     refuse_damaged()
-    sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
+    # pipeline.embed_paths is looked up at each call: tests replace it
+    sigs, feats = pipeline.embed_paths(paths, model, scan_format, on_progress=on_progress)
     depth = max(topk, one_percent_n(len(ids)))
     matches = match_queries(searched, ids, db, model, sigs, feats, depth, policy)
     return score_retrieval(matches, depth, topk, query_poses, db_poses, radius)
@@ -133,8 +134,6 @@ def multi_session(
 def check_retrieval_queries(query_poses: np.ndarray, map_rows: np.ndarray, radius: float) -> None:
     """`DiscoError` when no query has a map scan within `radius` m: every figure would be
     blank (recall of nothing), so the evaluation is refused before it runs."""
-    from disco_cli.evaluation.metrics import within_radius
-
     q = np.asarray(query_poses)[:, :2, 3]
     if len(q) and within_radius(q, map_rows[:, :2], radius).any():
         return
@@ -170,8 +169,6 @@ def check_loop_queries(
     are but none has a true revisit within `radius` m (a drive that never returns),
     they still score precision (every detection is false), so `warn` says that
     recall, AUC and F1 stay blank. Checked before the work."""
-    from disco_cli.evaluation.metrics import within_radius
-
     n = len(limit)
     queries = np.flatnonzero(np.asarray(limit) > 0)
     if len(queries) == 0:
@@ -200,9 +197,6 @@ def score_retrieval(
     """`retrieval_evaluation` of `match_queries`' results (searched `depth` deep): true
     matches within `radius` m in x, y of the `[N, 4, 4]` `query_poses`, with the map's
     scans as rows `[M, 4]` of x, y, z, yaw (radians); recall@N is cut at `topk`."""
-    from disco_cli.evaluation.metrics import retrieval_evaluation, within_radius, wrap_deg
-    from disco_cli.io.poses import xy_yaw
-
     retrieved = np.full((len(matches), depth), -1, np.int64)
     distances = np.full((len(matches), depth), np.inf)
     yaw_est = np.full(len(matches), np.nan)
@@ -250,17 +244,11 @@ def loop_closure(
     """Precision-recall, F1max and recall at 100% precision of loop closure along one
     sequence (`[N, 4, 4]` poses; scan i searches scans [0, limit[i])), under the query
     stage's `policy` (None: the model's)."""
-    from disco_cli.evaluation.metrics import loop_evaluation, within_radius
-    from disco_cli.io.pipeline import embed_paths
-    from disco_cli.io.poses import relative_yaw_deg
-    from disco_cli.maps.database import MatchRows
-    from disco_cli.query.search import SignatureIndex, match_queries
-
     n = len(paths)
     if len(poses) != n:
         raise PoseFileError(f"{source}: {len(poses)} poses for {n} scans")
     check_loop_queries(poses, limit, radius, "shorten the exclusion window")  # before the work
-    sigs, feats = embed_paths(paths, model, scan_format, on_progress=on_progress)
+    sigs, feats = pipeline.embed_paths(paths, model, scan_format, on_progress=on_progress)
 
     class _Memory:
         """The scans of this run, standing in for a database in `match_queries`."""
