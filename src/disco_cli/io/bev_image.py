@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.io.png import BACKGROUND, colormap, upscale
+
 __all__ = ["in_window", "collapse", "rect_image", "polar_image", "picture"]
 
 # The longer side of the sectors x rings picture when no scale is given, and the most.
@@ -61,16 +63,12 @@ def rect_image(values: np.ndarray, empty: np.ndarray, scale: int) -> np.ndarray:
     """RGB picture: rings as rows (nearest at the top), sectors as columns (sector 0,
     straight ahead, at the left; angles grow to the right), each cell a
     `scale x scale` block."""
-    from disco_cli.io.png import colormap, upscale
-
     return upscale(colormap(values, empty), scale)
 
 
 def polar_image(values: np.ndarray, empty: np.ndarray, config: Any, scale: int) -> np.ndarray:
     """RGB top-down disc: the sensor at the centre, +x (ahead) up, +y (left) to the
     left, as seen from above; `2 * rings * scale` pixels across."""
-    from disco_cli.io.png import BACKGROUND, colormap
-
     rings, sectors = values.shape
     size = 2 * rings * scale
     metres_per_px = config.max_range / (size / 2)

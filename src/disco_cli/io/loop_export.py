@@ -25,6 +25,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from disco_cli.errors import DiscoError
+from disco_cli.io.output_paths import atomic_path, check_output_file
+from disco_cli.query.relative_pose import information_matrix
 
 if TYPE_CHECKING:
     from disco_cli.query.loop_detector import Loop
@@ -65,8 +67,6 @@ def _fmt(v: float) -> str:
 def check_loop_file(path: str | Path) -> None:
     """`DiscoError` unless `path` names a loop file type and can be written (checked
     before the work)."""
-    from disco_cli.io.output_paths import check_output_file
-
     if Path(path).suffix.lower() not in FORMATS:
         raise DiscoError(f"{path}: unknown loop file type; use {', '.join(FORMATS)}")
     check_output_file(path, what="the loops")
@@ -75,8 +75,6 @@ def check_loop_file(path: str | Path) -> None:
 def write_loops(path: str | Path, loops: Sequence[Loop]) -> int:
     """Write `loops` in the format named by `path`'s extension (.g2o, .tum, .csv);
     `.g2o` takes only the accepted ones. Returns how many were written."""
-    from disco_cli.query.relative_pose import information_matrix
-
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in FORMATS:
@@ -116,7 +114,6 @@ def write_loops(path: str | Path, loops: Sequence[Loop]) -> int:
                     ]
                 )
             )
-    from disco_cli.io.output_paths import atomic_path
 
     try:
         with atomic_path(path) as tmp:

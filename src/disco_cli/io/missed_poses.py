@@ -13,6 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from disco_cli.errors import PoseFileError
+from disco_cli.io.poses import find_pose_file
+from disco_cli.io.readers.bags import pose_topics, split_name
+
 
 def _sequence_folders(scan: str) -> list[Path]:
     """Where a scan's pose or times file would lie: its folder, and the sequence folder
@@ -22,9 +26,6 @@ def _sequence_folders(scan: str) -> list[Path]:
 
 
 def _pose_file_near(scan: str) -> Path | None:
-    from disco_cli.errors import PoseFileError
-    from disco_cli.io.poses import find_pose_file
-
     for folder in _sequence_folders(scan):
         try:
             found = find_pose_file(folder)
@@ -45,8 +46,6 @@ def _times_file_near(scan: str) -> Path | None:
 def bag_pose_topics(bags: Iterable[str]) -> list[str]:
     """`/odom (nav_msgs/Odometry)` for each pose topic of these bags (unreadable bags:
     none; they fail with their own message where they are read)."""
-    from disco_cli.io.readers.bags import pose_topics
-
     found: dict[str, str] = {}
     for bag in dict.fromkeys(bags):
         try:
@@ -67,16 +66,12 @@ def bag_hint(paths: Sequence[object]) -> str:
 
 def no_poses_error(paths: Sequence[object], what: str, flag: str) -> Exception:
     """The error of an evaluation given no poses: which option, or which bag topic."""
-    from disco_cli.errors import PoseFileError
-
     return PoseFileError(
         f"no {what}: give {flag} FILE (or a folder with poses.txt){bag_hint(paths)}"
     )
 
 
 def _bag_of(scan: str) -> str | None:
-    from disco_cli.io.readers.bags import split_name
-
     parts = split_name(scan)
     return None if parts is None else parts[0]
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from disco_cli.errors import DiscoError
+from disco_cli.maps.milvus_address import parse_address
 
 
 def _check_folder(path: Path, what: str) -> None:
@@ -107,8 +108,6 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 def check_map_output(output: Path) -> Any:
     """The map a build writes: a Milvus address (`milvus:...`, its folder checked) or the
     file path, checked by `check_output_file`; either before any scan is embedded."""
-    from disco_cli.maps.milvus_address import parse_address
-
     address = parse_address(output)
     if address is None:
         check_output_file(output, what="the database")

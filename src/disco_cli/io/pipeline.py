@@ -10,6 +10,7 @@ thread, one batch at a time, while the pool already loads the next scans.
 from __future__ import annotations
 
 import queue
+import sys
 import threading
 import warnings
 from collections.abc import Callable, Iterable, Iterator
@@ -21,7 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.errors import DiscoError, ScanReadError
+from disco_cli.errors import DiscoError, PoseFileError, ScanReadError
+from disco_cli.io.poses import ScanPoser, find_pose_file, read_times, xy_yaw
+from disco_cli.io.readers import is_bag, list_scans, read_scan
+from disco_cli.maps.map_side_views import side_view_bevs
+from disco_cli.model.bev import polar_bev
+from disco_cli.runtime.threads import get_threads
 
 __all__ = [
     "Loaded",
@@ -80,8 +86,6 @@ def load_bev(path: str, bev_config: Any, scan_format: str | None = None) -> np.n
 def _load_points_bev(
     path: str, bev_config: Any, scan_format: str | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    from disco_cli.io.readers import read_scan
-
     points = read_scan(path, scan_format)
     return points, scan_bev(points, bev_config, path)
 
@@ -89,8 +93,6 @@ def _load_points_bev(
 def scan_bev(points: np.ndarray, bev_config: Any, name: str) -> np.ndarray:
     """The polar BEV of a scan's points; `ScanReadError` naming `name` when it holds no
     point inside the BEV's range."""
-    from disco_cli.model.bev import polar_bev
-
     try:
         bev = polar_bev(points, bev_config)
     except DiscoError:
@@ -106,7 +108,7 @@ def array_points(points: Any, name: str) -> np.ndarray:
     """Points handed over as an array (the library API), checked as an .npy scan file
     would be: float32 `N x 4`, rows without finite x, y, z dropped; `ScanReadError`
     naming `name` with the same reason an .npy file of that array gets."""
-    from disco_cli.io.readers.npy import from_array
+    from disco_cli.io.readers.npy import from_array  # deferred: arrays only; files never need it
 
     if not isinstance(points, np.ndarray):
         try:
@@ -153,8 +155,6 @@ def _load_one(
     keep_points: bool,
     side_offsets: tuple[float, ...] = (),
 ) -> Loaded:
-    from disco_cli.maps.map_side_views import side_view_bevs
-
     try:
         points, bev = _load_points_bev(path, bev_config, scan_format)
         sides = side_view_bevs(points, bev_config, side_offsets) if side_offsets else None
@@ -181,8 +181,6 @@ def load_stream(
     results that are ready already. At most `prefetch` scans are in flight. `workers`
     threads read them (None: `disco_cli.get_threads()`).
     """
-    from disco_cli.runtime.threads import get_threads
-
     workers = max(1, int(get_threads() if workers is None else workers))
     pending: queue.Queue = queue.Queue(maxsize=max(1, prefetch))
     stop = threading.Event()
@@ -245,8 +243,6 @@ def embedded(
     readers stop when the block ends. By default `2 * batch` scans (at least 4 per
     worker) are read ahead, so the next batch is ready when the network is. `workers`:
     the threads that read and voxelize, one scan each (None: `disco_cli.get_threads()`)."""
-    from disco_cli.runtime.threads import get_threads
-
     workers = get_threads() if workers is None else workers
     loaded = load_stream(
         paths,
@@ -313,8 +309,6 @@ def _embed(items: list[Loaded], model: Any) -> Embedded:
 
 def stdin_paths() -> Iterator[str]:
     """Scan paths from stdin, one per line, read lazily (blank lines skipped)."""
-    import sys
-
     for line in sys.stdin:
         line = line.strip()
         if line:
@@ -327,7 +321,6 @@ def query_paths(
     """`disco query`'s scans: folders and bags expanded as for build-db, `-` read from
     stdin line by line as they come; and their list when it is known up front (None with
     stdin or a bag, whose scans go one by one, by the frame number or time in the name)."""
-    from disco_cli.io.readers import is_bag, list_scans
 
     def expand(a: str) -> list[str]:
         listed = a != "-" and (is_bag(a) or Path(a).is_dir())
@@ -344,10 +337,6 @@ def frame_rows(paths: list[str], n_rows: int, source: str) -> np.ndarray:
     Row i for the i-th scan when the counts agree; otherwise the frame number in each
     scan's name (KITTI `000123.bin` is row 123). `PoseFileError` when neither fits.
     """
-    from pathlib import Path
-
-    from disco_cli.errors import PoseFileError
-
     if len(paths) == n_rows:
         return np.arange(n_rows)
     rows = []
@@ -367,8 +356,6 @@ def scan_paths(
 ) -> list[Path]:
     """The scan files of every input (files, folders or bags), in order; `ScanReadError`
     when there are none."""
-    from disco_cli.io.readers import list_scans
-
     paths: list[Path] = []
     for item in inputs:
         paths += list_scans(item, format=scan_format, topic=topic)
@@ -385,8 +372,6 @@ def file_beside(inputs: list[Path], given: Path | None, name: str | None = None)
     if len(inputs) != 1 or not inputs[0].is_dir():
         return None
     if name is None:
-        from disco_cli.io.poses import find_pose_file
-
         return find_pose_file(inputs[0])
     return inputs[0] / name if (inputs[0] / name).is_file() else None
 
@@ -395,9 +380,7 @@ def sequence_times(folder: Any, paths: list[str], times_file: Any = None) -> np.
     """The time (s) of each scan of a sequence: from `times_file`, else the header stamps
     of scans in a bag, else `times.txt` in `folder`, by row or frame number
     (`frame_rows`); None when there is none of these."""
-    from pathlib import Path
-
-    from disco_cli.io.poses import read_times
+    # deferred: io.readers.bags stays off the query path, which imports this module
     from disco_cli.io.readers.bags import scan_stamps
 
     stamps = scan_stamps(paths) if times_file is None else None
@@ -419,8 +402,6 @@ class QueryPoses:
     them (once when streamed)."""
 
     def __init__(self, poses_file: Any, pose_opts: dict, paths: list[str] | None, warn: Any):
-        from disco_cli.io.poses import ScanPoser
-
         self.poser = ScanPoser(poses_file, **pose_opts)
         self.warn = warn
         self.missing = 0
@@ -451,8 +432,6 @@ class QueryPoses:
 
 def pose_rows(T: np.ndarray) -> np.ndarray:
     """`[N, 4, 4]` poses as `[N, 4]` rows of x, y, z, yaw (radians)."""
-    from disco_cli.io.poses import xy_yaw
-
     x, y, yaw = xy_yaw(np.asarray(T))
     return np.stack([x, y, np.asarray(T)[:, 2, 3], yaw], axis=1)
 
@@ -462,7 +441,7 @@ def check_device(device: str) -> None:
     if device not in ("cpu", "cuda"):
         raise DiscoError(f"--device must be cpu or cuda, not {device!r}")
     if device == "cuda":
-        import torch
+        import torch  # deferred: torch costs ~1.5 s; only --device cuda asks it
 
         if not torch.cuda.is_available():
             raise DiscoError("--device cuda: torch sees no CUDA device here; use --device cpu")
@@ -506,10 +485,7 @@ def collect_scans(
     Scans in a bag are timed by their header stamps, and posed from the bag's
     `pose_topic` when given (by time, like a pose file).
     """
-    import numpy as np
-
-    from disco_cli.io.poses import ScanPoser, find_pose_file, read_times
-    from disco_cli.io.readers import list_scans
+    # deferred: io.readers.bags stays off the query path, which imports this module
     from disco_cli.io.readers.bags import scan_stamps
 
     opts = dict(pose_opts or {})
@@ -559,7 +535,7 @@ def collect_scans(
         t = read_times(times_file)
         all_times = t[frame_rows(paths, len(t), str(times_file))]
     if pose_topic is not None:
-        from disco_cli.io.readers.bags import bag_poses
+        from disco_cli.io.readers.bags import bag_poses  # deferred: as scan_stamps above
 
         T, missing = bag_poses(paths, pose_topic, opts.get("max_time_gap"), opts.get("extrinsic"))
         if missing:
@@ -569,7 +545,7 @@ def collect_scans(
             )
         no_pose += len(missing)
         all_poses = pose_rows(T)
-    from disco_cli.io.missed_poses import missed_hint
+    from disco_cli.io.missed_poses import missed_hint  # deferred: it loads io.readers.bags
 
     # Poses or times left unused (a folder's poses.txt beside scans given one by one, a
     # bag's odometry topic): one line that says how to supply them.

@@ -20,6 +20,7 @@ import numpy as np
 
 from disco_cli.errors import PoseFileError
 from disco_cli.io.poses._text import floats, numeric_table, read_lines, to_4x4
+from disco_cli.io.poses.kitti import invert_calibration
 
 # calibration/calib_cam_to_pose.txt, image_00 (camera 0 -> IMU/GPS pose frame).
 CAM0_TO_POSE = (
@@ -79,8 +80,6 @@ def imu_to_velo(calibration: str | Path | None = None) -> np.ndarray:
         if not lines:
             raise PoseFileError(f"{velo_file}: empty")
         cam_to_velo = to_4x4(floats(velo_file, 1, lines[0].split(), 12))
-        from disco_cli.io.poses.kitti import invert_calibration
-
         out = cam_to_pose @ invert_calibration(cam_to_velo, velo_file)
         if not np.isfinite(out).all():
             raise PoseFileError(f"{folder}: calibration values overflow (far too large)")

@@ -28,6 +28,7 @@ import numpy as np
 
 from disco_cli.io.poses._text import numeric_table
 from disco_cli.io.poses.geometry import xyzrpy_to_4x4
+from disco_cli.io.readers.nclt import TURN
 
 # NCLT: Velodyne in the body frame (x, y, z in m; roll, pitch, yaw in degrees).
 X_BODY_VELO = (0.002, -0.004, -0.957, 0.807, 0.166, -90.703)
@@ -45,8 +46,6 @@ def body_to_velo() -> np.ndarray:
 def lidar_calibration() -> tuple[np.ndarray, np.ndarray]:
     """(left, right): the z-up LiDAR pose of a body pose P is `left @ P @ right`, in the
     frame the `nclt` scan reader returns (z up), in a z-up world."""
-    from disco_cli.io.readers.nclt import TURN
-
     X = np.diag([*TURN, 1.0])  # its own inverse
     return X, body_to_velo() @ X
 

@@ -6,6 +6,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from disco_cli.io.poses.geometry import relative_yaw_deg
+
 
 def pair_distances(poses_a: np.ndarray, poses_b: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """Euclidean distance (m) between the positions of each pair (i in a, j in b)."""
@@ -19,6 +21,7 @@ def gt_pairs(query_poses: np.ndarray, map_poses: np.ndarray, radius: float) -> n
 
     Returns `[M, 2]` int64 sorted by query, then map index.
     """
+    # deferred: scipy.spatial costs ~0.3 s, and io.poses loads on the query path
     from scipy.spatial import cKDTree
 
     q = np.asarray(query_poses, float)[:, :3, 3]
@@ -54,6 +57,7 @@ def nearest_distance(
     query_poses: np.ndarray, map_poses: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """For each query pose: (distance to the nearest map pose, its index)."""
+    # deferred: scipy.spatial costs ~0.3 s, and io.poses loads on the query path
     from scipy.spatial import cKDTree
 
     q = np.asarray(query_poses, float)[:, :3, 3]
@@ -69,8 +73,6 @@ def revisit_pairs(
     (`gt_pairs_within`), or of every later sequence in every earlier one. Yields
     `(q, m, pairs [M, 2], distance_m [M], yaw_deg [M])` for each (query sequence,
     match sequence) with revisits; yaw is the query's heading in the match's frame."""
-    from disco_cli.io.poses.geometry import relative_yaw_deg
-
     if len(poses) == 1:
         jobs = [(0, 0, gt_pairs_within(poses[0], radius, exclude_frames))]
     else:

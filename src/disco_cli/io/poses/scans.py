@@ -29,6 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from disco_cli.errors import PoseFileError
+from disco_cli.io.poses._text import has_header, read_lines, split_fields
+from disco_cli.io.poses.interpolate import EXACT_S, default_max_gap, interpolate_poses
+from disco_cli.io.poses.kitti import invert_calibration, read_calib_tr, read_kitti_poses
 
 __all__ = [
     "POSE_FORMATS",
@@ -90,8 +93,8 @@ def guess_poses_format(path: str | Path) -> str:
     12 kitti, 13 with an integer first field kitti360 (a `.csv` of 13 is mulran), 8 tum,
     7 nclt. `PoseFileError` when none fits.
     """
+    # deferred: each format's module loads when its poses are read, off the query path
     from disco_cli.io.poses import nclt, oxford
-    from disco_cli.io.poses._text import has_header, read_lines, split_fields
 
     path = Path(path)
     name = path.name.lower()
@@ -129,8 +132,6 @@ def guess_poses_format(path: str | Path) -> str:
 
 def read_extrinsic(path: str | Path) -> np.ndarray:
     """A 4 x 4 rigid transform from a text file (16 numbers, or 12 for the top 3 x 4)."""
-    from disco_cli.io.poses._text import read_lines, split_fields
-
     fields = [f for ln in read_lines(path) if not ln.lstrip().startswith("#")
               for f in split_fields(ln)]  # fmt: skip
     try:
@@ -157,8 +158,6 @@ def _calibration(
     auto = isinstance(calib, str) and calib.lower() == "auto"
     given = not none and not auto
     if fmt == "kitti":
-        from disco_cli.io.poses.kitti import read_calib_tr
-
         if none:
             return None, None, "as stored"
         if auto:
@@ -170,10 +169,9 @@ def _calibration(
         if Tr.shape != (4, 4):
             raise PoseFileError(f"calibration must be 4 x 4, got {Tr.shape}")
         where = f" ({calib})" if isinstance(calib, (str, Path)) else ""
-        from disco_cli.io.poses.kitti import invert_calibration
-
         return invert_calibration(Tr, calib), Tr, f"camera 0 -> LiDAR by calib.txt{where}"
     if fmt == "kitti360":
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses import kitti360
 
         if none:
@@ -194,11 +192,13 @@ def _calibration(
     if none:
         return None, None, "as stored"
     if fmt == "nclt":
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses.nclt import lidar_calibration
 
         left, right = lidar_calibration()
         return left, right, "body -> Velodyne by NCLT's x_body_velo, turned z up"
     if fmt == "mulran":
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses.mulran import base_to_ouster
 
         return None, base_to_ouster(), "base -> Ouster by MulRan's calibration"
@@ -218,27 +218,30 @@ def _read_raw(
     if fmt not in POSE_FORMATS:
         raise PoseFileError(f"unknown pose format {fmt!r} (known: {', '.join(POSE_FORMATS)})")
     if fmt == "kitti":
-        from disco_cli.io.poses.kitti import read_kitti_poses
-
         T = read_kitti_poses(path)
         keys = np.arange(len(T), dtype=np.float64)
     elif fmt == "tum":
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses.tum import read_tum_poses
 
         keys, T = read_tum_poses(path)
     elif fmt == "nclt":
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses.nclt import read_nclt_poses
 
         keys, T = read_nclt_poses(path)
     elif fmt == "mulran":
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses.mulran import read_mulran_poses
 
         keys, T = read_mulran_poses(path)
     elif fmt == "oxford":
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses.oxford import read_oxford_locations
 
         keys, T = read_oxford_locations(path)
     else:
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses.kitti360 import FRAME_S, read_kitti360_poses
 
         frames, T = read_kitti360_poses(path)
@@ -299,6 +302,7 @@ def _name_time(name: str, fmt: str) -> float | None:
         return int(stamp) * 1e-9 if _is_stamp(stamp) else None
     stem = Path(name).stem
     if fmt == "kitti360":
+        # deferred: only this format's module loads (io.poses is on the query path)
         from disco_cli.io.poses.kitti360 import FRAME_S
 
         return int(stem) * FRAME_S if _is_stamp(stem) else None
@@ -365,8 +369,6 @@ class ScanPoser:
         extrinsic: np.ndarray | str | Path | None = None,
         max_time_gap: float | None = None,
     ):
-        from disco_cli.io.poses.interpolate import default_max_gap
-
         self.source = str(poses_file)
         # Interpolation happens in the pose file's own frame (the body's motion), and the
         # calibration is applied afterwards: the LiDAR rides on the body.
@@ -386,8 +388,6 @@ class ScanPoser:
         self, scans: Sequence[str | Path] | np.ndarray, times: np.ndarray | None = None
     ) -> tuple[np.ndarray, PoseReport]:
         """LiDAR poses `[N, 4, 4]` of the scans (NaN for none) and the report."""
-        from disco_cli.io.poses.interpolate import EXACT_S, interpolate_poses
-
         keys, T, fmt, source = self.keys, self._T, self.format, self.source
         by_time = isinstance(scans, np.ndarray) and scans.dtype.kind in "fiu"
         names = [] if by_time else [str(s) for s in scans]

@@ -175,6 +175,7 @@ def read_scan(path: str | Path, format: str | None = None) -> np.ndarray:
     `ScanReadError` for a missing, truncated, misaligned, empty or unparsable file.
     """
     if is_bag_message(path):
+        # deferred: this module loads at start-up (--help), bag support only for bags
         from disco_cli.io.readers.bags import read_message
 
         return read_message(str(path))
@@ -190,6 +191,7 @@ def read_scan(path: str | Path, format: str | None = None) -> np.ndarray:
         raise ScanReadError(path, "not a file")
     points = fmt.reader()(path)
     if fmt.name in _HEADERLESS:  # any bytes read in these layouts: check they made a scan
+        # deferred: numpy; this module loads at start-up (--help)
         from disco_cli.io.readers.plausible import check_layout
 
         check_layout(path, points, fmt.name)
@@ -222,6 +224,7 @@ def list_scans(path: str | Path, format: str | None = None, topic: str | None = 
     """
     path = Path(path)
     if is_bag(path):
+        # deferred: this module loads at start-up (--help), bag support only for bags
         from disco_cli.io.readers.bags import list_messages
 
         return [Path(n) for n in list_messages(path, topic)]

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError, ScanReadError
+from disco_cli.io.poses import interpolate_poses, quat_to_matrix, read_extrinsic
+from disco_cli.io.readers.pointcloud2 import decode_message
 
 __all__ = [
     "POINTCLOUD2",
@@ -109,6 +111,7 @@ class _Bag:
 
     def __init__(self, path: Path):
         try:
+            # deferred: optional extra (pip install 'disco-cli[ros]')
             from rosbags.highlevel import AnyReader
             from rosbags.typesys import Stores, get_typestore
         except ImportError:
@@ -328,8 +331,6 @@ def list_messages(path: str | Path, topic: str | None = None) -> list[str]:
 
 def read_message(name: str) -> np.ndarray:
     """The points (float32 N x 4) of the PointCloud2 message named `BAG#TOPIC@STAMP_NS`."""
-    from disco_cli.io.readers.pointcloud2 import decode_message
-
     parts = split_name(name)
     if parts is None:
         raise ScanReadError(name, "not a bag message name (BAG#TOPIC@STAMP_NS)")
@@ -381,8 +382,6 @@ def read_pose_topic(path: str | Path, topic: str | None = None) -> tuple[np.ndar
             raise ScanReadError(path, f"cannot read pose topic {topic} ({_reason(exc)})") from None
     if not rows:
         raise ScanReadError(path, f"pose topic {topic} has no messages")
-    from disco_cli.io.poses import quat_to_matrix
-
     table = np.asarray(rows, dtype=np.float64)
     T = np.tile(np.eye(4), (len(table), 1, 1))
     T[:, :3, :3] = quat_to_matrix(table[:, 3:7])
@@ -415,8 +414,6 @@ def bag_poses(
     Returns the poses and the names of the scans left without one. Scans not in a bag
     get no pose.
     """
-    from disco_cli.io.poses import interpolate_poses, read_extrinsic
-
     E = None
     if extrinsic is not None:
         E = read_extrinsic(extrinsic) if isinstance(extrinsic, (str, Path)) else extrinsic
