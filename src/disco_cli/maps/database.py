@@ -92,6 +92,7 @@ from disco_cli.maps.database_migration import _migrate, backup_path
 from disco_cli.maps.database_paths import _locate, stored_paths
 from disco_cli.maps.database_rows import RowReader
 from disco_cli.maps.database_types import DamagedRows, MatchRows, ModelInfo, ScanBatch, damaged_line
+from disco_cli.maps.map_side_views import side_views_m
 
 __all__ = [
     "FORMAT_VERSION",
@@ -259,6 +260,7 @@ class Database(RowReader):
         if not first.paths:
             raise ValueError("the first batch of a new database must not be empty")
         if not disco_version:
+            # deferred: __version__ reads importlib.metadata (50-150 ms); queries never need it
             from disco_cli import __version__ as disco_version
         tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
         meta = {
@@ -357,7 +359,6 @@ class Database(RowReader):
                 self.path, f"holds features {self.feature_shape}, got {batch.features.shape[1:]}"
             )
         if batch.side_offsets != self.side_offsets:
-            from disco_cli.maps.map_side_views import side_views_m
 
             def said(offsets: tuple[float, ...]) -> str:
                 return f"side views at {side_views_m(offsets):g} m" if offsets else "no side views"

@@ -7,13 +7,14 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
+from disco_cli.io.readers import is_bag_message
+
 
 def _locate(
     stored: str, rel: str | None, db_path: Path, scan_root: str | Path | None
 ) -> Path | None:
     """The resolution order of `Database.locate`. A scan in a ROS bag
     (`BAG#TOPIC@STAMP_NS`) exists when its bag does."""
-    from disco_cli.io.readers import is_bag_message
 
     def exists(p: Path) -> bool:
         return p.exists() or is_bag_message(p)

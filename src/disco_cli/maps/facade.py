@@ -23,12 +23,19 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.errors import DatabaseError, DiscoError
+from disco_cli.errors import DatabaseError, DiscoError, ScanReadError
+from disco_cli.io import pipeline
+from disco_cli.io.pipeline import array_points, check_device, embed_one
+from disco_cli.io.readers import read_scan
 from disco_cli.maps.database import DamagedRows, Database, ModelInfo, damaged_line
+from disco_cli.maps.index import check_index_kind, index_for_database
 from disco_cli.maps.map_side_views import side_offsets, side_views_m
 from disco_cli.maps.writing import MapWriting, map_address, store_class
+from disco_cli.model import MODELS, load_model
 from disco_cli.query.localize import Match, PointCache, as_match, refine_matches
 from disco_cli.query.query_policy import policy_for
+from disco_cli.query.search import match_queries
+from disco_cli.runtime.threads import get_threads
 
 __all__ = ["Map", "QueryResult", "model_for_database", "stored_embeddings"]
 
@@ -36,8 +43,6 @@ __all__ = ["Map", "QueryResult", "model_for_database", "stored_embeddings"]
 def model_for_database(db: Database, model: Any = None, device: str = "cpu") -> tuple[Any, str]:
     """The model that built `db` and how it was named: `model` (a name, a checkpoint path
     or a loaded model) when given, which must be the same; else the stored one."""
-    from disco_cli.model import MODELS, load_model
-
     if model is not None and not isinstance(model, (str, Path)):
         net, source = model, str(getattr(model, "name", "model"))
     else:
@@ -55,17 +60,12 @@ def model_for_database(db: Database, model: Any = None, device: str = "cpu") -> 
 
 def _model_source(model: Any) -> str:
     """How `Map.open` finds the model again: a registry name or a checkpoint's full path."""
-    from disco_cli.model import MODELS
-
     if not isinstance(model, (str, Path)):
         return str(getattr(model, "name", "model"))
     return str(model) if str(model) in MODELS else str(Path(model).resolve())
 
 
 def _load_model(model: Any, device: str) -> Any:
-    from disco_cli.io.pipeline import check_device
-    from disco_cli.model import load_model
-
     check_device(device)
     return load_model(model, device=device) if isinstance(model, (str, Path)) else model
 
@@ -190,9 +190,6 @@ class Map(MapWriting):
         `disco_cli.maps.index`). A map this process may not write opens read-only (unless
         `writable`, which is then refused) and `on_note` hears one line saying so
         (default: `note: ...` on stderr; `Database.open`)."""
-        from disco_cli.io.pipeline import check_device
-        from disco_cli.maps.index import check_index_kind
-
         check_device(device)
         check_index_kind(index)
         db = store_class(path).open(path, writable=writable, on_note=on_note)
@@ -332,8 +329,6 @@ class Map(MapWriting):
         self._snapshot = None
 
     def _index(self) -> tuple[np.ndarray, Any]:
-        from disco_cli.maps.index import index_for_database
-
         self._check_open()
         if self._db is None:
             raise DatabaseError(self.path, "the database is empty")
@@ -374,9 +369,6 @@ class Map(MapWriting):
         return full if rel.startswith(os.pardir) else rel
 
     def _read_match(self, name: str) -> np.ndarray:
-        from disco_cli.errors import ScanReadError
-        from disco_cli.io.readers import read_scan
-
         if name in self._missing:
             raise ScanReadError(name, "not found (nor beside the database)")
         where = self.locate(name)
@@ -399,8 +391,6 @@ class Map(MapWriting):
         exclude: Any,
         max_distance: float | None,
     ) -> list:
-        from disco_cli.query.search import match_queries
-
         ids, index = self._index()
         mask = self._exclude_rows(exclude)
         while True:  # each pass leaves out the damaged rows the last one met
@@ -455,8 +445,6 @@ class Map(MapWriting):
         `policy`: a `QueryPolicy` for all of the query stage's settings (default: the
         model's); `rerank`, `refine_yaw` and `snap_radius` change it.
         """
-        from disco_cli.io.pipeline import array_points, embed_one
-
         self._check_open()
         pts = array_points(points, name)
         sig, feat = embed_one(pts, self._model, name)
@@ -494,15 +482,12 @@ class Map(MapWriting):
         A scan that fails yields its error and the others go on. `exclude(index, path)`
         gives the match ids to leave out for each query. With `pose`, rows whose pose
         could not be estimated have `T` None and the reason in `reason`."""
-        from disco_cli.io.pipeline import embedded
-        from disco_cli.runtime.threads import get_threads
-
         self._check_open()
         policy = policy_for(
             self._model, policy, rerank=rerank, refine_yaw=refine_yaw, snap_radius=snap_radius
         )
         threads = get_threads() if threads is None else threads
-        with embedded(
+        with pipeline.embedded(  # looked up at each call: tests replace it
             paths, self._model, 1, threads, scan_format, prefetch=2 * threads, keep_points=pose
         ) as chunks:
             for chunk in chunks:

@@ -21,6 +21,9 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.maps.signature_index import SignatureIndex
+from disco_cli.model.bev import polar_bev
+
 __all__ = [
     "side_offsets",
     "side_views_m",
@@ -55,8 +58,6 @@ def side_view_bevs(points: np.ndarray, bev_config: Any, offsets: Sequence[float]
     """`[V, H, R, S]` BEVs of `points` seen from a sensor moved by each offset along y
     (at least one offset). A view with no point left in range is an all-zero BEV (it
     then matches nothing)."""
-    from disco_cli.model.bev import polar_bev
-
     if not offsets:
         raise ValueError("side views: no offsets")
     out = [polar_bev(seen_from(points, offset), bev_config) for offset in offsets]
@@ -72,8 +73,6 @@ class ViewIndex:
     """
 
     def __init__(self, signatures: np.ndarray, view_owner: np.ndarray, view_signatures: np.ndarray):
-        from disco_cli.maps.signature_index import SignatureIndex
-
         self.n_scans = len(signatures)
         owner = np.asarray(view_owner, dtype=np.int64).reshape(-1)
         if len(owner) != len(view_signatures):
@@ -184,8 +183,6 @@ class ViewIndex:
 def index_for(db: Any) -> tuple[np.ndarray, Any]:
     """`(ids, index)` to search a database with: a `ViewIndex` when it stores side
     views, else a plain `SignatureIndex`."""
-    from disco_cli.maps.signature_index import SignatureIndex
-
     ids, sigs = db.signatures()
     if not db.side_offsets:
         return ids, SignatureIndex(sigs)

@@ -250,13 +250,13 @@ class _Int8Codes:
     @staticmethod
     def available() -> bool:
         try:
-            from disco_cli import _core
+            from disco_cli import _core  # deferred: a core without it falls back to NumPy
         except ImportError:
             return False
         return hasattr(_core, "int8_candidates")
 
     def __init__(self, matrix: np.ndarray, sq_norms: np.ndarray):
-        from disco_cli import _core
+        from disco_cli import _core  # deferred: looked up at each call: tests replace it
 
         self._core = _core
         n, d = matrix.shape

@@ -15,23 +15,23 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DatabaseError, DiscoError
-from disco_cli.maps.database import Database, ModelInfo, ScanBatch
+from disco_cli.io import pipeline
+from disco_cli.io.pipeline import array_points, embed_side_views, pose_rows, scan_bev
+from disco_cli.maps.database import Database, ModelInfo, ScanBatch, stored_paths
+from disco_cli.maps.map_side_views import side_view_bevs
+from disco_cli.maps.milvus_address import parse_address
+from disco_cli.maps.milvus_store import MilvusDatabase
 
 __all__ = ["MapWriting", "AddResult", "Interrupted", "RepairResult", "map_address", "store_class"]
 
 
 def map_address(path: Any) -> Any:
     """A map's address: a `milvus:` one (`disco_cli.maps.milvus_store`), else a file path."""
-    from disco_cli.maps.milvus_address import parse_address
-
     return parse_address(path) or Path(path)
 
 
 def store_class(path: Any) -> type[Database]:
     """`Database`, or `MilvusDatabase` for a `milvus:` address."""
-    from disco_cli.maps.milvus_address import parse_address
-    from disco_cli.maps.milvus_store import MilvusDatabase
-
     return MilvusDatabase if parse_address(path) is not None else Database
 
 
@@ -99,9 +99,6 @@ class MapWriting:
         """Add scans from `(points, name, pose)` or `(points, name, pose, time)` tuples,
         one transaction per `batch` scans (as `disco build-db`); returns their ids.
         An unnamed scan is called `scan-<id>`."""
-        from disco_cli.io.pipeline import array_points, scan_bev
-        from disco_cli.maps.map_side_views import side_view_bevs
-
         self._check_writable()
         ids: list[int] = []
         part: list[tuple] = []
@@ -145,8 +142,6 @@ class MapWriting:
         x, y, z, yaw (rad) rows, NaN where unknown. The first unreadable scan raises
         its `ScanReadError`, unless `skip_bad` (then `on_skip(error)` is told).
         `on_progress(done, written)` after each batch. Ctrl-C raises `Interrupted`."""
-        from disco_cli.maps.database import stored_paths
-
         self._check_writable()
         n = len(paths)
         poses = np.full((n, 4), np.nan) if poses is None else np.asarray(poses, np.float64)
@@ -161,11 +156,10 @@ class MapWriting:
         result = AddResult(already=sum(p in stored for p in absolute), bad=[])
         if not todo:
             return result
-        from disco_cli.io.pipeline import embedded
 
         def embed_and_write() -> None:  # reads and writes add_files' own state
             todo_paths = (paths[i] for i in todo)
-            with embedded(
+            with pipeline.embedded(  # looked up at each call: tests replace it
                 todo_paths, self._model, batch, threads, scan_format, side_offsets=self.side_offsets
             ) as chunks:
                 for chunk in chunks:
@@ -217,9 +211,6 @@ class MapWriting:
         their rows. A damaged row is matched to a given file by its stored path, else its
         path relative to the map (a damaged path still leaves the other); the file must
         not be stored in a sound row. What cannot be placed is reported, not guessed."""
-        from disco_cli.io.pipeline import embedded
-        from disco_cli.maps.database import stored_paths
-
         self._check_writable()
         db = self._db
         if db is None:
@@ -260,7 +251,7 @@ class MapWriting:
                 placed[rid] = pick
         order = sorted(placed, key=placed.get)  # type: ignore[arg-type]
         repaired: list[int] = []
-        with embedded(
+        with pipeline.embedded(  # looked up at each call: tests replace it
             (paths[placed[r]] for r in order),
             self._model,
             batch,
@@ -312,8 +303,6 @@ class MapWriting:
             raise DatabaseError(self.path, "opened read-only; use Map.open(path, writable=True)")
 
     def _write_bevs(self, part: list[tuple]) -> list[int]:
-        from disco_cli.io.pipeline import embed_side_views, pose_rows
-
         sigs, feats = self._model.embed(np.stack([p[1] for p in part]))
         sides = embed_side_views([p[4] for p in part], self._model) if self.side_offsets else None
         rows = np.full((len(part), 4), np.nan)
@@ -337,6 +326,7 @@ class MapWriting:
 
     def _append(self, part: ScanBatch) -> list[int]:
         """Write `part` (creating the file with it for a new map); the ids it got."""
+        # deferred: __version__ reads importlib.metadata (50-150 ms); only a new map needs it
         from disco_cli import __version__
 
         if self._db is None:

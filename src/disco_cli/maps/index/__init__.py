@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError
+from disco_cli.maps.map_side_views import index_for
 
 __all__ = [
     "INDEX_KINDS",
@@ -45,7 +46,7 @@ INSTALL_HINT = "the approximate index needs faiss: pip install 'disco-cli[ann]'"
 def ann_available() -> bool:
     """Whether the optional extra (faiss) is installed (and imports)."""
     try:
-        import faiss  # noqa: F401
+        import faiss  # noqa: F401  # deferred: optional extra
     except ImportError:
         return False
     return True
@@ -100,11 +101,10 @@ def index_for_database(db: Any, kind: str = "auto", note: Any = None) -> tuple[n
     """`(ids, index)` to search the map `db` with (`side_views.index_for` for `exact`;
     for `ann`, the sidecar when it is current, else one built and saved beside the map).
     `note(message)` is told when an index is built or a sidecar is unusable."""
-    from disco_cli.maps.map_side_views import index_for
-
     chosen = choose_kind(kind, len(db), note)
     if chosen == "exact":
         return index_for(db)
+    # deferred: ann.py imports this module; only --index ann (faiss) needs it
     from disco_cli.maps.index.ann import open_or_build
 
     return open_or_build(db, note=note)

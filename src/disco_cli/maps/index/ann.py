@@ -37,6 +37,8 @@ import numpy as np
 
 from disco_cli.errors import DiscoError
 from disco_cli.io.output_paths import atomic_path
+from disco_cli.maps.index import INSTALL_HINT, map_key, sidecar_path
+from disco_cli.maps.map_side_views import ViewIndex
 from disco_cli.maps.signature_index import checked_queries
 
 __all__ = ["AnnParams", "AnnIndex", "default_params", "open_or_build", "SidecarError"]
@@ -93,10 +95,8 @@ def default_params(n: int, dim: int) -> AnnParams:
 
 def _faiss() -> Any:
     try:
-        import faiss
+        import faiss  # deferred: optional extra
     except ImportError:
-        from disco_cli.maps.index import INSTALL_HINT
-
         raise DiscoError(INSTALL_HINT) from None
     return faiss
 
@@ -324,9 +324,6 @@ def open_or_build(
 ) -> tuple[np.ndarray, Any]:
     """`(ids, index)` of the map `db` from its sidecar when that is current; else built
     from the map's signatures (and side views) and saved beside it for the next time."""
-    from disco_cli.maps.index import map_key, sidecar_path
-    from disco_cli.maps.map_side_views import ViewIndex
-
     say = note or (lambda _msg: None)
     path = sidecar_path(db.path)
     key = map_key(db)
