@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from disco_cli.errors import ModelError
+from disco_cli.runtime.threads import ensure_threads
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "default.pt"
@@ -34,6 +35,7 @@ def npz_beside(checkpoint: Path) -> Path:
 
 
 def _spectral(device: str) -> Any:
+    # deferred: a model's code loads when it is chosen (and model.* modules import this one)
     from disco_cli.model.spectral import SpectralModel
 
     return SpectralModel()
@@ -48,6 +50,7 @@ def _default(device: str) -> Any:
     if not DEFAULT_WEIGHTS.is_file():
         raise ModelError(f"{DEFAULT_WEIGHTS}: no shipped weights yet; use --model spectral")
     if device == "cpu" and npz_beside(DEFAULT_WEIGHTS).is_file():
+        # deferred: as in _spectral; weights_npz imports this package (through model.disco)
         from disco_cli.model.weights_npz import file_sha256, read_npz
 
         npz = npz_beside(DEFAULT_WEIGHTS)
@@ -69,8 +72,6 @@ MODELS: dict[str, Callable[[str], Any]] = {
 
 def load_model(name_or_path: str | Path = "default", device: str = "cpu") -> Any:
     """A model by registry name or checkpoint path; ModelError naming the file on failure."""
-    from disco_cli.runtime.threads import ensure_threads
-
     ensure_threads()  # before the model's first torch op
     key = str(name_or_path)
     if key in MODELS:
@@ -82,7 +83,7 @@ def load_model(name_or_path: str | Path = "default", device: str = "cpu") -> Any
 
 def load_npz_model(path: str | Path, name: str | None = None) -> Any:
     """A DiscoModel on the CPU from an `.npz` of weights, without torch."""
-    from disco_cli.model.weights_npz import read_npz
+    from disco_cli.model.weights_npz import read_npz  # deferred: as in _default
 
     path = Path(path)
     state, meta = read_npz(path)
@@ -90,6 +91,8 @@ def load_npz_model(path: str | Path, name: str | None = None) -> Any:
 
 
 def _frozen_model(state: Any, bev: Any, model_config: Any, path: Path, name: str | None) -> Any:
+    # deferred: the registry loads no model code (nor numpy) until a model is chosen, and
+    # model.disco imports this package
     from disco_cli.model.bev import BEVConfig
     from disco_cli.model.disco import DiscoModel, to_numpy
     from disco_cli.model.unet_numpy import FrozenUNet
@@ -108,6 +111,7 @@ def _frozen_model(state: Any, bev: Any, model_config: Any, path: Path, name: str
 
 def load_checkpoint_model(path: str | Path, device: str = "cpu", name: str | None = None) -> Any:
     """A DiscoModel from a checkpoint file of either supported layout."""
+    # deferred: torch (~1.5 s) and the checkpoint readers load only for a checkpoint
     from disco_cli.model.authors import is_authors_checkpoint, model_from_authors
     from disco_cli.model.checkpoint import FORMAT, read_checkpoint
 
@@ -124,6 +128,7 @@ def load_checkpoint_model(path: str | Path, device: str = "cpu", name: str | Non
 def model_from_checkpoint(
     ckpt: dict[str, Any], path: str | Path, device: str = "cpu", name: str | None = None
 ) -> Any:
+    # deferred: as in _frozen_model
     from disco_cli.model.bev import BEVConfig
     from disco_cli.model.disco import DiscoModel, build_net
 

@@ -18,6 +18,9 @@ from pathlib import Path
 from typing import Any
 
 from disco_cli.errors import ModelError
+from disco_cli.model.bev import BEVConfig
+from disco_cli.model.disco import DiscoModel, build_net
+from disco_cli.model.signature import DEFAULT_CROP
 
 _BLOCK = re.compile(r"^unet\.(dconv_(?:down[1-4]|up[1-3]))\.([02])\.(weight|bias)$")
 _LAST = re.compile(r"^unet\.conv_last(?:\.0)?\.(weight|bias)$")
@@ -30,8 +33,6 @@ def is_authors_checkpoint(ckpt: dict[str, Any]) -> bool:
 
 def authors_bev_config() -> Any:
     """The paper's NCLT BEV: 20 heights x 40 rings x 120 sectors, occupancy, 80 m range."""
-    from disco_cli.model.bev import BEVConfig
-
     return BEVConfig.from_dict(AUTHORS_BEV)
 
 
@@ -66,9 +67,6 @@ def convert_state_dict(sd: dict[str, Any]) -> dict[str, Any]:
 def model_from_authors(
     ckpt: dict[str, Any], path: str | Path, device: str = "cpu", name: str | None = None
 ) -> Any:
-    from disco_cli.model.disco import DiscoModel, build_net
-    from disco_cli.model.signature import DEFAULT_CROP
-
     sd = convert_state_dict(ckpt["state_dict"])
     first = sd.get("unet.dconv_down1.0.conv.weight")
     if first is None or first.ndim != 4:

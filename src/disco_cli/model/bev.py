@@ -148,6 +148,7 @@ class BEVConfig:
 @lru_cache(maxsize=32)
 def _core_config(config: BEVConfig):
     """The C++ config struct for `config` (built once per distinct config)."""
+    # deferred: the package imports without the compiled core (docs/architecture.md)
     from disco_cli import _core
 
     core = _core.BEVConfig()
@@ -201,6 +202,7 @@ def polar_bev(points: Any, config: BEVConfig | None = None) -> np.ndarray:
     NaN and Inf points are dropped; no points give an all-zero BEV. Binning and
     modes: see the module docstring.
     """
+    # deferred: the package imports without the compiled core (docs/architecture.md)
     from disco_cli import _core
 
     config = config if config is not None else BEVConfig()
@@ -217,6 +219,7 @@ def polar_bev_batch(
     Scans are voxelized in C++ on `threads` threads (0: all cores) with the GIL
     released.
     """
+    # deferred: the package imports without the compiled core (docs/architecture.md)
     from disco_cli import _core
 
     config = config if config is not None else BEVConfig()

@@ -20,6 +20,7 @@ from typing import Any
 import torch
 
 from disco_cli.errors import ModelError
+from disco_cli.io.output_paths import atomic_path
 
 FORMAT = "disco-cli/1"
 
@@ -27,8 +28,6 @@ FORMAT = "disco-cli/1"
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
     """Write a checkpoint atomically (a crash mid-write leaves the old file intact, and
     no temporary file); its folder must exist."""
-    from disco_cli.io.output_paths import atomic_path
-
     with atomic_path(path) as tmp:
         torch.save({"format": FORMAT, **payload}, tmp)
 

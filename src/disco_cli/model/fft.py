@@ -67,6 +67,7 @@ def _backend() -> tuple[Any, Any]:
     if _pocketfft is None and _scipy_fft is None:
         _pocketfft = _load()
         if _pocketfft is None:
+            # deferred: scipy.fft costs ~0.4 s; the fallback when pypocketfft cannot load
             import scipy.fft
 
             _scipy_fft = scipy.fft

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.model.bev import BEVConfig
 from disco_cli.model.interface import Abilities, Unable
 from disco_cli.query.query_policy import NO_RERANKING
 
@@ -49,8 +50,6 @@ RING_KEYS = ("mean", "occupancy")
 
 
 def _default_bev_config() -> Any:
-    from disco_cli.model.bev import BEVConfig
-
     return BEVConfig(
         rings=RINGS,
         sectors=SECTORS,

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.model import fft
+from disco_cli.runtime.threads import get_threads
 
 DEFAULT_CROP = (32, 32)
 
@@ -47,8 +48,6 @@ def signatures(
     if b == 0:
         return np.zeros((0, cr * cs), np.float32)
     if workers is None:
-        from disco_cli.runtime.threads import get_threads
-
         workers = get_threads()
     spec = fft.fft2(g, axes=(1, 2), workers=workers)
     spec = np.fft.fftshift(spec, axes=(1, 2))[:, _window(r, cr), _window(s, cs)]
@@ -59,7 +58,7 @@ def signatures(
 
 def signatures_torch(features: Any, crop: tuple[int, int] = DEFAULT_CROP) -> Any:
     """The same signatures as `signatures`, differentiable, for training ([B, R, S] tensor)."""
-    import torch
+    import torch  # deferred: torch costs ~1.5 s; only training needs it (queries use NumPy)
 
     b, r, s = features.shape
     cr, cs = crop_size(r, s, crop)

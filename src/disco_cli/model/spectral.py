@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.model.bev import BEVConfig
 from disco_cli.model.interface import Abilities, Unable
 from disco_cli.model.signature import DEFAULT_CROP, signatures
 from disco_cli.model.yaw import estimate_yaw, estimate_yaw_conf
@@ -30,8 +31,6 @@ class SpectralModel(Unable):
 
     def __init__(self, bev_config: Any = None, crop: tuple[int, int] = DEFAULT_CROP):
         if bev_config is None:
-            from disco_cli.model.bev import BEVConfig
-
             bev_config = BEVConfig()
         self.name = "spectral"
         self.bev_config = bev_config

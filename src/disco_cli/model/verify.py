@@ -60,7 +60,7 @@ def aligned_correlations(queries: np.ndarray, candidates: np.ndarray) -> np.ndar
 def aligned_correlation_torch(query, candidates):
     """Differentiable `aligned_correlation` (training): query [B, R, S], candidates
     [B, n, R, S] -> [B, n]."""
-    import torch
+    import torch  # deferred: torch costs ~1.5 s; only training needs it (queries use NumPy)
 
     q = query - query.mean(dim=(-2, -1), keepdim=True)
     c = candidates - candidates.mean(dim=(-2, -1), keepdim=True)

@@ -29,6 +29,7 @@ import numpy as np
 
 from disco_cli.errors import ModelError
 from disco_cli.io.output_paths import atomic_path
+from disco_cli.model.disco import to_numpy
 
 FORMAT = "disco-cli-npz/1"
 _META = "__disco__"
@@ -43,8 +44,6 @@ def save_npz(
     source_sha256: str = "",
 ) -> None:
     """Write weights atomically (arrays, or torch tensors converted as they are)."""
-    from disco_cli.model.disco import to_numpy
-
     path = Path(path)
     meta = {
         "format": FORMAT,
@@ -92,6 +91,7 @@ def file_sha256(path: str | Path) -> str:
 
 def convert(src: str | Path, dst: str | Path) -> None:
     """An `.npz` of a `disco-cli/1` checkpoint (needs torch)."""
+    # deferred: torch (~1.5 s) reads checkpoints; this module is on the query path
     from disco_cli.model.checkpoint import FORMAT as CKPT_FORMAT
     from disco_cli.model.checkpoint import read_checkpoint
 

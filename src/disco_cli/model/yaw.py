@@ -147,7 +147,7 @@ def estimate_yaw_conf(query: np.ndarray, matches: np.ndarray) -> tuple[np.ndarra
 
 def correlation_curves_torch(query: Any, match: Any) -> Any:
     """Phase-correlation curves [B, S] of paired feature images [B, R, S] (torch)."""
-    import torch
+    import torch  # deferred: torch costs ~1.5 s; only training needs it (queries use NumPy)
 
     fq = torch.fft.rfft(query.float(), dim=-1)
     fm = torch.fft.rfft(match.float(), dim=-1)
@@ -161,7 +161,7 @@ def correlation_curves_torch(query: Any, match: Any) -> Any:
 
 def expected_shift_torch(prob: Any) -> Any:
     """Circular expectation of the shift under p(delta) [B, S], in sectors (-S/2, S/2]."""
-    import torch
+    import torch  # deferred: torch costs ~1.5 s; only training needs it (queries use NumPy)
 
     s = prob.shape[-1]
     ang = torch.arange(s, device=prob.device, dtype=prob.dtype) * (2 * torch.pi / s)
