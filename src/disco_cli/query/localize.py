@@ -130,7 +130,7 @@ def refine_matches(
     read, False when the estimator failed. With `verify`, only accepted matches are
     kept (ranks unchanged).
     """
-    from disco_cli.query import relative_pose  # looked up at call time: tests replace it
+    from disco_cli.query import relative_pose  # deferred: --pose only; every query loads localize
 
     out = []
     for m in found:

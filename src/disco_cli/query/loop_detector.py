@@ -28,7 +28,17 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError
-from disco_cli.query.localize import PointCache, conf_or_none, pose_fields
+from disco_cli.io import pipeline
+from disco_cli.io.pipeline import array_points, embed_one, embed_side_views
+from disco_cli.io.readers import read_scan
+from disco_cli.maps.database import MatchRows
+from disco_cli.maps.facade import _load_model
+from disco_cli.maps.map_side_views import ViewIndex, side_offsets, side_view_bevs
+from disco_cli.maps.signature_index import SignatureIndex
+from disco_cli.query import relative_pose
+from disco_cli.query.localize import PointCache, conf_or_none, pose_columns, pose_fields
+from disco_cli.query.query_policy import policy_for
+from disco_cli.query.search import match_queries
 
 __all__ = ["Loop", "LoopDetector", "loop_columns"]
 
@@ -60,8 +70,6 @@ class Loop:
     def as_dict(self) -> dict[str, Any]:
         """The loop as the columns of `disco loops`, plus the pose columns and `T` (as
         nested lists) when it has a pose."""
-        from disco_cli.query.localize import pose_columns
-
         row = {"query_index": self.query_index, "query": self.query}
         row.update(match_index=self.match_index, match=self.match, distance=self.distance)
         return {**row, "yaw_deg": self.yaw_deg, "yaw_conf": self.yaw_conf, **pose_columns(self)}
@@ -115,8 +123,6 @@ class _Features:
         return 0 if not self.blocks else self.n * self.blocks[0][0].nbytes
 
     def rows(self, ids: np.ndarray) -> Any:
-        from disco_cli.maps.database import MatchRows
-
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         feats = [self.blocks[i // self.BLOCK][i % self.BLOCK] for i in ids]
         shape = (0, *self.blocks[0].shape[1:]) if self.blocks else (0,)
@@ -165,10 +171,6 @@ class LoopDetector:
         side_views: float = 0.0,
         policy: Any = None,
     ):
-        from disco_cli.maps.facade import _load_model
-        from disco_cli.maps.map_side_views import side_offsets
-        from disco_cli.query.query_policy import policy_for
-
         if exclude_frames is not None and (
             isinstance(exclude_frames, bool) or int(exclude_frames) != exclude_frames
         ):
@@ -213,16 +215,11 @@ class LoopDetector:
     ) -> list[Loop]:
         """Add the next scan (an N x 3 or N x 4 array; `pose`: the sensor's 4 x 4 pose in
         the world, `time`: seconds) and return the loops it closes with earlier scans."""
-        from disco_cli.io.pipeline import array_points, embed_one
-
         label = name or f"scan-{len(self)}"
         pts = array_points(points, label)
         sig, feat = embed_one(pts, self._model, label)
         sides = None
         if self.side_offsets:
-            from disco_cli.io.pipeline import embed_side_views
-            from disco_cli.maps.map_side_views import side_view_bevs
-
             views = side_view_bevs(pts, self._model.bev_config, self.side_offsets)
             sides = embed_side_views([views], self._model)[0]
         keep = np.ascontiguousarray(pts[:, :3]) if self.estimate_pose else None
@@ -244,10 +241,6 @@ class LoopDetector:
         """`add` for a scan embedded already (by `model.embed`); `points` is its point
         array or a function that reads it (needed when poses are estimated);
         `side_signatures` `[V, D]` its side views' (when the detector has side views)."""
-        from disco_cli.maps.map_side_views import ViewIndex
-        from disco_cli.maps.signature_index import SignatureIndex
-        from disco_cli.query.search import match_queries
-
         i = len(self)
         label = name or f"scan-{i}"
         t = self._time(time, label)
@@ -310,8 +303,6 @@ class LoopDetector:
         `times`: seconds per scan. `stored`: `Map.stored(paths)` of a map built from
         these files with the same model, whose signatures are used for the scans it
         holds. Points for poses are read back from the files when needed."""
-        from disco_cli.io.readers import read_scan
-
         n = len(paths)
         if stored is not None and not self.side_offsets:  # a map stores no sequence's views
             known, sigs, feats = stored
@@ -344,11 +335,9 @@ class LoopDetector:
     def _embed_files(
         self, paths: list[str], batch: int, threads: int | None, scan_format: str | None
     ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
-        from disco_cli.io.pipeline import embedded
-
         if not paths:
             return
-        with embedded(
+        with pipeline.embedded(  # looked up at each call: tests replace it
             iter(paths), self._model, batch, threads, scan_format, side_offsets=self.side_offsets
         ) as chunks:
             for chunk in chunks:
@@ -399,8 +388,6 @@ class LoopDetector:
         return source() if callable(source) else source
 
     def _loop(self, i: int, label: str, t: float, m: Any) -> Loop | None:
-        from disco_cli.query import relative_pose  # looked up at call time: tests replace it
-
         base = {
             "query_index": i,
             "match_index": m.match_id,

@@ -183,6 +183,7 @@ def phase_correlation_shift(
 
 
 def _icp_config(config: PoseConfig) -> Any:
+    # deferred: the package imports without the compiled core (docs/architecture.md)
     from disco_cli import _core
 
     c = _core.IcpConfig()
@@ -205,6 +206,7 @@ def estimate_relative_pose(
     passes without a copy). `yaw_deg`: yaw of T_match<-query from place recognition.
     Non-finite points are ignored. The result says whether the loop is accepted.
     """
+    # deferred: the package imports without the compiled core (docs/architecture.md)
     from disco_cli import _core
 
     config = config or PoseConfig()

@@ -22,6 +22,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import numpy  # noqa: F401  (numpy loads its BLAS on import: _loaded_openblas finds it)
+
 _LOCAL = "openblas_set_num_threads_local"
 # Plain OpenBLAS, and the symbol-prefixed builds that NumPy and SciPy wheels bundle.
 _GET = tuple(f"{p}_get_num_threads{s}" for p in ("openblas", "scipy_openblas") for s in ("", "64_"))
@@ -32,8 +34,6 @@ _libs: list[tuple[Any, Any, Any]] | None = None  # (set_local, get, set) per lib
 
 def _loaded_openblas() -> list[str]:
     """Paths of the OpenBLAS libraries mapped into this process (Linux)."""
-    import numpy  # noqa: F401  (numpy loads its BLAS on import)
-
     paths: list[str] = []
     try:
         with open("/proc/self/maps") as fh:
