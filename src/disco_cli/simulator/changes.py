@@ -62,6 +62,7 @@ class SessionWorld:
     def at(self, t: float, xy: np.ndarray | None = None, keep_clear_m: float = 8.0) -> SessionWorld:
         if self.movers is None or len(self.movers) == 0 or self.town is None:
             return self
+        # deferred: the package imports without the compiled core (docs/architecture.md)
         from disco_cli import _core
 
         rows, refl, drop = self.town.mover_rows(self.movers, t, xy, keep_clear_m)
@@ -87,6 +88,7 @@ class Changes(Movers):
     # -- the classic draw ---------------------------------------------------------
     def session_world(self, session: int) -> SessionWorld:
         """The static town plus this session's parked cars and changeable things."""
+        # deferred: the package imports without the compiled core (docs/architecture.md)
         from disco_cli import _core
 
         if self.params.change is not None:
@@ -238,6 +240,7 @@ class Changes(Movers):
         return out
 
     def _changed_world(self, session: int) -> SessionWorld:
+        # deferred: the package imports without the compiled core (docs/architecture.md)
         from disco_cli import _core
 
         pool = self._pool()

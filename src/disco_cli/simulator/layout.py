@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     from disco_cli.simulator.params import TownParams
 
 GRASS = 0.3  # reflectivity of the ground off the roads
+CROWN, CROWN_STEPS = 0.02, 3  # crowned roads: 2 % rise over the half width, in steps
 
 
 class Street:
@@ -95,8 +96,6 @@ class Layout:
         crowned road (three steps up to 2 % of the half width at the centre line)."""
         if self.params.terrain == "flat":
             return self.ground_z(x, y)
-        from disco_cli.simulator.scenery import CROWN, CROWN_STEPS
-
         xy = np.stack(np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float)), -1)
         flat = xy.reshape(-1, 2)
         rise = np.zeros(len(flat))

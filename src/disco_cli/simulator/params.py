@@ -7,6 +7,7 @@ of objects differs between session 00 and a later session.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -172,9 +173,7 @@ class TownParams:
     def load(cls, path: str | Path) -> TownParams:
         """From a TOML file (keys at the top or under [town], the change model under
         [change]) or a world.json."""
-        import json
-
-        import tomllib
+        import tomllib  # deferred: Python 3.11+; on 3.10 only a TOML town cannot be read
 
         path = Path(path)
         try:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from disco_cli.simulator.layout import GRASS, Layout, segment_distance
+from disco_cli.simulator.layout import CROWN, CROWN_STEPS, GRASS, Layout, segment_distance
 from disco_cli.simulator.objects import Builder, Material, Prims, small_object, tree
 from disco_cli.simulator.styles import (
     DENSITY,
@@ -23,8 +23,6 @@ from disco_cli.simulator.styles import (
     SIDE_STYLES,
     TREE_ROW,
 )
-
-CROWN, CROWN_STEPS = 0.02, 3  # crowned roads: 2 % rise over the half width, in steps
 
 
 class Occupancy:

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from disco_cli.errors import DiscoError
+from disco_cli.io.poses import write_kitti_poses, write_times
 from disco_cli.simulator.params import ChangeParams
 from disco_cli.simulator.robots import RobotParams, draw_robot, jitter_stations
 from disco_cli.simulator.routes import (
@@ -92,7 +93,7 @@ def sweep_poses(poses: np.ndarray, fraction: float = 1.0) -> tuple[np.ndarray, n
     way from the previous scan's pose to half way to the next one (extrapolated at
     the ends of a session), or `fraction` of that around the scan's pose.
     """
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # deferred: scipy.spatial costs ~0.4 s
 
     def blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
         out = np.tile(np.eye(4), (len(a), 1, 1))
@@ -121,6 +122,7 @@ def finish_scan(
     town: Town | None,
 ) -> np.ndarray:
     """Noise, dropout and intensity for one cast scan: KITTI points `[N, 4]` float32."""
+    # deferred: the package imports without the compiled core (docs/architecture.md)
     from disco_cli import _core
 
     hit = (ids != _core.RAYCAST_MISS) & (rng_range >= sensor.min_range)
@@ -229,7 +231,7 @@ def plan_sessions(
             stations, lateral = jitter_stations(robot, seed, k, stations, lateral, centre)
         poses = sensor_poses(town, line, s, closed, stations, lateral, height, srng)
         if roll or pitch:  # the mount's tilt, in the car's frame
-            from scipy.spatial.transform import Rotation
+            from scipy.spatial.transform import Rotation  # deferred: as in sweep_poses
 
             tilt = Rotation.from_euler("YX", [pitch, roll], degrees=True).as_matrix()
             poses[:, :3, :3] = poses[:, :3, :3] @ tilt
@@ -250,7 +252,7 @@ def wobble(frames: int, deg: float, seed: list[int]) -> np.ndarray:
     are clipped there. Independent draws per scan would make every revisit differ the
     same; a real platform leans the same way for a few scans in a row.
     """
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # deferred: as in sweep_poses
 
     rng = np.random.default_rng(seed)
     rho = 0.6
@@ -288,8 +290,6 @@ def simulate(
     the robots of later sessions differ from session 00's; `wobble_deg`, how far every
     session's platform rolls and pitches from scan to scan (`wobble`).
     """
-    from disco_cli.io.poses import write_kitti_poses, write_times
-
     if sessions < 1:
         raise DiscoError("--sessions must be at least 1")
     if step_m <= 0:

@@ -73,6 +73,7 @@ class Town(Changes):
 
 def wall_world(distance: float, height: float = 10.0, length: float = 40.0) -> SessionWorld:
     """A flat ground and one wall facing the origin at x = `distance` (for tests)."""
+    # deferred: the package imports without the compiled core (docs/architecture.md)
     from disco_cli import _core
 
     table = np.array(
@@ -86,6 +87,7 @@ def primitives_world(
     table: np.ndarray, ground: tuple[float, float, float] = (0.0, 0.0, 0.0), cell_size: float = 4.0
 ) -> SessionWorld:
     """A world from an explicit primitive table `[N, 9]` (for tests and experiments)."""
+    # deferred: the package imports without the compiled core (docs/architecture.md)
     from disco_cli import _core
 
     table = np.asarray(table, dtype=np.float64).reshape(-1, 9)

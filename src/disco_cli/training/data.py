@@ -32,7 +32,12 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError, PoseFileError
+from disco_cli.io.poses import find_pose_file, poses_for_scans, xy_yaw
 from disco_cli.io.poses.geometry import keep_by_spacing
+from disco_cli.io.readers import is_bag, list_scans, read_scan
+from disco_cli.io.readers.bags import bag_poses
+from disco_cli.model.bev import polar_bev_batch
+from disco_cli.runtime.threads import get_threads
 from disco_cli.training.augment import AugmentConfig, augment_scan
 
 # Scans voxelized per call: bounds the memory held by raw point clouds.
@@ -95,9 +100,6 @@ class PosedScans:
 def _is_session(folder: Path) -> bool:
     """A dataset session folder: a pose file beside scans (NCLT velodyne_sync/, MulRan
     sensor_data/Ouster/, ...)."""
-    from disco_cli.io.poses import find_pose_file
-    from disco_cli.io.readers import list_scans
-
     try:
         return find_pose_file(folder) is not None and bool(list_scans(folder))
     except DiscoError:
@@ -107,8 +109,6 @@ def _is_session(folder: Path) -> bool:
 def expand_sequences(paths: list[Path | PosedScans]) -> list[Path | PosedScans]:
     """Sequence folders: each path itself if it holds velodyne/ (or is a ROS bag), else its
     subfolders that do (and the bags in it); a `PosedScans` stays as it is."""
-    from disco_cli.io.readers import is_bag
-
     out: list[Path | PosedScans] = []
     for p in paths:
         if isinstance(p, PosedScans):
@@ -144,8 +144,6 @@ def _compact(bevs: np.ndarray) -> np.ndarray:
 def _read_poses(seq: Path, scans: list[Path]) -> np.ndarray:
     """LiDAR poses `[N, 4, 4]` of a sequence's scans from the pose file beside them
     (`disco_cli.io.poses.poses_for_scans`; NaN for a scan without a pose, named in one warning)."""
-    from disco_cli.io.poses import find_pose_file, poses_for_scans
-
     poses_file = find_pose_file(seq)
     if poses_file is None:
         raise PoseFileError(
@@ -153,6 +151,7 @@ def _read_poses(seq: Path, scans: list[Path]) -> np.ndarray:
         )
     T, report = poses_for_scans(scans, poses_file)
     if report.warning():
+        # deferred: the CLI's console (typer, rich); the library imports without them
         from disco_cli.runtime.console import warn
 
         warn(report.warning())
@@ -204,11 +203,6 @@ def load_training_data(
 
     A ROS bag is a sequence of its `topic`'s scans, posed from its `pose_topic` (scans
     without a pose near their stamp are left out)."""
-    from disco_cli.io.poses import xy_yaw
-    from disco_cli.io.readers import is_bag, list_scans, read_scan
-    from disco_cli.model.bev import polar_bev_batch
-    from disco_cli.runtime.threads import get_threads
-
     threads = get_threads() if threads is None else threads  # the voxelizer's threads
 
     seqs = expand_sequences(paths)
@@ -229,8 +223,6 @@ def load_training_data(
             heading = np.degrees(yaw)
             gid = groups.setdefault(seq.world, len(groups))
         elif not self_supervised and is_bag(seq):
-            from disco_cli.io.readers.bags import bag_poses
-
             if pose_topic is None:
                 raise PoseFileError(
                     f"{seq}: a bag's poses come from --pose-topic (or train with --self-supervised)"
