@@ -1,13 +1,15 @@
 """The import graph: library modules below the commands, and no import cycle.
 
 Every `import` in src/disco_cli is read with `ast` (those inside functions too):
-no module outside `commands/` and `cli.py` may import either, and the graph of
-module-level imports between library modules must have no cycle.
+no module outside `commands/` and `cli.py` may import either, the graph of
+module-level imports between library modules must have no cycle, and an import
+inside a function says why it is not at the top (`# deferred: ...`).
 """
 
 from __future__ import annotations
 
 import ast
+from fnmatch import fnmatch
 from pathlib import Path
 
 PKG = Path(__file__).resolve().parent.parent / "src" / "disco_cli"
@@ -112,3 +114,99 @@ def test_layout_by_stage() -> None:
         if (n := p.read_text().count("\n")) > 700
     }
     assert not long, long
+
+
+# Issue 32: these files' function-level imports are not checked yet (being edited in
+# parallel; issue 32). Empty this set once they carry their `# deferred:` comments.
+NOT_YET_CHECKED_FOR_DEFERRED = {
+    "service/*",
+    "commands/serve.py",
+    "query/search.py",
+    "query/query_policy.py",
+    "model/yaw_refine.py",
+    "model/disco.py",
+    "maps/milvus_*",
+}
+
+
+def undeclared_deferred_imports(source: str) -> list[int]:
+    """Lines of the imports inside functions that do not say why they are deferred.
+
+    An import inside a function needs `# deferred:` on one of its own lines or in the
+    comment lines directly above it. A run of imports (statements next to each other in
+    one block, blank lines allowed) shares the comment of its first import.
+    """
+    lines = source.splitlines()
+    bad: list[int] = []
+
+    def commented(node: ast.stmt) -> bool:
+        own = lines[node.lineno - 1 : node.end_lineno]
+        above = []
+        for text in reversed(lines[: node.lineno - 1]):
+            if not text.strip().startswith("#"):
+                break
+            above.append(text)
+        return any("# deferred:" in text for text in own + above)
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for field in ("body", "orelse", "finalbody", "handlers", "cases"):
+            block = getattr(node, field, None)
+            if not isinstance(block, list):
+                continue
+            run_ok = None  # whether the run of imports this statement continues is declared
+            for stmt in block:
+                if isinstance(stmt, (ast.Import, ast.ImportFrom)) and in_function:
+                    run_ok = commented(stmt) or bool(run_ok)
+                    if not run_ok:
+                        bad.append(stmt.lineno)
+                    continue
+                run_ok = None
+                inner = in_function or isinstance(stmt, (ast.FunctionDef, ast.AsyncFunctionDef))
+                visit(stmt, inner)
+
+    visit(ast.parse(source), False)
+    return bad
+
+
+def test_the_deferred_check_finds_undeclared_imports() -> None:
+    source = "\n".join(
+        [
+            "import os",  # 1: module level, needs nothing
+            "def f():",
+            "    import json",  # 3: no comment
+            "    # deferred: torch costs 0.5 s at start-up",
+            "    import torch",  # 5: the comment above
+            "",
+            "    from disco_cli import maps",  # 7: same run as line 5
+            "    x = 1",
+            "    import scipy",  # 9: code above ends the run
+            "    # a comment that gives no reason",
+            "    import faiss",  # 11
+            "    import numpy  # deferred: numpy costs 0.1 s",  # 12: its own line
+            "    try:",
+            "        import rich",  # 14: a new block
+            "    except ImportError:",
+            "        pass",
+            "    class A:",
+            "        def g(self):",
+            "            from x import (",
+            "                y,  # deferred: optional extra",  # 19-21: on one of its lines
+            "            )",
+            "            import z",  # 22: same run
+            "    def h():",
+            "        import rich",  # 24: nested function
+        ]
+    )
+    assert undeclared_deferred_imports(source) == [3, 9, 11, 14, 24]
+
+
+def test_imports_inside_functions_say_why_they_are_deferred() -> None:
+    bad, checked = [], 0
+    for path in sorted(PKG.rglob("*.py")):
+        rel = path.relative_to(PKG).as_posix()
+        if any(fnmatch(rel, pattern) for pattern in NOT_YET_CHECKED_FOR_DEFERRED):
+            continue
+        checked += 1
+        bad += [f"{rel}:{line}" for line in undeclared_deferred_imports(path.read_text())]
+    assert checked > 50  # the package was read
+    assert not bad, f"imports inside functions without a `# deferred:` reason: {bad}"
