@@ -376,6 +376,50 @@ def test_hnsw_from_a_size(maps, samples: Path, tmp_path: Path, monkeypatch) -> N
     assert [g[0][0] for g in got] == [w[0][0] for w in want]
 
 
+def test_hnsw_switch_when_a_resent_call_finds_it_made(maps, tmp_path: Path, monkeypatch) -> None:
+    """pymilvus resends a create_index the server cut off (Milvus Lite's gRPC server
+    does, past minutes behind its compaction); the resent call finds the index the first
+    made and fails: the switch to HNSW is then complete all the same."""
+    pytest.importorskip("faiss")
+    import disco_cli.maps.milvus_store as store
+
+    sqlite_map, _ = maps
+    fleet = f"milvus:{tmp_path / 'fleet.db'}"
+    assert _cli("build-db", "--from", sqlite_map, "-o", fleet)[0] == 0
+    monkeypatch.setattr(store, "HNSW_MIN_ROWS", 20)
+    with MilvusDatabase.open(fleet, writable=True) as db:
+        made = db._client.create_index
+
+        def resent(*args, **kwargs):
+            made(*args, **kwargs)
+            made(*args, **kwargs)  # the resent call: "index already exists"
+
+        monkeypatch.setattr(db._client, "create_index", resent)
+        db._choose_index()
+        assert db._client.describe_index("disco_scans", "sig")["index_type"] == "HNSW"
+    with MilvusDatabase.open(fleet) as db:
+        assert db.meta["index_type"] == "HNSW"
+
+
+def test_reads_paged_as_whole(maps, monkeypatch) -> None:
+    """Reads come in pages of ids (wide rows in smaller ones); with pages of 5 and 3
+    rows the 26 scans read back as the SQLite map holds them, in id order."""
+    import disco_cli.maps.milvus_store as store
+
+    sqlite_map, milvus_map = maps
+    with Database.open(sqlite_map) as db:
+        want_ids, want_sigs = db.signatures()
+        want_paths = db.paths()
+    monkeypatch.setattr(store, "_PAGE_NARROW", 5)
+    monkeypatch.setattr(store, "_PAGE", 3)
+    with MilvusDatabase.open(milvus_map) as db:
+        assert db.ids().tolist() == want_ids.tolist()
+        assert db.paths() == want_paths
+        ids, sigs = db.signatures()
+    assert ids.tolist() == want_ids.tolist()
+    np.testing.assert_array_equal(sigs, want_sigs)
+
+
 def test_bad_addresses_one_line(maps, samples: Path, tmp_path: Path) -> None:
     sqlite_map, _ = maps
     query = samples / "01" / "velodyne" / "000005.bin"

@@ -70,8 +70,12 @@ __all__ = ["MilvusDatabase", "parse_address", "HNSW_MIN_ROWS"]
 # Below this many scans the signatures are searched exactly (FLAT); from it on, by HNSW.
 HNSW_MIN_ROWS = 200_000
 _HNSW_BUILD = {"M": 16, "efConstruction": 128}
-# Rows a single Milvus read returns (its query window is 16,384).
+# Rows a single Milvus read returns (its query window is 16,384): 4,096 rows with their
+# signatures or features (tens of MB), the whole window of ids and paths alone (Milvus
+# Lite scans every row for each read: 4 s a read at a million scans).
 _PAGE = 4096
+_PAGE_NARROW = 16384
+_WIDE_FIELDS = {"sig", "features"}
 
 
 def _nan(v: Any) -> float:
@@ -286,14 +290,30 @@ class MilvusDatabase(Database):
         if len(self) < HNSW_MIN_ROWS:
             return
         c = self._client
-        c.release_collection(self._scans)
-        c.drop_index(self._scans, "sig")
-        params = c.prepare_index_params()
-        params.add_index(field_name="sig", index_type="HNSW", metric_type="L2", params=_HNSW_BUILD)
-        c.create_index(self._scans, params)
+        if self._index_type() != "HNSW":  # an interrupted switch may have made it already
+            c.release_collection(self._scans)
+            c.drop_index(self._scans, "sig")
+            params = c.prepare_index_params()
+            params.add_index(
+                field_name="sig", index_type="HNSW", metric_type="L2", params=_HNSW_BUILD
+            )
+            try:
+                c.create_index(self._scans, params)
+            except Exception:
+                # pymilvus resends a call the server cut off (Milvus Lite's gRPC server
+                # does so when a call waits minutes behind its compaction): the resent
+                # one finds the index the first one made.
+                if self._index_type() != "HNSW":
+                    raise
         c.load_collection(self._scans)
         self.meta["index_type"] = "HNSW"
         self._write_meta({"index_type": "HNSW"})
+
+    def _index_type(self) -> str | None:
+        try:
+            return self._client.describe_index(self._scans, "sig").get("index_type")
+        except Exception:  # no index on the field
+            return None
 
     # -- reading ----------------------------------------------------------------
 
@@ -302,17 +322,18 @@ class MilvusDatabase(Database):
         key = "scan_id" if collection == self._views_c else "id"
         out: list[dict] = []
         last = -(2**62)
+        size = _PAGE if _WIDE_FIELDS & set(fields) else _PAGE_NARROW
         while True:
             page = self._client.query(
                 collection or self._scans,
                 filter=f"({filt}) and {key} > {last}" if filt else f"{key} > {last}",
                 output_fields=fields,
-                limit=_PAGE,
+                limit=size,
                 consistency_level="Strong",
             )
             page = [dict(r) for r in page]
             out += page
-            if len(page) < _PAGE:
+            if len(page) < size:
                 return out
             # Views share scan ids: page by the largest scan whose views all came.
             last = max(int(r[key]) for r in page) - (1 if key == "scan_id" else 0)
