@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,19 @@ def package_path() -> str:
     import disco_cli
 
     return str(Path(disco_cli.__file__).resolve().parent.parent)
+
+
+# A shell's background job (CI's, say) inherits SIGINT ignored, and Python keeps it so.
+# A `disco` child started by a test sets Python's own handler (KeyboardInterrupt) back,
+# as a terminal's Ctrl-C would find it, in its first line. `preexec_fn` would run Python
+# between fork and exec, which breaks a child forked while gRPC's threads run (the
+# Milvus tests load it): it died with "epoll_wait error: Bad file descriptor".
+DISCO_WITH_DEFAULT_SIGINT = [
+    sys.executable,
+    "-c",
+    "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "sys.argv[0] = 'disco'; runpy.run_module('disco_cli.cli', run_name='__main__')",
+]
 
 
 @pytest.fixture(scope="session")

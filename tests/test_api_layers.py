@@ -9,7 +9,6 @@ inside a function says why it is not at the top (`# deferred: ...`).
 from __future__ import annotations
 
 import ast
-from fnmatch import fnmatch
 from pathlib import Path
 
 PKG = Path(__file__).resolve().parent.parent / "src" / "disco_cli"
@@ -116,19 +115,6 @@ def test_layout_by_stage() -> None:
     assert not long, long
 
 
-# Issue 32: these files' function-level imports are not checked yet (being edited in
-# parallel; issue 32). Empty this set once they carry their `# deferred:` comments.
-NOT_YET_CHECKED_FOR_DEFERRED = {
-    "service/*",
-    "commands/serve.py",
-    "query/search.py",
-    "query/query_policy.py",
-    "model/yaw_refine.py",
-    "model/disco.py",
-    "maps/milvus_*",
-}
-
-
 def undeclared_deferred_imports(source: str) -> list[int]:
     """Lines of the imports inside functions that do not say why they are deferred.
 
@@ -204,8 +190,6 @@ def test_imports_inside_functions_say_why_they_are_deferred() -> None:
     bad, checked = [], 0
     for path in sorted(PKG.rglob("*.py")):
         rel = path.relative_to(PKG).as_posix()
-        if any(fnmatch(rel, pattern) for pattern in NOT_YET_CHECKED_FOR_DEFERRED):
-            continue
         checked += 1
         bad += [f"{rel}:{line}" for line in undeclared_deferred_imports(path.read_text())]
     assert checked > 50  # the package was read

@@ -8,6 +8,7 @@ results are checked against a plain NumPy brute force over the stored signatures
 from __future__ import annotations
 
 import json
+import os
 import queue
 import shutil
 import signal
@@ -20,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DISCO_WITH_DEFAULT_SIGINT, package_path
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
@@ -256,15 +258,9 @@ def test_resume_after_kill(tmp_path: Path, sig: signal.Signals) -> None:
     for i in range(n):
         (scans / f"{i:06d}.bin").symlink_to(src / f"s{i % 4}.bin")
     out = tmp_path / "map.db"
-    cmd = [_disco(), "build-db", str(scans), "-o", str(out), "--model", "spectral", "--batch", "2"]
-    # A shell's background job inherits SIGINT ignored (and Python then keeps it so): give
-    # the build the default, as a terminal's Ctrl-C would find it.
-    proc = subprocess.Popen(
-        cmd,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
+    args = ["build-db", str(scans), "-o", str(out), "--model", "spectral", "--batch", "2"]
+    cmd, env = [*DISCO_WITH_DEFAULT_SIGINT, *args], {**os.environ, "PYTHONPATH": package_path()}
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
     deadline = time.monotonic() + 120
     while not out.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.005)
@@ -281,7 +277,7 @@ def test_resume_after_kill(tmp_path: Path, sig: signal.Signals) -> None:
     if sig == signal.SIGINT:
         assert f"holds {len(done)} of the {n} scans given" in err, err
     assert done == [str(scans / f"{i:06d}.bin") for i in range(len(done))]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr
     assert f"{len(done)} were in it already" in proc.stderr
     with Database.open(out) as db:

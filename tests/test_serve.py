@@ -7,7 +7,6 @@ from __future__ import annotations
 import base64
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DISCO_WITH_DEFAULT_SIGINT
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
@@ -40,14 +40,11 @@ def start_server(
     where = [] if "--port" in extra else ["--socket", str(sock)]
     if "--scan-root" not in extra:
         where += ["--scan-root", str(root)]
-    # A shell's background job (CI's, say) inherits SIGINT ignored, and Python then keeps
-    # it so: give the server the default, as a terminal's Ctrl-C would find it.
     proc = subprocess.Popen(
-        [sys.executable, "-m", "disco_cli.cli", "serve", "--db", str(db), *where, *extra],
+        [*DISCO_WITH_DEFAULT_SIGINT, "serve", "--db", str(db), *where, *extra],
         stderr=subprocess.PIPE,
         text=True,
         env=env,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     wait_for = wait_for or sock
     deadline = time.monotonic() + 120

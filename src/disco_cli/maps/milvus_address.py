@@ -118,7 +118,7 @@ def parse_address(value: Any) -> MilvusAddress | None:
 
 def _pymilvus() -> Any:
     try:
-        import pymilvus
+        import pymilvus  # deferred: the optional [milvus] extra
     except ImportError:
         raise DiscoError(INSTALL_HINT) from None
     return pymilvus
@@ -129,7 +129,7 @@ def require_extra(address: MilvusAddress) -> None:
     _pymilvus()
     if address.lite:
         try:
-            import milvus_lite  # noqa: F401
+            import milvus_lite  # noqa: F401  # deferred: the optional [milvus] extra
         except ImportError:
             raise DiscoError(INSTALL_HINT) from None
 
@@ -190,6 +190,7 @@ def disconnect(address: MilvusAddress, client: Any) -> None:
                 _LITE_USERS[uri] = left
             if left <= 0:
                 _LITE_USERS.pop(uri, None)
+                # deferred: the optional [milvus] extra
                 from milvus_lite import server_manager_instance
 
                 server_manager_instance.release_server(uri)

@@ -3,6 +3,7 @@ SQLite to Milvus, Milvus to SQLite, or either to another of its kind."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -10,8 +11,17 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DatabaseError, DiscoError
-from disco_cli.maps.database import DamagedRows, Database, ModelInfo, ScanBatch
+from disco_cli.io.output_paths import check_output_file
+from disco_cli.maps.database import (
+    DamagedRows,
+    Database,
+    ModelInfo,
+    ScanBatch,
+    damaged_line,
+    stored_paths,
+)
 from disco_cli.maps.milvus_address import parse_address
+from disco_cli.maps.milvus_store import MilvusDatabase
 
 __all__ = ["copy_map", "copy_command", "open_database"]
 
@@ -19,8 +29,6 @@ __all__ = ["copy_map", "copy_command", "open_database"]
 def open_database(path: Any, **kwargs: Any) -> Database:
     """`Database.open` for a plain path, `MilvusDatabase.open` for a `milvus:` address."""
     if parse_address(path) is not None:
-        from disco_cli.maps.milvus_store import MilvusDatabase
-
         return MilvusDatabase.open(path, **kwargs)
     return Database.open(path, **kwargs)
 
@@ -37,7 +45,6 @@ def copy_map(
     address or an SQLite file) without embedding again: signatures, features, poses,
     times, paths and meta; ids are renumbered 1, 2, ... in order. Damaged rows are
     left out and `on_damaged` hears one line naming them. The scans copied."""
-    from disco_cli.maps.database import damaged_line, stored_paths
 
     if _exists(target):
         raise DatabaseError(target, "already exists; copy into a new map")
@@ -115,15 +122,12 @@ def _create_database(
     path: Any, model: ModelInfo, first: ScanBatch, version: str, meta: dict
 ) -> Database:
     if parse_address(path) is not None:
-        from disco_cli.maps.milvus_store import MilvusDatabase
-
         return MilvusDatabase.create(path, model, first, version, meta)
     return Database.create(path, model, first, version, meta)
 
 
 def copy_command(source: str, target: Any, inputs: Any, warn: Callable[[str], None]) -> str:
     """`disco build-db --from SOURCE -o TARGET`: the copy, and the line that says so."""
-    import time
 
     if inputs:
         raise DiscoError("--from copies a map: give no scans with it")
@@ -132,8 +136,6 @@ def copy_command(source: str, target: Any, inputs: Any, warn: Callable[[str], No
     if parse_address(source) is None and not Path(source).is_file():
         raise DatabaseError(source, "no such database")
     if parse_address(target) is None:
-        from disco_cli.io.output_paths import check_output_file
-
         check_output_file(target, what="the database")
     start = time.perf_counter()
     n = copy_map(source, target, on_damaged=warn)

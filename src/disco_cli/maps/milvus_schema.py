@@ -92,7 +92,7 @@ def read_meta(address: MilvusAddress, client: Any) -> dict[str, str]:
 def create_collections(
     address: MilvusAddress, client: Any, dim: int, views: bool, overwrite: bool
 ) -> None:
-    from pymilvus import DataType
+    from pymilvus import DataType  # deferred: the optional [milvus] extra
 
     names = [f"{address.name}_{s}" for s in ("scans", "views", "meta")]
     if client.has_collection(names[2]) and not overwrite:

@@ -46,7 +46,10 @@ from disco_cli.maps.database import (
     _bad_signatures,
     _locate,
     _view_crc,
+    damaged_line,
 )
+from disco_cli.maps.index import AUTO_ANN_MIN_ROWS, check_index_kind
+from disco_cli.maps.map_side_views import index_for
 from disco_cli.maps.milvus_address import (
     MilvusAddress,
     connect,
@@ -55,6 +58,7 @@ from disco_cli.maps.milvus_address import (
     require_extra,
 )
 from disco_cli.maps.milvus_address import milvus_errors as _milvus_errors
+from disco_cli.maps.milvus_index import MilvusIndex
 from disco_cli.maps.milvus_lock import WriteLock
 from disco_cli.maps.milvus_schema import (
     create_collections,
@@ -151,6 +155,7 @@ class MilvusDatabase(Database):
         if not first.paths:
             raise ValueError("the first batch of a new database must not be empty")
         if not disco_version:
+            # deferred: importlib.metadata, read for a new map only
             from disco_cli import __version__ as disco_version
         dim = int(first.signatures.shape[1])
         meta = {
@@ -470,8 +475,6 @@ class MilvusDatabase(Database):
         sound, sigs, bad = self._sound_rows(rows)
         self._note_damaged(bad, {int(r["id"]): r.get("path") for r in rows})
         if not sound:
-            from disco_cli.maps.database import damaged_line
-
             raise DatabaseError(
                 self.path, "no sound scan: " + damaged_line(self.damaged, self.path)
             )
@@ -612,15 +615,11 @@ class MilvusDatabase(Database):
         `auto` below that, and maps with side views: the signatures are read once and
         searched here as the SQLite map's are (`side_views.index_for`): Milvus Lite's
         own search is pure Python, ~0.2 s a query at 20,000 scans (docs/scaling.md)."""
-        from disco_cli.maps.index import AUTO_ANN_MIN_ROWS, check_index_kind
 
         check_index_kind(kind)
         small = kind == "auto" and len(self) < AUTO_ANN_MIN_ROWS
         if kind == "exact" or small or self.side_offsets:
-            from disco_cli.maps.map_side_views import index_for
-
             return index_for(self)
-        from disco_cli.maps.milvus_index import MilvusIndex
 
         ids = self.ids()
         if not len(ids):

@@ -27,7 +27,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from disco_cli import _core
 from disco_cli.model import fft
 from disco_cli.model.yaw import (
     curves_of_cross_power,
@@ -193,6 +192,9 @@ def _padded(img: np.ndarray) -> np.ndarray:
 def _resample(padded: np.ndarray, places: list, shape: tuple[int, int]) -> np.ndarray:
     """Views [M, R, S] of an image of `shape` [R, S], read from its `_padded` table at
     `places` (C++: bilinear reads in float32, each rounded as NumPy would)."""
+    # deferred: the package imports without the compiled core (a GPU training box)
+    from disco_cli import _core
+
     rings, sectors = shape
     views = _core.resample_views(padded, 2 * sectors + 1, places, rings * sectors)
     return views.reshape(len(places), rings, sectors)
