@@ -48,7 +48,9 @@ class QueryPolicy:
     # along its own y axis (a revisit 4-8 m beside the map's route), searched beside the
     # query and re-ranked at their best. +-4/6 m gave what +-4..6 m did on every
     # selection world, one view a side lost queries on 5102/5103 (model-history.md,
-    # "Query-side views, built"). (): no views.
+    # "Query-side views, built"). On the calibrated selection worlds 8621-8623 they gain
+    # 4 of 3,723 queries (0 / 1 / 3) for about 3 ms of a query (bench_query.py): the
+    # weakest rule that still gains, so it stays (docs/results.md). (): no views.
     view_offsets: tuple[float, ...] = (4.0, 6.0)
     # Added to a view's re-rank distance: a view sees less than the scan, so where both
     # re-rank alike the scan's own wins (chosen with the offsets, same worlds).
@@ -64,7 +66,8 @@ class QueryPolicy:
     # best's score and goes first. 5 m is as far as the position estimate reaches
     # (3 + 1.5 + 0.5 m); it found all 27 "a metre past the true scan" misses of the
     # suite's 47 and lost none (model-history.md, "Snapping to the nearest map scan").
-    # 0: no snap.
+    # On the calibrated selection worlds 8621-8623 it gains 107 of 3,723 queries (44 / 63
+    # / 0), the wider pass above 36 (11 / 25 / 0) (docs/results.md). 0: no snap.
     snap_radius: float = 5.0
     snap_margin: float = 0.1
     # How many best matches get the parallax-free yaw (model/yaw_refine.py): about 1.5 ms
