@@ -26,6 +26,7 @@ pytest.importorskip("pymilvus")
 pytest.importorskip("milvus_lite")
 
 from conftest import package_path  # noqa: E402
+from test_serve import start_server  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 import disco_cli.maps.milvus_lock as milvus_lock  # noqa: E402
@@ -33,6 +34,7 @@ from disco_cli.cli import app  # noqa: E402
 from disco_cli.maps.database import ScanBatch  # noqa: E402
 from disco_cli.maps.milvus_lock import WriteLock  # noqa: E402
 from disco_cli.maps.milvus_store import MilvusDatabase  # noqa: E402
+from disco_cli.service.client import Client  # noqa: E402
 
 
 def _cli(*args: object) -> str:
@@ -242,3 +244,43 @@ def test_leftover_claim_taken_after_the_lease(
     with MilvusDatabase.open(lite, writable=True) as db:
         assert WriteLock(db._client, db._meta_c).claims() == {}
         assert db.append(_one_scan(db, "/x")) == [27]
+
+
+def test_serve_appends_beside_a_direct_writer(server: str, samples: Path, tmp_path: Path) -> None:
+    """A robot's appends through `disco serve --allow-append` on a server map, while a
+    second process appends to the same map directly: the writers' lock keeps their ids
+    apart, every row stays, and each scan appended through the server is its own top 1."""
+    relay = f"{server}/relay"
+    _cli("build-db", samples / "00", "-o", relay)
+    robot_scans = sorted((samples / "01" / "velodyne").glob("*.bin"))[:8]
+    sock = tmp_path / "disco.sock"
+    proc = start_server(Path(relay), sock, "--allow-append")
+    env = {**os.environ, "PYTHONPATH": package_path()}
+    start = time.time() + 8  # the direct writer opens the map first
+    direct = subprocess.Popen(
+        [sys.executable, "-c", _WRITER, relay, "d", "10", str(start)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        with Client(sock, timeout=300) as c:
+            time.sleep(max(0.0, start - time.time()))
+            robot_ids = [c.append(str(p))["scan_ids"][0] for p in robot_scans]
+            out, err = direct.communicate(timeout=180)
+            assert direct.returncode == 0, err
+            direct_ids = json.loads(out.splitlines()[-1])
+            assert not set(robot_ids) & set(direct_ids)
+            for sid, scan in zip(robot_ids, robot_scans):
+                top = c.query(str(scan), topk=1)[0]
+                assert top["match_id"] == sid and abs(top["yaw_deg"]) < 0.5, top
+    finally:
+        proc.terminate()
+        proc.wait(timeout=60)
+        direct.kill()
+    with MilvusDatabase.open(relay) as db:
+        assert db.check() == []
+        assert len(db) == 26 + 8 + 10 and db.next_id() == 45
+        names = db.stored_names(direct_ids)
+    assert [names[i][0] for i in direct_ids] == [f"/robot-d/{i}" for i in range(10)]
