@@ -69,13 +69,23 @@ def print_header(name: str) -> None:
     print(f"# {name} on {machine_line()}", flush=True)
 
 
-def rss_mib() -> float:
-    """This process's resident memory (VmRSS) in MiB; NaN where /proc does not say."""
+def _status_mib(field: str) -> float:
+    """A memory field of /proc/self/status (VmRSS, VmHWM) in MiB; NaN where it is absent."""
     with open("/proc/self/status") as fh:
         for line in fh:
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def rss_mib() -> float:
+    """This process's resident memory (VmRSS) in MiB; NaN where /proc does not say."""
+    return _status_mib("VmRSS")
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident memory (VmHWM) in MiB; NaN where /proc does not say."""
+    return _status_mib("VmHWM")
 
 
 def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:

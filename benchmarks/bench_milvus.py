@@ -52,7 +52,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import REPO, print_header, rss_mib
+from _common import REPO, peak_rss_mib, print_header, rss_mib
 
 DISCO = [sys.executable, "-m", "disco_cli.cli"]
 
@@ -94,7 +94,7 @@ def exact_top(sigs: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
     for s in range(0, len(sigs), 50_000):
         c = sigs[s : s + 50_000].astype(np.float64)
         d[:, s : s + len(c)] = (c**2).sum(axis=1)[None, :] - 2.0 * q @ c.T
-    return np.stack([np.lexsort((np.arange(len(r)), r))[:k] for r in d])
+    return np.stack([np.argsort(r, kind="stable")[:k] for r in d])
 
 
 def mem_available_gib() -> float:
@@ -103,14 +103,6 @@ def mem_available_gib() -> float:
             if line.startswith("MemAvailable:"):
                 return int(line.split()[1]) / 2**20
     return float("inf")
-
-
-def peak_rss_mib() -> float:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def scale(args: argparse.Namespace) -> dict:
