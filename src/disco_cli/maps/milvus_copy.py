@@ -45,7 +45,6 @@ def copy_map(
     address or an SQLite file) without embedding again: signatures, features, poses,
     times, paths and meta; ids are renumbered 1, 2, ... in order. Damaged rows are
     left out and `on_damaged` hears one line naming them. The scans copied."""
-
     if _exists(target):
         raise DatabaseError(target, "already exists; copy into a new map")
     with open_database(source, on_note=lambda _line: None) as src:
@@ -128,7 +127,6 @@ def _create_database(
 
 def copy_command(source: str, target: Any, inputs: Any, warn: Callable[[str], None]) -> str:
     """`disco build-db --from SOURCE -o TARGET`: the copy, and the line that says so."""
-
     if inputs:
         raise DiscoError("--from copies a map: give no scans with it")
     if str(source) == str(target) or parse_address(source) == parse_address(target) is not None:

@@ -615,7 +615,6 @@ class MilvusDatabase(Database):
         `auto` below that, and maps with side views: the signatures are read once and
         searched here as the SQLite map's are (`side_views.index_for`): Milvus Lite's
         own search is pure Python, ~0.2 s a query at 20,000 scans (docs/scaling.md)."""
-
         check_index_kind(kind)
         small = kind == "auto" and len(self) < AUTO_ANN_MIN_ROWS
         if kind == "exact" or small or self.side_offsets:
