@@ -2,7 +2,8 @@
 
 The library API (docs/python.md): `Map` (a map database: add scans, localize scans
 against it as `Match`es), `LoopDetector` (online loop closure, returning `Loop`s),
-`load_model`, `read_scan`, the voxelizer, `set_threads` (the CPU threads it
+`PoseGraph` and `correct` (odometry and loops to a corrected trajectory; the `[graph]`
+extra), `load_model`, `read_scan`, the voxelizer, `set_threads` (the CPU threads it
 computes on), and the `DiscoError` kinds it raises. It is
 imported lazily so that `import disco_cli` (and `disco --help`) stays fast: torch and
 the compiled core load only when first used.
@@ -25,6 +26,8 @@ _LAZY = {
     "Match": "disco_cli.query.localize",
     "LoopDetector": "disco_cli.query.loop_detector",
     "Loop": "disco_cli.query.loop_detector",
+    "PoseGraph": "disco_cli.graph.pose_graph",
+    "correct": "disco_cli.graph.pose_graph",
     "set_threads": "disco_cli.runtime.threads",
     "get_threads": "disco_cli.runtime.threads",
     "DiscoError": "disco_cli.errors",

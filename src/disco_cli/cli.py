@@ -34,6 +34,7 @@ import typer  # noqa: E402
 from disco_cli.commands import (  # noqa: E402
     bev,
     build_db,
+    correct,
     eval_loops,
     evaluate,
     gt_loops,
@@ -65,6 +66,7 @@ app.command("info", rich_help_panel="Map")(info.info)
 app.command("query", rich_help_panel="Localize")(query.query)
 app.command("loops", rich_help_panel="Localize")(loops.loops)
 app.command("serve", rich_help_panel="Localize")(serve.serve)
+app.command("correct", rich_help_panel="Localize")(correct.correct)
 app.command("eval", rich_help_panel="Evaluate")(evaluate.evaluate)
 app.command("eval-loops", rich_help_panel="Evaluate")(eval_loops.evaluate_loops)
 app.command("bev", rich_help_panel="Inspect")(bev.bev)
