@@ -203,6 +203,28 @@ def simulate(
             rich_help_panel="Later sessions' robots",
         ),
     ] = None,
+    odometry_drift: Annotated[
+        Optional[str],
+        typer.Option(
+            "--odometry-drift",
+            metavar="SCALE,YAW[,NOISE_M[,NOISE_DEG]]",
+            help="Also write odometry.txt beside each session's poses.txt: the true steps "
+            "with a scale error (0.02: 2 % long), a yaw bias in degrees a step, and "
+            "noise per step (default 0.01 m, 0.02 deg), seeded by --seed "
+            "(for disco correct; docs/correct.md).",
+            rich_help_panel="Odometry",
+        ),
+    ] = None,
+    join: Annotated[
+        bool,
+        typer.Option(
+            "--join",
+            help="Also write OUT/joined: every session one after the other as one "
+            "sequence, with poses.txt, times.txt and odometry.txt (drifted as "
+            "--odometry-drift says, by default 0.02,0.04).",
+            rich_help_panel="Odometry",
+        ),
+    ] = False,
     threads: ThreadsOpt = None,
     force: Annotated[
         bool, typer.Option("--force", help="Write into a folder that has sessions.")
@@ -218,11 +240,15 @@ def simulate(
     # deferred: numpy and the simulator (~0.2 s) load when the command runs, not for --help
     from disco_cli.simulator import ChangeParams, RobotParams, TownParams
     from disco_cli.simulator import simulate as run
+    from disco_cli.simulator.odometry_drift import Drift, write_odometry
 
     if frames is not None and length_m is not None:
         raise fail("give --frames or --length-m, not both")
     if out.exists() and (out / "world.json").exists() and not force:
         raise fail(f"{out}: already holds a simulated world; use --force to overwrite it")
+    drift = Drift.parse(odometry_drift, seed) if odometry_drift is not None else None
+    if join and drift is None:
+        drift = Drift(seed=seed)
     params = TownParams.load(town) if town is not None else None
     if style is not None or terrain is not None or change is not None:
         params = params or TownParams()
@@ -273,6 +299,8 @@ def simulate(
             robot=robot,
             wobble_deg=float(wobble),
         )
+    if drift is not None:
+        write_odometry(out, drift, join=join)
     n = meta["sessions"][0]["frames"]
     stderr.print(
         f"wrote {sessions} session(s) of {n} {sensor} scans to {out} "
