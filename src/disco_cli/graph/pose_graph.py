@@ -88,7 +88,7 @@ class OdometryNoise:
     translation_m: float = 0.02
     translation_share: float = 0.03
     rotation_deg: float = 0.05
-    rotation_share: float = 0.03
+    rotation_share: float = 0.0
     yaw_per_m_deg: float = 0.05
 
     def sigmas(self, step: np.ndarray) -> np.ndarray:
@@ -241,20 +241,19 @@ class PoseGraph:
 
     def add_loops(self, loops: Iterable[Any]) -> int:
         """Add `Loop`s (`LoopDetector`'s: match_index, query_index, T, fitness, rmse);
-        those without a pose or not accepted are left out. Returns how many were added."""
+        those without a pose or not accepted are left out. A loop's `confidence` (in
+        [0, 1], where the detector gives one) scales its information: a loop half sure
+        of itself counts half. Returns how many were added."""
         added = 0
         for lp in loops:
             if getattr(lp, "T", None) is None or getattr(lp, "accepted", True) is False:
                 continue
             label = f"{getattr(lp, 'query', '')} -> {getattr(lp, 'match', '')}".strip(" ->")
-            self.add_loop(
-                lp.match_index,
-                lp.query_index,
-                lp.T,
-                fitness=getattr(lp, "fitness", None),
-                rmse=getattr(lp, "rmse", None),
-                label=label,
-            )
+            info = loop_information(getattr(lp, "fitness", None), getattr(lp, "rmse", None))
+            confidence = getattr(lp, "confidence", None)
+            if confidence is not None and math.isfinite(confidence):
+                info = info * min(max(float(confidence), 0.05), 1.0)
+            self.add_loop(lp.match_index, lp.query_index, lp.T, info, label=label)
             added += 1
         return added
 
