@@ -21,6 +21,7 @@ from typer._click import exceptions as ce
 from typer._click.utils import PacifyFlushWrapper
 from typer.core import TyperCommand, TyperGroup
 
+from disco_cli.commands import coercion
 from disco_cli.runtime.console import error, stdout_closed, warn
 
 # Old name -> new name (issue 26: one name per idea). Rewritten only in commands that
@@ -117,10 +118,12 @@ class DiscoCommand(TyperCommand):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         _flags_as_flags(self.params)
+        coercion.install(self.params)
 
     def get_help_option(self, ctx: Any) -> Any:
         option = super().get_help_option(ctx)
         _flags_as_flags([option] if option is not None else [])
+        coercion.install([option] if option is not None else [])
         return option
 
     def parse_args(self, ctx: Any, args: list[str]) -> list[str]:
@@ -137,16 +140,20 @@ class DiscoGroup(TyperGroup):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         _flags_as_flags(self.params)
+        coercion.install(self.params)
         # Every subcommand reads as a DiscoCommand, whoever registers it, so that
         # cli.py's registration lines stay plain `app.command(...)`.
         for command in self.commands.values():
             if type(command) is TyperCommand:
                 command.__class__ = DiscoCommand
                 _flags_as_flags(command.params)
+            # Values read without Pydantic where that changes nothing (issue 41).
+            coercion.install(command.params)
 
     def get_help_option(self, ctx: Any) -> Any:
         option = super().get_help_option(ctx)
         _flags_as_flags([option] if option is not None else [])
+        coercion.install([option] if option is not None else [])
         return option
 
     def main(
