@@ -75,7 +75,7 @@ def test_disco_serve_answers_under_the_policy_it_was_given(sample_map, samples: 
         plain = replace(m.model.query_policy, rerank_candidates=0)
         served = {}
         for name, policy in (("shipped", None), ("plain", plain)):
-            service = QueryService(m, ServeOptions(topk=5, policy=policy))
+            service = QueryService(m, ServeOptions(topk=5, policy=policy, scan_root=samples))
             served[name] = service.handle({"scan": scan})["rows"]
     assert [r["match_id"] for r in served["plain"]] == nearest.tolist()
     assert served["shipped"] != served["plain"]  # the shipped policy re-ranks

@@ -15,7 +15,8 @@ and is answered with the rows `disco query --format jsonl` prints for it:
 
 A request that cannot be answered (not JSON, an unknown field, a scan that cannot be
 read) gets `{"id": ..., "ok": false, "error": "<one line>"}` and the server goes on.
-Scan files are read only under the server's scan root. Queries are answered one at a
+Scan files are read only under the server's scan root (none without one). A
+request asks for at most `max_poses` poses (ICP runs). Queries are answered one at a
 time, on the thread that opened the map (SQLite connections and the model stay on one
 thread; one query at a time is also what keeps latency flat on a shared CPU). A query
 whose client has gone is dropped, or stopped between two matches' poses.
@@ -53,7 +54,7 @@ from disco_cli.runtime.columns import POSE_COLUMNS, RESULT_COLUMNS
 from disco_cli.runtime.console import _plain
 from disco_cli.service.appends import APPEND_FIELDS, Appender
 
-__all__ = ["QueryService", "ServeOptions", "MAX_REQUEST_BYTES"]
+__all__ = ["QueryService", "ServeOptions", "MAX_POSES", "MAX_REQUEST_BYTES"]
 
 # A 130k-point scan inline is 2.8 MB of base64: 64 MiB leaves room for the largest
 # sensors and still bounds what one hostile line can make the server hold.
@@ -72,6 +73,9 @@ _QUERY_FIELDS = {
     "token",
 }
 _MAX_TOPK = 10000
+# Each pose is an ICP run on the server's one worker (tens of milliseconds on a 2-core
+# VM for the sample scans, more for dense ones): 100 keeps one request within seconds.
+MAX_POSES = 100
 
 
 class RequestError(DiscoError):
@@ -86,15 +90,19 @@ class Cancelled(Exception):
 @dataclass
 class ServeOptions:
     """What every request gets unless it says otherwise, and where scans may be read:
-    `scan_root` None reads any path (relative ones from the working folder). `policy`:
-    the query stage's `QueryPolicy` for every request (None: the map's model's).
-    `allow_append`: take `append` requests (the map must be open for writing)."""
+    only under `scan_root` (None: no scan file is read at all; requests send their
+    points inline). `max_poses`: the most matches one request may ask a pose of (each
+    is an ICP run on the one worker), so `topk` is at most that with `pose` or
+    `verify`. `policy`: the query stage's `QueryPolicy` for every request (None: the
+    map's model's). `allow_append`: take `append` requests (the map must be open for
+    writing)."""
 
     topk: int = 10
     max_request_bytes: int = MAX_REQUEST_BYTES
     scan_root: Path | None = None
     policy: Any = None
     allow_append: bool = False
+    max_poses: int = MAX_POSES
 
 
 def _always() -> bool:
@@ -301,6 +309,12 @@ class QueryService:
         if not isinstance(name, str):
             raise RequestError("'name' must be a string")
         with_pose = pose or verify
+        if with_pose and topk > self.options.max_poses:
+            raise RequestError(
+                f"'topk' is at most {self.options.max_poses} with 'pose' or 'verify': each "
+                "match's pose is an ICP run on the server's one worker "
+                "(disco serve --max-poses)"
+            )
         keys = RESULT_COLUMNS + (POSE_COLUMNS + ["T"] if with_pose else [])
         with self._lock:
             self._refresh_if_changed()
@@ -334,16 +348,18 @@ class QueryService:
         if not isinstance(scan, str) or not scan or "\0" in scan:
             raise RequestError("'scan' must be a file path")
         if self._root is None:
-            path = scan
-        else:
-            path = os.path.join(self._root, scan)  # an absolute scan replaces the root
-            # A bag message is BAG#TOPIC@STAMP: its bag must lie under the root too.
-            parts = [path, path.rpartition("@")[0].rpartition("#")[0]]
-            if not all(_inside(self._root, p) for p in parts if p):
-                raise RequestError(
-                    f"{scan}: outside the folder this server reads scans from "
-                    "(disco serve --scan-root)"
-                )
+            raise RequestError(
+                "this server reads no scan files (it has no scan root: disco serve "
+                "--scan-root, ServeOptions.scan_root); send the points inline"
+            )
+        path = os.path.join(self._root, scan)  # an absolute scan replaces the root
+        # A bag message is BAG#TOPIC@STAMP: its bag must lie under the root too.
+        parts = [path, path.rpartition("@")[0].rpartition("#")[0]]
+        if not all(_inside(self._root, p) for p in parts if p):
+            raise RequestError(
+                f"{scan}: outside the folder this server reads scans from "
+                "(disco serve --scan-root)"
+            )
         if os.path.isdir(path) and not is_bag(path):
             raise RequestError(f"{scan}: a folder, not a scan file: send one scan per request")
         return path
