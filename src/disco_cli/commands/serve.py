@@ -5,7 +5,6 @@ client is `disco_cli/service/client.py`."""
 
 from __future__ import annotations
 
-import ipaddress
 import os
 from pathlib import Path
 from typing import Annotated, Optional
@@ -22,15 +21,7 @@ from disco_cli.commands.options import (
 from disco_cli.runtime.console import handle_errors, plural, stderr, warn
 
 PANEL_LIMITS = "Limits"
-
-
-def _loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
+PANEL_TCP = "TCP"
 
 
 @handle_errors
@@ -59,7 +50,8 @@ def serve(
         typer.Option(
             "--host",
             help="The address --port listens on; anything but a loopback address "
-            "exposes the map to the network.",
+            "needs --tls-cert (or --insecure-plaintext).",
+            rich_help_panel=PANEL_TCP,
         ),
     ] = "127.0.0.1",
     token_file: Annotated[
@@ -69,8 +61,39 @@ def serve(
             metavar="PATH",
             help="With --port: write a new random token here at start (mode 0600; "
             "removed at exit). Default: disco-PORT.token in the current folder.",
+            rich_help_panel=PANEL_TCP,
         ),
     ] = None,
+    tls_cert: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--tls-cert",
+            metavar="PEM",
+            dir_okay=False,
+            help="With --port: speak TLS with this certificate (chain); clients "
+            "check it against their CA (--tls-ca).",
+            rich_help_panel=PANEL_TCP,
+        ),
+    ] = None,
+    tls_key: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--tls-key",
+            metavar="PEM",
+            dir_okay=False,
+            help="The private key of --tls-cert (default: in the --tls-cert file).",
+            rich_help_panel=PANEL_TCP,
+        ),
+    ] = None,
+    insecure_plaintext: Annotated[
+        bool,
+        typer.Option(
+            "--insecure-plaintext",
+            help="Listen on a non-loopback --host without TLS: the token and the "
+            "scans cross the network in clear.",
+            rich_help_panel=PANEL_TCP,
+        ),
+    ] = False,
     scan_root: Annotated[
         Optional[Path],
         typer.Option(
@@ -113,16 +136,50 @@ def serve(
             rich_help_panel=PANEL_LIMITS,
         ),
     ] = 256.0,
+    max_poses: Annotated[
+        int,
+        typer.Option(
+            "--max-poses",
+            min=1,
+            max=10000,
+            help="The most matches one request may ask a pose of (topk with pose or "
+            "verify): each is an ICP run on the server's one worker.",
+            rich_help_panel=PANEL_LIMITS,
+        ),
+    ] = 100,
     max_clients: Annotated[
         int,
         typer.Option(
             "--max-clients",
             min=1,
             max=10000,
-            help="Connections open at once; one more is turned away.",
+            help="Clients connected at once (over TCP: those past the token); one "
+            "more is told the server is full.",
             rich_help_panel=PANEL_LIMITS,
         ),
     ] = 64,
+    max_pending: Annotated[
+        int,
+        typer.Option(
+            "--max-pending",
+            min=1,
+            max=10000,
+            help="TCP: connections that have not shown the token yet, apart from "
+            "--max-clients; past it the one waiting longest is closed.",
+            rich_help_panel=PANEL_LIMITS,
+        ),
+    ] = 16,
+    auth_timeout: Annotated[
+        float,
+        typer.Option(
+            "--auth-timeout",
+            min=0.1,
+            max=3600,
+            help="TCP: seconds from connecting to showing the token (the TLS "
+            "handshake included); a slower connection is closed.",
+            rich_help_panel=PANEL_LIMITS,
+        ),
+    ] = 5.0,
     read_timeout: Annotated[
         float,
         typer.Option(
@@ -156,14 +213,39 @@ def serve(
     from disco_cli.errors import DiscoError
     from disco_cli.maps.facade import Map
     from disco_cli.service.serve import QueryService, ServeOptions
-    from disco_cli.service.serve_net import NetOptions, make_server, serve_forever, write_token
+    from disco_cli.service.serve_net import (
+        NetOptions,
+        is_loopback,
+        make_server,
+        serve_forever,
+        tls_context,
+        write_token,
+    )
 
     if port is None and socket_path is None:
         socket_path = Path("disco.sock")
     if port is not None and socket_path is not None:
         raise typer.BadParameter("give --socket or --port, not both", param_hint="--port")
-    if token_file is not None and port is None:
-        raise typer.BadParameter("a token is for --port only", param_hint="--token-file")
+    for given, name in (
+        (token_file, "--token-file"),
+        (tls_cert, "--tls-cert"),
+        (tls_key, "--tls-key"),
+        (insecure_plaintext or None, "--insecure-plaintext"),
+    ):
+        if given is not None and port is None:
+            raise typer.BadParameter("this is for --port only", param_hint=name)
+    if tls_key is not None and tls_cert is None:
+        raise typer.BadParameter("a key needs its --tls-cert", param_hint="--tls-key")
+    if tls_cert is not None and insecure_plaintext:
+        raise typer.BadParameter("TLS is not plain text", param_hint="--insecure-plaintext")
+    if port is not None and tls_cert is None and not insecure_plaintext and not is_loopback(host):
+        raise typer.BadParameter(
+            f"{host} is not a loopback address, and without TLS the token and the scans "
+            "would cross the network in clear: give --tls-cert and --tls-key (or "
+            "--insecure-plaintext to accept the risk)",
+            param_hint="--host",
+        )
+    tls = None if tls_cert is None else tls_context(tls_cert, tls_key)
     if max_request_mb > max_buffer_mb:
         raise typer.BadParameter(
             f"{max_request_mb:g} MiB requests cannot fit in {max_buffer_mb:g} MiB",
@@ -172,19 +254,27 @@ def serve(
     root = scan_root if scan_root is not None else Path(db_path).absolute().parent
     if not root.is_dir():
         raise DiscoError(f"{root}: --scan-root is not a folder")
-    if port is not None and not _loopback(host):
-        warn(f"listening on {host}:{port}: any host that reaches it and has the token can query")
+    if port is not None and tls is None and not is_loopback(host):
+        warn(
+            f"listening on {host}:{port} without TLS (--insecure-plaintext): the token "
+            "and the scans cross the network in clear"
+        )
     options = ServeOptions(
         topk=topk,
         max_request_bytes=int(max_request_mb * 1024 * 1024),
         scan_root=root,
         allow_append=allow_append,
+        max_poses=max_poses,
     )
     net = NetOptions(
         max_clients=max_clients,
         max_buffer_bytes=int(max_buffer_mb * 1024 * 1024),
         read_timeout=read_timeout,
         idle_timeout=idle_timeout or None,
+        auth_timeout=auth_timeout,
+        max_pending=max_pending,
+        tls=tls,
+        insecure_plaintext=insecure_plaintext,
     )
     # Appends go through this process's own writer (the map's writable connection).
     with Map.open(db_path, writable=allow_append, model=model, scan_root=scan_root) as m:
@@ -204,6 +294,8 @@ def serve(
                 token_file.unlink(missing_ok=True)
             raise
         where = str(socket_path) if socket_path is not None else f"{host}:{port}"
+        if tls is not None:
+            where += " (TLS)"
         if token_file is not None:
             where += f", token in {token_file}"
 

@@ -13,6 +13,9 @@ and from a shell, one reply line (JSON) per scan path read from the arguments or
 A server started with `--allow-append` also adds scans to its map: `c.append(scan)`
 (`--append` from a shell).
 
+Over TCP to a server started with `--tls-cert`, give the CA that signed its
+certificate (`tls_ca=`, `--tls-ca`; or `tls=True` for the system's CAs).
+
 Scan paths are sent absolute, resolved from this process's folder. Every failure is a
 `ClientError` (the server's refusal of one request a `ServerError`, its subclass).
 """
@@ -58,7 +61,11 @@ class Client:
     connects); `timeout`: how long a reply may take (None: forever). Over TCP the
     token is `token`, else the contents of `token_file`, else of the file named by
     $DISCO_TOKEN_FILE, else of `disco-PORT.token` in the current folder (where
-    `disco serve --port PORT` writes it by default)."""
+    `disco serve --port PORT` writes it by default).
+
+    TLS (a server started with `--tls-cert`): `tls_ca`, the CA file (PEM) that signed
+    the server's certificate, which must name `host`; or `tls=True` to trust the
+    system's CAs. The handshake is bounded by `connect_timeout`."""
 
     def __init__(
         self,
@@ -70,13 +77,18 @@ class Client:
         connect_timeout: float = 10.0,
         token: str | None = None,
         token_file: str | Path | None = None,
+        tls: bool = False,
+        tls_ca: str | Path | None = None,
     ):
         if (socket is None) == (port is None):
             raise ClientError("give a socket path or a port")
+        if socket is not None and (tls or tls_ca is not None):
+            raise ClientError("TLS is for a TCP port; a Unix socket is guarded by its mode")
         self._where: Any = str(socket) if socket is not None else (host, port)
         self._timeout = timeout
         self._connect_timeout = connect_timeout
         self._token = None if port is None else (token or _read_token(port, token_file))
+        self._tls = _tls_context(tls_ca) if tls or tls_ca is not None else None
         self._sock: _socket.socket | None = None
         self._reader: Any = None
         self._next_id = 0
@@ -88,17 +100,46 @@ class Client:
         return self._where if isinstance(self._where, str) else "%s:%s" % self._where
 
     def _open(self) -> None:
-        self._sock = _connect(self._where, self._connect_timeout)
+        sock = _connect(self._where, self._connect_timeout)
+        if self._tls is not None:
+            sock = self._handshake(sock)
+        self._sock = sock
         self._sock.settimeout(self._timeout)
         self._reader = self._sock.makefile("rb")
         if self._token is not None:
             reply = self._exchange({"op": "auth", "token": self._token})
             if reply is None:
                 self.close()
+                hint = "" if self._tls is not None else ", or a server that speaks TLS (tls_ca=)"
                 raise ClientError(
-                    f"{self.where}: the server closed the connection at the token: "
-                    "a wrong token (a server restarted since writes a new one)?"
+                    f"{self.where}: the server closed the connection at the token: a wrong "
+                    f"token (a server restarted since writes a new one){hint}?"
                 )
+            if not reply.get("ok"):  # full, or busy with connections waiting to show one
+                self.close()
+                raise ClientError(f"{self.where}: {reply.get('error', 'refused')}")
+
+    def _handshake(self, sock: _socket.socket) -> _socket.socket:
+        """`sock` wrapped in TLS, the server's certificate checked against the CA."""
+        import ssl  # deferred: only TLS clients pay for ssl (tens of ms)
+
+        host = self._where[0]
+        try:
+            sock.settimeout(self._connect_timeout)
+            return self._tls.wrap_socket(sock, server_hostname=host)  # type: ignore[union-attr]
+        except ssl.SSLCertVerificationError as exc:
+            sock.close()
+            raise ClientError(
+                f"{self.where}: the server's TLS certificate is not trusted "
+                f"({exc.verify_message}): give the CA that signed it (tls_ca=, --tls-ca)"
+            ) from exc
+        except OSError as exc:  # ssl.SSLError and timeouts among them
+            sock.close()
+            why = getattr(exc, "reason", None) or exc.strerror or type(exc).__name__
+            raise ClientError(
+                f"{self.where}: the TLS handshake failed ({why}): is the server started "
+                "with --tls-cert?"
+            ) from exc
 
     def close(self) -> None:
         if self._sock is not None:
@@ -120,8 +161,10 @@ class Client:
         try:
             try:
                 self._sock.sendall(line)
-            except (BrokenPipeError, ConnectionResetError):
-                pass  # closed by the server: a line it sent first (busy) may still be there
+            except OSError as exc:
+                if not (isinstance(exc, (BrokenPipeError, ConnectionResetError)) or _tls_eof(exc)):
+                    raise
+                # Closed by the server: a line it sent first (full, busy) may still be there.
             reply = self._reader.readline()
         except ConnectionResetError:
             return None
@@ -238,6 +281,23 @@ def _append_item(item: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _tls_context(ca: str | Path | None) -> Any:
+    """A client-side TLS context trusting `ca` (a PEM file), or the system's CAs."""
+    import ssl  # deferred: only TLS clients pay for ssl (tens of ms)
+
+    try:
+        return ssl.create_default_context(cafile=None if ca is None else str(ca))
+    except OSError as exc:  # ssl.SSLError among them
+        why = getattr(exc, "reason", None) or exc.strerror or str(exc)  # "PEM lib", say
+        raise ClientError(f"{ca}: cannot load the CA file ({why}); it must be PEM") from exc
+
+
+def _tls_eof(exc: OSError) -> bool:
+    """Whether `exc` is a TLS connection found closed by its peer."""
+    ssl = sys.modules.get("ssl")
+    return ssl is not None and isinstance(exc, (ssl.SSLEOFError, ssl.SSLZeroReturnError))
+
+
 def _read_token(port: int, token_file: str | Path | None) -> str:
     path = token_file or os.environ.get(TOKEN_FILE_ENV) or f"disco-{port}.token"
     try:
@@ -295,12 +355,16 @@ def _connect(address: Any, timeout: float) -> _socket.socket:
 
 
 def _closed_by_peer(sock: _socket.socket) -> bool:
-    """Whether the server closed this (idle) connection: readable at end of stream."""
+    """Whether the server closed this (idle) connection: readable at end of stream
+    (under TLS, the raw stream: bytes there, a session ticket say, read as open)."""
     try:
+        if getattr(sock, "pending", lambda: 0)():  # TLS bytes read and not yet taken
+            return False
         ready, _, _ = select.select([sock], [], [], 0)
         if not ready:
             return False
-        return sock.recv(1, _socket.MSG_PEEK | _socket.MSG_DONTWAIT) == b""
+        peek = _socket.MSG_PEEK | _socket.MSG_DONTWAIT
+        return _socket.socket.recv(sock, 1, peek) == b""
     except (BlockingIOError, InterruptedError):
         return False
     except OSError:
@@ -323,6 +387,14 @@ def main(argv: list[str] | None = None) -> int:
         "--token-file",
         help=f"TCP: the server's token file (default: ${TOKEN_FILE_ENV}, else disco-PORT.token)",
     )
+    ap.add_argument(
+        "--tls-ca",
+        metavar="PEM",
+        help="TCP: speak TLS, trusting the server's certificate if this CA signed it",
+    )
+    ap.add_argument(
+        "--tls", action="store_true", help="TCP: speak TLS, trusting the system's CAs"
+    )
     ap.add_argument("--topk", "-k", type=int, help="matches per query (server's default)")
     ap.add_argument("--pose", action="store_true", help="add the verified relative pose")
     ap.add_argument(
@@ -341,7 +413,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     failed = 0
     try:
-        with Client(sock, host=args.host, port=args.port, token_file=args.token_file) as c:
+        with Client(
+            sock,
+            host=args.host,
+            port=args.port,
+            token_file=args.token_file,
+            tls=args.tls,
+            tls_ca=args.tls_ca,
+        ) as c:
             for path in paths:
                 req: dict[str, Any] = {"scan": os.path.abspath(path)}
                 if args.append:

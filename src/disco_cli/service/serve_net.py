@@ -1,13 +1,18 @@
 """`disco serve`'s socket side: connections in, request lines to the `QueryService`
 (disco_cli/service/serve.py), reply lines out.
 
-What one client can take is bounded: the connections open at once (`max_clients`;
-one more gets one "busy" line on the Unix socket, nothing over TCP), the bytes of
-requests held in memory across all connections (`max_buffer_bytes`), the time a
-request line may take to arrive (`read_timeout`) and a connection may sit idle
-(`idle_timeout`). Over TCP a connection's first line must be
-`{"op": "auth", "token": "<the token file's contents>"}`: anything else, or nothing
-within `auth_timeout`, closes it without a byte of answer.
+What one client can take is bounded: the clients connected at once (`max_clients`;
+one more is told the server is full), the bytes of requests held in memory across all
+connections (`max_buffer_bytes`), the time a request line may take to arrive
+(`read_timeout`) and a connection may sit idle (`idle_timeout`).
+
+Over TCP a connection's first line must be `{"op": "auth", "token": "<the token
+file's contents>"}` (after the TLS handshake, with `tls`): a wrong token or any other
+line closes it without a byte of answer. Until it has shown the token a connection
+is only waiting: it holds none of the `max_clients` slots, but one of `max_pending`
+of its own, for at most `auth_timeout` seconds from its arrival. When they are all
+taken, the one waiting longest is closed to make room (with a "busy" line), so
+connections that never show a token cannot keep out a client that has it.
 """
 
 from __future__ import annotations
@@ -15,11 +20,13 @@ from __future__ import annotations
 import hmac
 import json
 import os
+import ipaddress
 import secrets
 import select
 import signal
 import socket
 import socketserver
+import ssl
 import sys
 import threading
 import time
@@ -30,7 +37,14 @@ from typing import Any
 
 from disco_cli.errors import DiscoError
 
-__all__ = ["NetOptions", "make_server", "serve_forever", "write_token"]
+__all__ = [
+    "NetOptions",
+    "is_loopback",
+    "make_server",
+    "serve_forever",
+    "tls_context",
+    "write_token",
+]
 
 _CHUNK = 64 * 1024
 _AUTH_LINE_BYTES = 4096  # what an unauthenticated client may make the server hold
@@ -40,12 +54,15 @@ _AUTH_LINE_BYTES = 4096  # what an unauthenticated client may make the server ho
 class NetOptions:
     """Limits on the connections (seconds, bytes; None: no limit)."""
 
-    max_clients: int = 64
+    max_clients: int = 64  # clients connected at once (over TCP: past the token)
     max_buffer_bytes: int = 256 * 1024 * 1024
     read_timeout: float = 30.0
     idle_timeout: float | None = 600.0
-    auth_timeout: float = 10.0
+    auth_timeout: float = 5.0  # TCP: from arrival to the token, the TLS handshake included
+    max_pending: int = 16  # TCP: connections that have not shown the token yet
     token: str | None = None  # TCP: the credential of the first line
+    tls: ssl.SSLContext | None = None  # TCP: a server-side context (`tls_context`)
+    insecure_plaintext: bool = False  # TCP: a non-loopback host without `tls` is allowed
 
 
 class _Refused(Exception):
@@ -86,7 +103,12 @@ class _LineReader:
         self.buf = bytearray()
         self.held = 0
 
-    def line(self, limit: int, idle: float | None, read: float) -> bytes:
+    def line(
+        self, limit: int, idle: float | None, read: float, deadline: float | None = None
+    ) -> bytes:
+        """The next line (`limit` bytes at most), waiting `idle` s for its first byte
+        and `read` s from there for the rest; by the monotonic time `deadline` at the
+        latest, if given (then `_Closed`)."""
         scanned = 0
         started = None if not self.buf else time.monotonic()
         while True:
@@ -104,6 +126,11 @@ class _LineReader:
                 wait = started + read - time.monotonic()
                 if wait <= 0:
                     raise _Refused(f"the request line took more than {read:g} s; closing")
+            if deadline is not None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise _Closed
+                wait = left if wait is None else min(wait, left)
             if not self.budget.take(_CHUNK):
                 raise _Refused(
                     "the server holds as many request bytes as it may "
@@ -165,7 +192,7 @@ class _Handler(socketserver.BaseRequestHandler):
             return not _gone(sock, tcp)
 
         try:
-            if net.token is not None and not self._authorized(reader, net):
+            if net.token is not None and not self._admitted(reader, net):
                 return
             limit = service.options.max_request_bytes
             while True:
@@ -185,28 +212,58 @@ class _Handler(socketserver.BaseRequestHandler):
         finally:
             reader.close()
 
-    def _authorized(self, reader: _LineReader, net: NetOptions) -> bool:
-        """Whether the first line is an `auth` request with the token (answered then);
-        a connection without it gets no byte back."""
+    def _admitted(self, reader: _LineReader, net: NetOptions) -> bool:
+        """Whether this TCP connection becomes a client: its TLS handshake (with `tls`)
+        and an `auth` line with the token, by its deadline, and a free client slot.
+        A wrong token gets no byte back; a full server, or a connection closed to make
+        room for a newer one while it waited, gets one line saying so."""
+        slots: _Slots = self.server.slots  # type: ignore[attr-defined]
+        sock = self.request
+        deadline = slots.arrived(sock) + net.auth_timeout
         try:
-            line = reader.line(_AUTH_LINE_BYTES, net.auth_timeout, net.auth_timeout)
-        except (_Closed, _Refused):
+            if isinstance(sock, ssl.SSLSocket):
+                sock.settimeout(max(deadline - time.monotonic(), 0.001))
+                sock.do_handshake()
+            verdict, rid = self._token(reader, net, deadline)
+        except OSError:  # the handshake failed, timed out, or was cut off
             return False
+        if verdict is None:  # closed, or no line by the deadline
+            if slots.was_evicted(sock):
+                self._send({"id": None, "ok": False, "error": _busy_waiting(net)}, net)
+            return False
+        if not verdict:
+            return False
+        if not slots.admit(sock):
+            self._send({"id": rid, "ok": False, "error": _full(net)}, net)
+            return False
+        return self._send({"id": rid, "ok": True, "op": "auth"}, net)
+
+    def _token(
+        self, reader: _LineReader, net: NetOptions, deadline: float
+    ) -> tuple[bool | None, Any]:
+        """(True, its id) for an `auth` line with the token; (False, None) for any
+        other line; (None, None) when none came by `deadline`."""
+        try:
+            line = reader.line(_AUTH_LINE_BYTES, None, net.auth_timeout, deadline)
+        except _Closed:
+            return None, None
+        except _Refused:  # longer than an auth line may be
+            return False, None
         reader.release(len(line))
         try:
             request = json.loads(line)
         except Exception:  # not JSON, nested too deeply: no answer either way
-            return False
+            return False, None
         if not isinstance(request, dict) or request.get("op") != "auth":
-            return False
+            return False, None
         token = request.get("token")
         if not isinstance(token, str) or not hmac.compare_digest(
             token.encode(), str(net.token).encode()
         ):
-            return False
+            return False, None
         rid = request.get("id")
         rid = rid if isinstance(rid, (int, str)) and not isinstance(rid, bool) else None
-        return self._send({"id": rid, "ok": True, "op": "auth"}, net)
+        return True, rid
 
     def _send(self, reply: dict[str, Any], net: NetOptions) -> bool:
         try:
@@ -217,8 +274,86 @@ class _Handler(socketserver.BaseRequestHandler):
             return False
 
 
+def _full(net: NetOptions) -> str:
+    return (
+        f"the server is full: {net.max_clients} clients are connected "
+        "(disco serve --max-clients); try again later"
+    )
+
+
+def _busy_waiting(net: NetOptions) -> str:
+    return (
+        f"the server is busy: {net.max_pending} newer connections are waiting to show "
+        "the token (disco serve --max-pending); try again"
+    )
+
+
+class _Slots:
+    """Who holds the server's connections: at most `max_clients` clients, and over
+    TCP at most `max_pending` connections that have not shown the token yet (kept
+    apart, so that they never take a client's slot). A waiting connection past the
+    quota makes room by closing the one waiting longest."""
+
+    def __init__(self, max_clients: int, max_pending: int):
+        self.max_clients = max_clients
+        self.max_pending = max_pending
+        self.clients: set[Any] = set()
+        self.waiting: dict[Any, float] = {}  # in order of arrival: the oldest first
+        self.evicted: set[Any] = set()
+        self.arrival: dict[Any, float] = {}
+        self._lock = threading.Lock()
+
+    def join(self, sock: Any) -> bool:
+        """A connection that needs no token: a client now, unless the server is full."""
+        with self._lock:
+            if len(self.clients) >= self.max_clients:
+                return False
+            self.clients.add(sock)
+            return True
+
+    def wait(self, sock: Any) -> Any:
+        """A connection that must show the token first; the one it displaces, if any."""
+        with self._lock:
+            victim = None
+            if len(self.waiting) >= self.max_pending:
+                victim = next(iter(self.waiting))
+                del self.waiting[victim]
+                self.evicted.add(victim)
+            now = time.monotonic()
+            self.waiting[sock] = now
+            self.arrival[sock] = now
+            return victim
+
+    def arrived(self, sock: Any) -> float:
+        with self._lock:
+            return self.arrival.get(sock, time.monotonic())
+
+    def was_evicted(self, sock: Any) -> bool:
+        with self._lock:
+            return sock in self.evicted
+
+    def admit(self, sock: Any) -> bool:
+        """A connection that showed the token: a client now, unless the server is full.
+        One displaced while its token was on the way is let in all the same."""
+        with self._lock:
+            self.waiting.pop(sock, None)
+            self.evicted.discard(sock)
+            if len(self.clients) >= self.max_clients:
+                return False
+            self.clients.add(sock)
+            return True
+
+    def leave(self, sock: Any) -> None:
+        with self._lock:
+            self.clients.discard(sock)
+            self.waiting.pop(sock, None)
+            self.evicted.discard(sock)
+            self.arrival.pop(sock, None)
+
+
 class _Limited(socketserver.ThreadingMixIn):
-    """A thread per connection, up to `net.max_clients` of them."""
+    """A thread per connection: `net.max_clients` clients, and over TCP
+    `net.max_pending` connections waiting to show the token besides (`_Slots`)."""
 
     daemon_threads = True
     request_queue_size = 256  # the listen backlog: a fleet connecting at once waits there
@@ -227,44 +362,48 @@ class _Limited(socketserver.ThreadingMixIn):
         self.service = service
         self.net = net
         self.budget = _Budget(net.max_buffer_bytes)
-        self.active = 0
-        self._count = threading.Lock()
+        self.slots = _Slots(net.max_clients, net.max_pending)
+
+    def get_request(self) -> tuple[Any, Any]:
+        conn, addr = super().get_request()  # type: ignore[misc]
+        if self.net.tls is not None:  # the handshake is the connection's thread's work
+            conn = self.net.tls.wrap_socket(
+                conn, server_side=True, do_handshake_on_connect=False
+            )
+        return conn, addr
 
     def verify_request(self, request: Any, client_address: Any) -> bool:
-        with self._count:
-            full = self.active >= self.net.max_clients
-            if not full:
-                self.active += 1
-        if full and self.net.token is None:  # the Unix socket's clients are this user's
-            busy = {
-                "id": None,
-                "ok": False,
-                "error": f"the server is busy: {self.net.max_clients} connections are open "
-                "(disco serve --max-clients); try again later",
-            }
-            try:
-                request.settimeout(1.0)
-                request.sendall(json.dumps(busy).encode() + b"\n")
-            except OSError:
-                pass
-        return not full
+        if self.net.token is not None:
+            victim = self.slots.wait(request)
+            if victim is not None:
+                try:  # its thread wakes at end of stream, says why, and closes it
+                    socket.socket.shutdown(victim, socket.SHUT_RD)
+                except OSError:
+                    pass
+            return True
+        if self.slots.join(request):
+            return True
+        # The Unix socket's clients are this user's: tell them why.
+        full = {"id": None, "ok": False, "error": _full(self.net)}
+        try:
+            request.settimeout(1.0)
+            request.sendall(json.dumps(full).encode() + b"\n")
+        except OSError:
+            pass
+        return False
 
     def process_request(self, request: Any, client_address: Any) -> None:
         try:
             super().process_request(request, client_address)  # type: ignore[misc]
         except BaseException:
-            self._done()
+            self.slots.leave(request)
             raise
 
     def process_request_thread(self, request: Any, client_address: Any) -> None:
         try:
             super().process_request_thread(request, client_address)  # type: ignore[misc]
         finally:
-            self._done()
-
-    def _done(self) -> None:
-        with self._count:
-            self.active -= 1
+            self.slots.leave(request)
 
     def handle_error(self, request: Any, client_address: Any) -> None:
         exc = sys.exc_info()[1]
@@ -289,10 +428,22 @@ def make_server(
 ) -> socketserver.BaseServer:
     """A threading server for `service` on a Unix socket (created with mode 0600; a
     stale socket file left by a dead server is replaced) or a TCP port (`net.token`
-    required of every connection)."""
+    required of every connection; a host other than a loopback address needs
+    `net.tls`, or `net.insecure_plaintext` to take the risk)."""
     if (socket_path is None) == (port is None):
         raise DiscoError("serve: give a socket path or a port, not both")
     net = net or NetOptions()
+    if net.max_clients < 1 or net.max_pending < 1 or not net.auth_timeout > 0:
+        raise DiscoError("serve: max_clients and max_pending must be >= 1, auth_timeout > 0")
+    if socket_path is not None and net.tls is not None:
+        raise DiscoError("serve: TLS is for a TCP port; a Unix socket is guarded by its mode")
+    if port is not None and net.tls is None and not net.insecure_plaintext:
+        if not is_loopback(host):
+            raise DiscoError(
+                f"{host}: not a loopback address, and without TLS the token and the scans "
+                "would cross the network in clear: give --tls-cert and --tls-key (or "
+                "--insecure-plaintext to accept the risk)"
+            )
     server: _Limited
     if socket_path is not None:
         path = Path(socket_path)
@@ -321,6 +472,38 @@ def make_server(
             raise DiscoError(f"{host}:{port}: cannot listen there ({exc.strerror})") from None
     server.setup_limits(service, net)
     return server  # type: ignore[return-value]
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` is `localhost` or a loopback address (nothing else is resolved)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def tls_context(cert: str | Path, key: str | Path | None = None) -> ssl.SSLContext:
+    """A server-side TLS context (TLS 1.2 or later) with the certificate chain of `cert`
+    (PEM) and its private key (`key`, or in `cert` itself)."""
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    # A waiting connection closed to make room is woken by shutting down its reading
+    # side; taken as the end of the stream rather than an error, the connection can
+    # still send its one "busy" line. (A request is acted on only once its whole line
+    # is in, so a stream cut short is never mistaken for a request.)
+    ctx.options |= getattr(ssl, "OP_IGNORE_UNEXPECTED_EOF", 0)
+    try:
+        ctx.load_cert_chain(str(cert), None if key is None else str(key))
+    except OSError as exc:  # ssl.SSLError among them
+        why = getattr(exc, "reason", None) or exc.strerror or str(exc)  # "PEM lib", say
+        where = str(cert) if key is None else f"{cert}, {key}"
+        raise DiscoError(
+            f"{where}: cannot load the TLS certificate and its key ({why}); "
+            "both must be PEM files, the key matching the certificate"
+        ) from None
+    return ctx
 
 
 def _socket_alive(path: Path) -> bool:
