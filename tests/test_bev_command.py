@@ -19,7 +19,9 @@ from disco_cli.io.png import BACKGROUND, colormap, encode_png, upscale
 runner = CliRunner()
 
 # Points chosen well inside cells (never on an edge): five in the BEV window
-# and four outside it (too near, too far, too low, too high).
+# and outside it four (too near, too far, too low, too high) and a thousand more within
+# the sensor's 3 m blind radius, which the BEV drops: a .bin is read as a scan when it
+# holds 1,000 points or more (io/readers/plausible.py).
 INSIDE = np.array(
     [
         [11.0, 0.3, 0.2, 0.5],  # ahead
@@ -30,10 +32,13 @@ INSIDE = np.array(
     ],
     dtype=np.float32,
 )
-OUTSIDE = np.array(
-    [[1.0, 1.0, 0.0, 0], [100.0, 0.0, 0.0, 0], [10.0, 10.0, -5.0, 0], [10.0, 10.0, 40.0, 0]],
-    dtype=np.float32,
-)
+_BLIND = np.arange(1000) * (2 * np.pi / 1000)
+OUTSIDE = np.vstack(
+    [
+        [[1.0, 1.0, 0.0, 0], [100.0, 0.0, 0.0, 0], [10.0, 10.0, -5.0, 0], [10.0, 10.0, 40.0, 0]],
+        np.c_[2.5 * np.cos(_BLIND), 2.5 * np.sin(_BLIND), np.full((1000, 2), -1.0)],
+    ]
+).astype(np.float32)
 
 
 def decode_png(data: bytes) -> np.ndarray:

@@ -96,7 +96,8 @@ def test_bev_takes_scan_format_and_bev_mode(tmp_path) -> None:
     from disco_cli.model.bev import BEVConfig, polar_bev
 
     rng = np.random.default_rng(0)
-    pts = np.c_[rng.uniform(-30, 30, (500, 2)), rng.uniform(-1, 3, 500), rng.random(500)]
+    # 1,500 points: a .bin is read as a scan from 1,000 (io/readers/plausible.py)
+    pts = np.c_[rng.uniform(-30, 30, (1500, 2)), rng.uniform(-1, 3, 1500), rng.random(1500)]
     scan = tmp_path / "scan.dat"  # an extension that says nothing: --scan-format decides
     pts.astype(np.float32).tofile(scan)
     out = tmp_path / "bev.npy"

@@ -88,8 +88,9 @@ def test_nclt_relative_poses_map_returned_points_onto_each_other(tmp_path):
     from disco_cli.io.readers import read_scan
 
     rng = np.random.default_rng(5)
-    # NCLT's z-down world: ground-like points 0.5 to 1.5 m below the body origin.
-    world = np.c_[rng.uniform(-40, 40, (400, 2)), rng.uniform(0.5, 1.5, 400)]
+    # NCLT's z-down world: ground-like points 0.5 to 1.5 m below the body origin (1,200:
+    # a .bin is read as a scan from 1,000 points, io/readers/plausible.py).
+    world = np.c_[rng.uniform(-40, 40, (1200, 2)), rng.uniform(0.5, 1.5, 1200)]
     body = np.tile(np.eye(4), (2, 1, 1))
     body[0, :3, :3] = rot_z(0.3) @ rot_y(0.02) @ rot_x(-0.03)
     body[0, :3, 3] = [2.0, -1.0, -0.2]
@@ -176,8 +177,9 @@ def test_oxford_locations_and_submap(tmp_path):
     c = ned.mean(axis=0)
     m = 20.0
     stored = -(ned - c) / m  # scale 1 / m: the reader's 20 m per unit gives metres back
-    stored.astype("<f8").tofile(run / "pointcloud_20m" / "frame.bin")
-    back = read_scan(run / "pointcloud_20m" / "frame.bin")[:, :3]
+    # (then the submap's points: a .bin is read as a scan from 1,000 points)
+    np.vstack([stored, submap]).astype("<f8").tofile(run / "pointcloud_20m" / "frame.bin")
+    back = read_scan(run / "pointcloud_20m" / "frame.bin")[:3, :3]
     np.testing.assert_allclose(back, (ned - c) * [1.0, -1.0, -1.0], atol=1e-5)
     assert back[0, 1] > 0 and back[0, 2] > back[1, 2]  # on the left; higher up
     # A file of another size is refused in one line.

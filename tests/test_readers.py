@@ -26,6 +26,18 @@ XYZI = np.array(
 )
 
 
+def _scan_tail(n: int = 1200, seed: int = 0) -> np.ndarray:
+    """`n` points such as a LiDAR scan holds (the ground 3-40 m around the sensor, walls),
+    in quarter metres: exact in float32 and on NCLT's 5 mm grid. A headerless .bin must
+    hold a whole scan to be read (plausible.MIN_POINTS), so the few points a test checks
+    are followed by these."""
+    rng = np.random.default_rng(seed)
+    r, a = rng.uniform(3.0, 40.0, n), rng.uniform(-np.pi, np.pi, n)
+    z = np.where(rng.random(n) < 0.7, -1.75, rng.uniform(-1.5, 6.0, n))
+    xyzi = np.c_[r * np.cos(a), r * np.sin(a), z, rng.uniform(0.0, 1.0, n)]
+    return (np.round(xyzi * 4) / 4).astype(np.float32)
+
+
 def _assert_points(points: np.ndarray, xyz: np.ndarray, intensity: np.ndarray | None) -> None:
     assert points.dtype == np.float32
     assert points.shape == (len(xyz), 4)
@@ -39,19 +51,21 @@ def _assert_points(points: np.ndarray, xyz: np.ndarray, intensity: np.ndarray | 
 
 def test_kitti_round_trip_and_no_copy(tmp_path: Path) -> None:
     path = tmp_path / "000007.bin"
-    path.write_bytes(b"".join(struct.pack("<4f", *row) for row in XYZI.tolist()))
+    rows = np.vstack([XYZI, _scan_tail()])
+    path.write_bytes(b"".join(struct.pack("<4f", *row) for row in rows.tolist()))
     points = read_scan(path)
-    _assert_points(points, XYZI[:, :3], XYZI[:, 3])
+    _assert_points(points, rows[:, :3], rows[:, 3])
     # Returned as np.fromfile(...).reshape(-1, 4) gives it: a view of the file's
     # buffer, C-contiguous, never a converted copy.
-    assert points.base is not None and points.base.shape == (XYZI.size,)
+    assert points.base is not None and points.base.shape == (rows.size,)
     assert points.flags.c_contiguous
 
 
 def test_explicit_format_overrides_the_extension(tmp_path: Path) -> None:
     path = tmp_path / "scan.dat"
-    XYZI.tofile(path)
-    _assert_points(read_scan(path, format="kitti"), XYZI[:, :3], XYZI[:, 3])
+    rows = np.vstack([XYZI, _scan_tail()])
+    rows.tofile(path)
+    _assert_points(read_scan(path, format="kitti"), rows[:, :3], rows[:, 3])
     with pytest.raises(ScanReadError, match="scan.dat"):
         read_scan(path)  # unknown extension, no format
 
@@ -69,13 +83,18 @@ def test_nclt_round_trip_with_scale_and_offset(tmp_path: Path) -> None:
     )
     # NCLT's z-down frame, returned turned 180 degrees about x: (x, -y, -z).
     metres *= [1.0, -1.0, -1.0]
+    # A whole scan follows (a headerless .bin must hold one to be read): the tail's
+    # points in NCLT's counts, z down.
+    tail = _scan_tail(1200)[:, :3].astype(np.float64) * [1.0, -1.0, -1.0]
+    raw += [(*np.round((p + 100.0) / 0.005).astype(int), 1, 2) for p in tail]
     path = folder / "1326030975726043.bin"
     path.write_bytes(b"".join(struct.pack("<HHHBB", *r) for r in raw))
     assert guess_format(path) == "nclt"
     points = read_scan(path)
-    assert points.dtype == np.float32 and points.shape == (3, 4)
-    np.testing.assert_allclose(points[:, :3], metres, atol=1e-5)
-    np.testing.assert_array_equal(points[:, 3], [7, 255, 0])
+    assert points.dtype == np.float32 and points.shape == (3 + 1200, 4)
+    np.testing.assert_allclose(points[:3, :3], metres, atol=1e-5)
+    np.testing.assert_allclose(points[3:, :3], tail * [1.0, -1.0, -1.0], atol=1e-5)
+    np.testing.assert_array_equal(points[:4, 3], [7, 255, 0, 1])
     # Outside velodyne_sync the same bytes are read as KITTI only when they fit
     # 16-byte records, so the folder decides, and `format=` decides over both.
     other = tmp_path / "scan.bin"
@@ -89,7 +108,7 @@ def test_nclt_z_down_ground_reads_back_below_the_sensor(tmp_path: Path) -> None:
     returns it at z = -2 (within NCLT's 5 mm grid), and a wall 10 m ahead and 3 m to the
     right (NCLT: x forward, y right) comes back at y = -3 (z up: y left)."""
     rng = np.random.default_rng(3)
-    ground = np.c_[rng.uniform(-30, 30, (500, 2)), np.full(500, 2.0)]
+    ground = np.c_[rng.uniform(-30, 30, (1500, 2)), np.full(1500, 2.0)]
     wall = np.c_[np.full(50, 10.0), np.full(50, 3.0), rng.uniform(-5.0, 1.0, 50)]
     ned = np.vstack([ground, wall])  # NCLT's z-down Velodyne frame
     raw = np.round((ned + 100.0) / 0.005).astype("<u2")
@@ -100,8 +119,8 @@ def test_nclt_z_down_ground_reads_back_below_the_sensor(tmp_path: Path) -> None:
     folder.mkdir()
     rec.tofile(folder / "1326030975726043.bin")
     pts = read_scan(folder / "1326030975726043.bin")
-    np.testing.assert_allclose(pts[:500, 2], -2.0, atol=0.003)
-    np.testing.assert_allclose(pts[500:, :2], np.tile([10.0, -3.0], (50, 1)), atol=0.003)
+    np.testing.assert_allclose(pts[:1500, 2], -2.0, atol=0.003)
+    np.testing.assert_allclose(pts[1500:, :2], np.tile([10.0, -3.0], (50, 1)), atol=0.003)
     np.testing.assert_allclose(pts[:, 0], ned[:, 0], atol=0.003)  # x stays forward
 
 
@@ -648,7 +667,8 @@ def test_damaged_files_raise_only_scan_read_error(tmp_path: Path) -> None:
     """Every prefix and many byte-flipped copies of a valid file of each format
     either read as N x 4 float32 or raise ScanReadError; nothing else escapes."""
     valid: dict[str, bytes] = {}
-    valid["kitti.bin"] = XYZI.tobytes()
+    scan = np.vstack([XYZI, _scan_tail()])  # a headerless .bin is read when it is a scan
+    valid["kitti.bin"] = scan.tobytes()
     np.save(tmp_path / "v.npy", XYZI)
     valid["v.npy"] = (tmp_path / "v.npy").read_bytes()
     head = _pcd_header(
@@ -680,7 +700,8 @@ def test_damaged_files_raise_only_scan_read_error(tmp_path: Path) -> None:
     rng = np.random.default_rng(7)
     for name, content in valid.items():
         path = tmp_path / name
-        variants = [content[:cut] for cut in range(0, len(content), 5)]
+        step = 5 if len(content) < 999 else 83  # the KITTI scan: 19 kB
+        variants = [content[:cut] for cut in range(0, len(content), step)]
         for _ in range(60):
             damaged = bytearray(content)
             for pos in rng.integers(0, len(content), size=rng.integers(1, 4)):
@@ -696,4 +717,4 @@ def test_damaged_files_raise_only_scan_read_error(tmp_path: Path) -> None:
                 assert points.dtype == np.float32 and points.ndim == 2 and points.shape[1] == 4
                 assert len(points) > 0
         path.write_bytes(content)
-        assert read_scan(path).shape == (len(XYZI), 4), name
+        assert read_scan(path).shape == (len(scan if name == "kitti.bin" else XYZI), 4), name

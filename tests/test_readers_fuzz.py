@@ -32,7 +32,7 @@ import pytest
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
-from test_readers import _pcd_header, _ply_header, lzf_compress  # noqa: E402
+from test_readers import _pcd_header, _ply_header, _scan_tail, lzf_compress  # noqa: E402
 
 from disco_cli.errors import DiscoError, PoseFileError, ScanReadError  # noqa: E402
 from disco_cli.io.poses import (  # noqa: E402
@@ -183,10 +183,16 @@ def values(n: int, integer: bool):
     return st.lists(small if integer else small.map(lambda v: v / 4), min_size=n, max_size=n)
 
 
+# A headerless .bin is read only when it holds a whole scan (plausible.MIN_POINTS): the
+# drawn points of a KITTI, NCLT or Oxford file are followed by these.
+TAIL = _scan_tail(1100, seed=5)
+
+
 @st.composite
 def kitti_files(draw):
     n = draw(st.integers(1, 30))
     pts = np.array(draw(values(4 * n, False)), np.float32).reshape(n, 4)
+    pts = np.vstack([pts, TAIL])
     return pts.tobytes(), 0, pts
 
 
@@ -195,9 +201,12 @@ def nclt_files(draw):
     from disco_cli.io.readers.nclt import RECORD
 
     n = draw(st.integers(1, 30))
-    raw = np.zeros(n, RECORD)
+    raw = np.zeros(n + len(TAIL), RECORD)
     for c, hi in (("x", 65535), ("y", 65535), ("z", 65535), ("intensity", 255), ("laser", 31)):
-        raw[c] = draw(st.lists(st.integers(0, hi), min_size=n, max_size=n))
+        raw[c][:n] = draw(st.lists(st.integers(0, hi), min_size=n, max_size=n))
+    # The tail in NCLT's counts (z down); its laser ids are 0.
+    raw["x"][n:], raw["y"][n:], raw["z"][n:] = np.round((TAIL[:, :3] * [1, -1, -1] + 100) / 0.005).T
+    raw["intensity"][n:] = 9
     # NCLT's published conversion (5 mm per count, -100 m), turned z up: (x, -y, -z).
     xyz = [raw[c].astype(np.float64) * 0.005 - 100.0 for c in "xyz"]
     expected = np.stack([xyz[0], -xyz[1], -xyz[2], raw["intensity"]], axis=1)
@@ -210,6 +219,8 @@ def oxford_files(draw):
 
     n = draw(st.integers(1, 30))
     xyz = np.array(draw(values(3 * n, False)), np.float64).reshape(n, 3) / 100
+    xyz = np.vstack([xyz, TAIL[:, :3] / 40.0])  # a submap's points within [-1, 1]
+    n = len(xyz)
     m = DEFAULT_SCALE  # x negated back: x forward, y left, z up
     expected = np.stack([-m * xyz[:, 0], m * xyz[:, 1], m * xyz[:, 2], np.zeros(n)], axis=1)
     return xyz.astype("<f8").tobytes(), 0, expected.astype(np.float32)
@@ -401,6 +412,102 @@ def test_header_claiming_a_trillion_points_is_refused_before_allocating(fuzz_dir
             check_scan(fuzz_dir / f"huge.{fmt.strip()[:3]}", content, None, fmt.strip()[:3])
             with pytest.raises(ScanReadError):
                 read_scan(fuzz_dir / f"huge.{fmt.strip()[:3]}")
+
+
+# -- files that are no scan: random bytes, text, truncated scans --------------------------
+
+RECORD_BYTES = {"kitti": 16, "nclt": 8, "oxford": 24}
+WORDS_TEXT = np.array(["the", "scan", "Größe", "x", "y", "z", "intensity", "ERROR", "at",
+                       "0", "1", "-12.5", "3.14159", "1e-3", "nan", "inf", "\u5730\u56fe",
+                       ",", ";", ".", "#", "\t", "\n", "\r\n", " ", "  "])  # fmt: skip
+
+
+def _text(rng: np.random.Generator, size: int) -> bytes:
+    """`size` bytes of text: prose and numbers, CSV rows, or a point cloud's ASCII
+    export ("x y z i" a line), the kinds of text a .bin name ends up on."""
+    kind = rng.integers(0, 3)
+    tokens = max(1, size // 2)
+    if kind == 0:
+        text = " ".join(rng.choice(WORDS_TEXT, tokens))
+    elif kind == 1:
+        rows = rng.normal(0.0, 20.0, (tokens // 8 + 1, 4))
+        text = "x,y,z,intensity\n" + "".join(",".join(f"{v:.3f}" for v in r) + "\n" for r in rows)
+    else:
+        rows = rng.normal(0.0, 20.0, (tokens // 8 + 1, 4))
+        text = "".join(" ".join(f"{v:.6g}" for v in r) + "\n" for r in rows)
+    content = text.encode()
+    while len(content) < size:
+        content += content
+    return content[:size]
+
+
+@FUZZ
+@given(fmt=st.sampled_from(list(SCAN_FILES)), text=st.booleans(), seed=st.integers(0, 2**32 - 1),
+       records=st.one_of(st.integers(1, 1100), st.integers(1100, 12_000)))  # fmt: skip
+def test_random_bytes_and_text_are_never_answered(
+    fmt: str, text: bool, seed: int, records: int, fuzz_dir: Path
+) -> None:
+    """Random bytes, or text, of a size that fits the layout's record (so the size check
+    does not catch it), under each format's name: refused in one line naming the file,
+    never read as points, at every size from one record to 12,000 (300 kB)."""
+    rng = np.random.default_rng(seed)
+    size = records * RECORD_BYTES.get(fmt, 16)
+    content = _text(rng, size) if text else rng.bytes(size)
+    path = fuzz_dir / SCAN_FILES[fmt][1]
+    path.write_bytes(content)
+    with _bounded(len(content)):
+        with pytest.raises(ScanReadError) as info:
+            read_scan(path, format=fmt)
+    message = str(info.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message, message
+
+
+@FUZZ
+@given(scan=st.integers(0, 51), cut=st.floats(0.0, 1.0), aligned=st.booleans(),
+       fmt=st.sampled_from(["kitti", "nclt", "oxford"]))  # fmt: skip
+def test_a_scan_cut_anywhere_is_answered_only_when_whole_enough(
+    samples: Path, scan: int, cut: float, aligned: bool, fmt: str, fuzz_dir: Path
+) -> None:
+    """A bundled sample scan (17k points, written in each headerless layout) cut at any
+    byte: refused in one line when the cut splits a record or leaves fewer than
+    plausible.MIN_POINTS points, else answered with exactly the points before the cut."""
+    from disco_cli.io.readers.plausible import MIN_POINTS
+
+    files = sorted(samples.glob("0[01]/velodyne/*.bin"))
+    pts = np.fromfile(files[scan % len(files)], "<f4").reshape(-1, 4)
+    if fmt == "kitti":
+        content = pts.tobytes()
+    elif fmt == "nclt":
+        content = _as_nclt_records(pts).tobytes()
+    else:  # a submap's float64 x, y, z, in [-1, 1] at 40 m a unit
+        content = (pts[:, :3].astype(np.float64) / 40.0).tobytes()
+    record = RECORD_BYTES[fmt]
+    at = int(cut * len(content))
+    if aligned:
+        at -= at % record
+    path = fuzz_dir / f"cut_{fmt}.bin"
+    path.write_bytes(content[:at])
+    whole = at % record == 0 and at // record >= MIN_POINTS
+    try:
+        points = read_scan(path, format=fmt)
+    except ScanReadError as exc:
+        message = str(exc)
+        assert message.startswith(f"{path}: ") and "\n" not in message, message
+        assert not whole, f"a scan of {at // record} whole points was refused: {message}"
+        return
+    assert whole, f"{at} bytes ({at / record:.2f} records) were answered"
+    assert len(points) == at // record
+
+
+def _as_nclt_records(pts: np.ndarray) -> np.ndarray:
+    from disco_cli.io.readers.nclt import RECORD
+
+    keep = np.all(np.abs(pts[:, :3]) < 99.0, axis=1)
+    rec = np.zeros(int(keep.sum()), RECORD)
+    raw = np.round((pts[keep, :3].astype(np.float64) * [1, -1, -1] + 100.0) / 0.005)
+    rec["x"], rec["y"], rec["z"] = raw.astype("<u2").T
+    rec["laser"] = np.arange(len(rec)) % 32
+    return rec
 
 
 # -- PointCloud2 -----------------------------------------------------------------------

@@ -56,7 +56,8 @@ def read(path: Path) -> np.ndarray:
     except OSError as exc:
         raise ScanReadError(path, f"cannot read: {exc.strerror or exc}") from None
     m = _scale
-    # A damaged value near float64's limit overflows to Inf here, and assemble drops it.
-    with np.errstate(over="ignore"):
+    # A damaged value near float64's limit overflows to Inf here, and assemble drops it;
+    # random bytes hold signalling NaNs, which warn "invalid value" when multiplied.
+    with np.errstate(over="ignore", invalid="ignore"):
         x, y, z = -m * xyz[:, 0], m * xyz[:, 1], m * xyz[:, 2]
     return assemble(path, x, y, z, None)
