@@ -97,35 +97,35 @@ def test_idle_unauthenticated_connections_do_not_starve_a_client(
     # lets the client in is the quota of its own, not a timeout racing the test.
     port, token, proc = tcp_server(
         tcp_map, tmp_path, "--auth-timeout", "600", "--max-pending", str(PENDING),
-        "--max-clients", "4",
+        "--max-clients", "5",
     )  # fmt: skip
     idle = []
     try:
         idle = idle_connections(port, N_IDLE)
         t0 = time.monotonic()
-        with Client(port=port, token_file=token) as c:
-            rows = c.query(samples / QUERIES[0], topk=3)
-        took = time.monotonic() - t0
-        assert rows == expected
-        assert took < ANSWERED_WITHIN, took
-        # Accepted in order, each past the quota closes the one waiting longest: the
-        # first N_IDLE - PENDING made room for later ones, and one more for the
-        # client. Each was told why, in one line.
-        evicted = N_IDLE - PENDING + 1
-        for s in idle[:evicted]:
-            replies = lines_until_closed(s)
-            assert len(replies) == 1 and replies[0]["ok"] is False, replies
-            assert "busy" in replies[0]["error"] and "--max-pending" in replies[0]["error"]
-        # The rest still wait, answered nothing: they were never refused or timed out.
-        readable, _, _ = select.select(idle[evicted:], [], [], 0)
-        assert readable == []
-        # And they take none of the clients' slots: 4 clients at once, all answered.
-        clients = [Client(port=port, token_file=token) for _ in range(4)]
-        try:
-            assert all(c.ping() for c in clients)
-        finally:
-            for c in clients:
-                c.close()
+        with Client(port=port, token_file=token) as first:
+            rows = first.query(samples / QUERIES[0], topk=3)
+            took = time.monotonic() - t0
+            assert rows == expected
+            assert took < ANSWERED_WITHIN, took
+            # Accepted in order, each past the quota closes the one waiting longest:
+            # the first N_IDLE - PENDING made room for later ones, and one more for the
+            # client. Each was told why, in one line.
+            evicted = N_IDLE - PENDING + 1
+            for s in idle[:evicted]:
+                replies = lines_until_closed(s)
+                assert len(replies) == 1 and replies[0]["ok"] is False, replies
+                assert "busy" in replies[0]["error"] and "--max-pending" in replies[0]["error"]
+            # The rest still wait, answered nothing: never refused, never timed out.
+            readable, _, _ = select.select(idle[evicted:], [], [], 0)
+            assert readable == []
+            # And they take none of the clients' slots: all 5 are there for clients.
+            more = [Client(port=port, token_file=token) for _ in range(4)]
+            try:
+                assert all(c.ping() for c in more) and first.ping()
+            finally:
+                for c in more:
+                    c.close()
     finally:
         for s in idle:
             s.close()
@@ -138,13 +138,13 @@ def test_a_connection_without_the_token_is_closed_at_its_deadline(
     port, token, proc = tcp_server(tcp_map, tmp_path, "--auth-timeout", "1")
     try:
         for first in (b"", b'{"op": "auth", "tok'):  # nothing; half a line, never ended
+            t0 = time.monotonic()  # before the server can have accepted it
             s = socket.create_connection(("127.0.0.1", port), timeout=60)
-            t0 = time.monotonic()
             s.sendall(first)
             assert lines_until_closed(s) == []  # no byte of answer
             took = time.monotonic() - t0
             s.close()
-            assert 0.9 < took < 30, (first, took)  # its deadline, not --read-timeout's 30 s
+            assert 1.0 <= took < 30, (first, took)  # its deadline, not --read-timeout's 30 s
         with Client(port=port, token_file=token) as c:  # a client with it still gets in
             assert c.ping()
     finally:
@@ -261,7 +261,11 @@ def test_a_tls_connection_must_show_the_token_too(tls_server) -> None:
     raw = socket.create_connection(("127.0.0.1", port), timeout=60)
     with ctx.wrap_socket(raw, server_hostname="127.0.0.1") as s:
         s.sendall(b'{"op": "auth", "token": "not-it"}\n{"op": "ping"}\n')
-        assert s.recv(100) == b""
+        try:
+            got = s.recv(100)
+        except ConnectionResetError:  # closed with bytes unread: no answer either
+            got = b""
+        assert got == b""
 
 
 # -- the command line: TLS and hosts ---------------------------------------------------
