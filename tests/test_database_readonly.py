@@ -157,8 +157,9 @@ def test_a_read_only_map_answers_query_and_info_like_a_writable_one(
             assert got.stdout == want and want.count("\n") == 5
         _one_note(got.stderr, db)
     assert db.read_bytes() == before
-    if layout != "file":  # nowhere to put a -shm: read as immutable, nothing left beside
-        assert sorted(p.name for p in db.parent.iterdir()) == ["map.db"]
+    # Nothing left beside it: a 0444 file (`folder`, `file`) is read as immutable, and
+    # so is a map in a folder that cannot take the WAL's -shm (`owner`).
+    assert sorted(p.name for p in db.parent.iterdir()) == ["map.db"]
 
 
 def test_eval_on_a_read_only_map(site: Path, samples: Path) -> None:
@@ -253,3 +254,83 @@ def test_a_map_this_user_may_not_read_is_named_so(site: Path, samples: Path, hid
     # The library says the same (the command line may refuse it before).
     got = _library_error(db, writable=False)
     assert got.stdout.strip() == f"{db}: cannot read (Permission denied)", got.stderr
+
+
+# -- a read-only open leaves nothing that stops a later writer (issue 42) ----------------
+
+
+def _own_map(top: Path, name: str) -> Path:
+    """A copy of the map owned by uid 65534, at 0444, in a folder of its own: its owner
+    made it read-only, and may make it writable again."""
+    folder = top / name
+    folder.mkdir()
+    os.chown(folder, NOBODY, NOBODY)
+    db = folder / "map.db"
+    shutil.copy(top / "writable" / "map.db", db)
+    os.chown(db, NOBODY, NOBODY)
+    os.chmod(db, 0o444)
+    return db
+
+
+def _scans_in(db: Path) -> list[str]:
+    conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    try:
+        return [r[0] for r in conn.execute("SELECT path FROM scans ORDER BY id")]
+    finally:
+        conn.close()
+
+
+def _append_as_owner(db: Path, samples: Path) -> tuple[subprocess.CompletedProcess, Path]:
+    extra = db.parent / "extra.bin"
+    shutil.copy(samples / "01" / "velodyne" / "000007.bin", extra)
+    os.chmod(db, 0o644)  # the owner makes the map writable again
+    got = as_nobody("build-db", str(extra), "-o", str(db), "--append", "-q", cwd=db.parent)
+    return got, extra
+
+
+def test_a_query_of_a_0444_map_leaves_nothing_that_stops_a_later_append(
+    site: Path, samples: Path
+) -> None:
+    # Before: the query left map.db-wal and map.db-shm at 0444 beside the map, and the
+    # append failed with "attempt to write a readonly database".
+    db = _own_map(site, "own")
+    before = _scans_in(site / "writable" / "map.db")
+    got = as_nobody("query", str(samples / QUERY), "--db", str(db), "-k", "1", "--format", "jsonl")
+    assert got.returncode == 0 and json.loads(got.stdout)["match_id"] == 5, got.stderr
+    _one_note(got.stderr, db)
+    assert sorted(p.name for p in db.parent.iterdir()) == ["map.db"]
+    got, extra = _append_as_owner(db, samples)
+    assert got.returncode == 0, got.stderr
+    assert _scans_in(db) == before + [str(extra)]
+
+
+def test_side_files_a_read_only_open_left_are_made_writable_by_their_owner(
+    site: Path, samples: Path
+) -> None:
+    # What an older disco, or the sqlite3 shell, leaves: a read-only (mode=ro) open of
+    # the 0444 map by its owner creates map.db-wal and map.db-shm at 0444.
+    db = _own_map(site, "left")
+    script = "import sqlite3, sys\nc = sqlite3.connect(f'file:{sys.argv[1]}?mode=ro', uri=True)\n"
+    script += "c.execute('SELECT count(*) FROM scans').fetchall()\nc.close()\n"
+    left = subprocess.run(_nobody_cmd() + ["-c", script, str(db)], cwd="/", env=_env(),
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert left.returncode == 0, left.stderr
+    for side in ("map.db-wal", "map.db-shm"):
+        assert stat.S_IMODE((db.parent / side).stat().st_mode) == 0o444
+    before = _scans_in(site / "writable" / "map.db")
+    got, extra = _append_as_owner(db, samples)
+    assert got.returncode == 0, got.stderr
+    assert _scans_in(db) == before + [str(extra)]
+
+
+def test_side_files_of_another_user_are_named_for_removal(site: Path, samples: Path) -> None:
+    db = _own_map(site, "theirs")
+    for side in ("map.db-wal", "map.db-shm"):  # root's, 0444: uid 65534 may not change them
+        (db.parent / side).write_bytes(b"")
+        os.chmod(db.parent / side, 0o444)
+    got, _ = _append_as_owner(db, samples)
+    lines = got.stderr.strip().splitlines()
+    assert got.returncode == 1 and len(lines) == 1, got.stderr
+    assert lines[0].startswith(f"error: {db}: cannot write: map.db-wal"), got.stderr
+    assert "remove map.db-wal and map.db-shm" in lines[0] and "corrupt" not in lines[0]
+    assert _scans_in(db) == _scans_in(site / "writable" / "map.db")

@@ -40,8 +40,10 @@ before any write, and in `check()` (`disco info --check`). A damaged file is ref
 with one `DatabaseError` naming it and the problem, and is left byte for byte as it
 was; any SQLite error met later is turned into a `DatabaseError` too, never passed on
 as `sqlite3.DatabaseError`, and a permission problem is never called damage. A map this
-process may not write (its file or folder) opens read-only (`mode=ro`, or
-`immutable=1` where SQLite cannot put the WAL's -shm file beside it), with one note.
+process may not write (its file or folder) opens read-only (`immutable=1` for a file
+nobody may write or where SQLite cannot put the WAL's -shm file beside it, else
+`mode=ro`), with one note, leaving no -wal or -shm that would stop a later writer; a
+writer makes its own unwritable -wal and -shm writable, or names them for removal.
 """
 
 from __future__ import annotations

@@ -9,6 +9,7 @@ import functools
 import json
 import os
 import sqlite3
+import stat
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -257,29 +258,75 @@ def _sqlite_connect(path: Path, params: str) -> sqlite3.Connection:
     return conn
 
 
+def _side_files_writable(path: Path) -> None:
+    """Make the map's `-wal` and `-shm` writable where this process may write the map
+    itself, or say in one line which to remove.
+
+    SQLite creates them with the map's own permissions, so a read-only open of a 0444
+    map (by an older disco, the sqlite3 shell, another user) leaves them 0444, and once
+    the map is made writable every write fails with "attempt to write a readonly
+    database". Ours are given the map's permissions (chmod disturbs no process that has
+    them open); another user's cannot be, and are named."""
+    mode = None
+    for side in (Path(f"{path}-wal"), Path(f"{path}-shm")):
+        try:
+            st = side.stat()
+        except FileNotFoundError:
+            continue
+        except OSError:
+            st = None
+        if os.access(side, os.R_OK | os.W_OK):
+            continue
+        if st is not None and st.st_uid == os.geteuid():
+            mode = stat.S_IMODE(path.stat().st_mode) if mode is None else mode
+            try:
+                os.chmod(side, mode | stat.S_IRUSR | stat.S_IWUSR)
+                continue
+            except OSError:
+                pass
+        raise DatabaseError(
+            path,
+            f"cannot write: {side.name} beside it is not writable here (left by a read-only "
+            f"open?); remove {path.name}-wal and {path.name}-shm while no process has the "
+            "map open, or make them writable",
+        )
+
+
 def _connect(path: Path, writable: bool) -> tuple[sqlite3.Connection, str | None]:
     """A connection to the map at `path`, and the note to give when it had to be opened
     read-only although the caller could have written (None otherwise).
 
     Where this process may write the file and its folder, the connection is read-write
-    even for a reader (the last one to close folds the WAL in and removes -wal/-shm).
-    Elsewhere (a read-only volume, a map of another user) it is `mode=ro`; when SQLite
-    cannot even read that way (under WAL it needs a -shm file beside the map, which a
-    read-only folder cannot take), `immutable=1`, which reads the file alone: right when
-    nothing else writes it, and a pending WAL (writes not yet in the file) is refused."""
+    even for a reader (the last one to close folds the WAL in and removes -wal/-shm),
+    once its -wal and -shm are writable too (`_side_files_writable`). Elsewhere (a
+    read-only volume, a map of another user) it is read-only, and leaves nothing beside
+    the map that could stop a later writer:
+
+    - a map that nobody may write (no write permission bit: a 0444 file) is opened
+      `immutable=1`, which reads the file alone and creates no -wal or -shm, unless
+      its WAL holds writes not yet in the file;
+    - otherwise `mode=ro` (its owner may be writing it meanwhile: SQLite then needs the
+      -shm beside it to see those writes), and where SQLite cannot even read that way
+      (a read-only folder cannot take the -shm), `immutable=1`; a pending WAL is refused
+      then. A writer that later finds those -wal and -shm files of another user
+      unwritable says which to remove."""
     reason = read_only_reason(path)
     if writable and reason is not None:
         raise DatabaseError(path, f"cannot write: {reason} (permission denied)")
     try:
         if reason is None:
+            _side_files_writable(path)
             return _sqlite_connect(path, "mode=rw"), None
+        wal = Path(f"{path}-wal")
+        pending = wal.is_file() and wal.stat().st_size > 0
+        if not pending and not stat.S_IMODE(path.stat().st_mode) & 0o222:
+            return _sqlite_connect(path, "mode=ro&immutable=1"), f"opened read-only: {reason}"
         try:
             return _sqlite_connect(path, "mode=ro"), f"opened read-only: {reason}"
         except sqlite3.OperationalError as exc:
             if not _is_permission_error(exc):
                 raise
-        wal = Path(f"{path}-wal")
-        if wal.is_file() and wal.stat().st_size > 0:
+        if pending:
             raise DatabaseError(
                 path,
                 f"cannot open read-only: {reason}, and its WAL ({wal.name}) holds writes that "
