@@ -15,12 +15,13 @@ import socket
 import ssl
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 from test_serve import QUERIES, cli, start_server
-from test_serve_fleet import free_port
+from test_serve_fleet import free_port, together
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
@@ -28,7 +29,7 @@ from disco_cli.errors import DiscoError
 from disco_cli.io.readers import read_scan
 from disco_cli.maps.facade import Map
 from disco_cli.query import relative_pose
-from disco_cli.service.client import Client, ClientError
+from disco_cli.service.client import Client, ClientError, ServerError
 from disco_cli.service.serve import MAX_POSES, QueryService, ServeOptions
 from disco_cli.service.serve_net import NetOptions, make_server
 
@@ -402,3 +403,78 @@ def test_a_library_server_without_a_scan_root_reads_no_file(
         finally:
             watching[0] = False
         assert opened, "the audit hook saw no read of an allowed scan"
+
+
+# -- the client against a scripted server ----------------------------------------------
+
+
+def scripted_server(replies: list[bytes]) -> tuple[int, list[bytes], threading.Thread]:
+    """A one-thread TCP server: connection i gets its first line answered with
+    `replies[i]` (then closed, unless the reply is ok: then a ping is answered too).
+    Returns (port, the first lines received, its thread)."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    got: list[bytes] = []
+
+    def run() -> None:
+        with listener:
+            for reply in replies:
+                conn, _ = listener.accept()
+                with conn, conn.makefile("rb") as f:
+                    got.append(f.readline())
+                    conn.sendall(reply)
+                    if b'"ok": true' in reply:
+                        f.readline()
+                        conn.sendall(b'{"id": 2, "ok": true, "op": "ping"}\n')
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return port, got, thread
+
+
+BUSY = (
+    b'{"id": null, "ok": false, "busy": true, "error": "the server is busy: 16 newer '
+    b'connections are waiting to show the token (disco serve --max-pending); try again"}\n'
+)
+
+
+def test_a_client_closed_to_make_room_connects_again() -> None:
+    port, got, thread = scripted_server([BUSY, BUSY, b'{"id": 1, "ok": true, "op": "auth"}\n'])
+    with Client(port=port, token="t", connect_timeout=60) as c:
+        assert c.ping()
+    thread.join(timeout=60)
+    assert [json.loads(line)["op"] for line in got] == ["auth"] * 3  # it asked three times
+
+
+def test_a_client_kept_busy_gives_up_at_its_connect_timeout() -> None:
+    port, got, thread = scripted_server([BUSY] * 1000)
+    t0 = time.monotonic()
+    with pytest.raises(ClientError, match="the server is busy") as info:
+        Client(port=port, token="t", connect_timeout=0.5)
+    assert time.monotonic() - t0 < 30 and len(got) >= 2
+    assert not isinstance(info.value, ServerError) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("tls", [False, True], ids=["plain", "tls"])
+def test_more_clients_at_once_than_the_waiting_quota_are_all_answered(
+    tcp_map: Path, tmp_path: Path, request, tls: bool
+) -> None:
+    """40 clients with the token connecting together, past --max-pending 1: those
+    closed to make room for newer ones are told so (over TLS too, where one displaced
+    in its handshake finishes it first) and connect again, and every one is answered."""
+    extra, ca = [], None
+    if tls:
+        cert, key = request.getfixturevalue("certificate")
+        extra, ca = ["--tls-cert", str(cert), "--tls-key", str(key)], cert
+    port, token, proc = tcp_server(tcp_map, tmp_path, "--max-pending", "1", *extra)
+    try:
+
+        def ask(i: int) -> bool:
+            with Client(port=port, token_file=token, tls_ca=ca, connect_timeout=120) as c:
+                return c.request({"op": "ping", "id": i})["id"] == i
+
+        got = together(40, ask)
+    finally:
+        err = stop(proc)
+    assert got == [True] * 40, [g for g in got if g is not True][:3]
+    assert "Traceback" not in err

@@ -51,6 +51,15 @@ class ServerError(ClientError):
     """The server refused a request: its one-line reason."""
 
 
+class _TryAgain(ClientError):
+    """Connecting failed in a way that may pass: the server was busy (`cut` 0), or a
+    TLS handshake was cut off (`cut` 1; it may also be a server without TLS)."""
+
+    def __init__(self, line: str, cut: int = 0):
+        super().__init__(line)
+        self.cut = cut
+
+
 class Client:
     """One connection to a `disco serve` server, on a Unix socket or a TCP port.
     Requests are answered in order; a refused one raises `ServerError` and the
@@ -100,9 +109,26 @@ class Client:
         return self._where if isinstance(self._where, str) else "%s:%s" % self._where
 
     def _open(self) -> None:
-        sock = _connect(self._where, self._connect_timeout)
+        """Connect (and show the token). A server busy with connections waiting to
+        show theirs closed this one to make room: try again, as for a full listen
+        queue, until `connect_timeout` is spent; so too, up to 10 times, when a TLS
+        handshake is cut off (what such a close looks like before the handshake ends)."""
+        deadline = time.monotonic() + self._connect_timeout
+        delay, cut = 0.01, 0
+        while True:
+            try:
+                return self._open_once(deadline)
+            except _TryAgain as exc:
+                cut += exc.cut
+                if cut > 10 or time.monotonic() + delay > deadline:
+                    raise ClientError(str(exc)) from exc.__cause__
+            time.sleep(delay)
+            delay = min(delay * 2, 0.2)
+
+    def _open_once(self, deadline: float) -> None:
+        sock = _connect(self._where, max(deadline - time.monotonic(), 0.001))
         if self._tls is not None:
-            sock = self._handshake(sock)
+            sock = self._handshake(sock, deadline)
         self._sock = sock
         self._sock.settimeout(self._timeout)
         self._reader = self._sock.makefile("rb")
@@ -117,15 +143,18 @@ class Client:
                 )
             if not reply.get("ok"):  # full, or busy with connections waiting to show one
                 self.close()
-                raise ClientError(f"{self.where}: {reply.get('error', 'refused')}")
+                line = f"{self.where}: {reply.get('error', 'refused')}"
+                if reply.get("busy") is True:
+                    raise _TryAgain(line)
+                raise ClientError(line)
 
-    def _handshake(self, sock: _socket.socket) -> _socket.socket:
+    def _handshake(self, sock: _socket.socket, deadline: float) -> _socket.socket:
         """`sock` wrapped in TLS, the server's certificate checked against the CA."""
         import ssl  # deferred: only TLS clients pay for ssl (tens of ms)
 
         host = self._where[0]
         try:
-            sock.settimeout(self._connect_timeout)
+            sock.settimeout(max(deadline - time.monotonic(), 0.001))
             return self._tls.wrap_socket(sock, server_hostname=host)  # type: ignore[union-attr]
         except ssl.SSLCertVerificationError as exc:
             sock.close()
@@ -136,10 +165,13 @@ class Client:
         except OSError as exc:  # ssl.SSLError and timeouts among them
             sock.close()
             why = getattr(exc, "reason", None) or exc.strerror or type(exc).__name__
-            raise ClientError(
+            line = (
                 f"{self.where}: the TLS handshake failed ({why}): is the server started "
                 "with --tls-cert?"
-            ) from exc
+            )
+            if isinstance(exc, (ssl.SSLEOFError, ConnectionResetError)):
+                raise _TryAgain(line, cut=1) from exc
+            raise ClientError(line) from exc
 
     def close(self) -> None:
         if self._sock is not None:

@@ -48,6 +48,10 @@ __all__ = [
 
 _CHUNK = 64 * 1024
 _AUTH_LINE_BYTES = 4096  # what an unauthenticated client may make the server hold
+# A TLS handshake is looked at this often for a displacement, and given this much more
+# time once displaced (to say so in a line its client can read).
+_HANDSHAKE_SLICE = 0.2
+_HANDSHAKE_GRACE = 1.0
 
 
 @dataclass
@@ -221,22 +225,45 @@ class _Handler(socketserver.BaseRequestHandler):
         sock = self.request
         deadline = slots.arrived(sock) + net.auth_timeout
         try:
-            if isinstance(sock, ssl.SSLSocket):
-                sock.settimeout(max(deadline - time.monotonic(), 0.001))
-                sock.do_handshake()
+            if isinstance(sock, ssl.SSLSocket) and not self._handshake(sock, slots, deadline):
+                return False
             verdict, rid = self._token(reader, net, deadline)
-        except OSError:  # the handshake failed, timed out, or was cut off
+        except OSError:  # the handshake failed, or was cut off
             return False
-        if verdict is None:  # closed, or no line by the deadline
+        if not verdict and verdict is not None:
+            return False
+        admitted = slots.admit(sock) if verdict else None
+        if admitted is None:  # no token by the deadline, or closed to make room
             if slots.was_evicted(sock):
-                self._send({"id": None, "ok": False, "error": _busy_waiting(net)}, net)
+                self._send(_busy_reply(net, rid), net)
             return False
-        if not verdict:
-            return False
-        if not slots.admit(sock):
+        if not admitted:
             self._send({"id": rid, "ok": False, "error": _full(net)}, net)
             return False
         return self._send({"id": rid, "ok": True, "op": "auth"}, net)
+
+    def _handshake(self, sock: ssl.SSLSocket, slots: _Slots, deadline: float) -> bool:
+        """Whether the TLS handshake completed by `deadline`, and the connection still
+        waits for its token. One closed to make room meanwhile is not cut off in its
+        handshake (a client could not tell that from a wrong token): it gets a second
+        more to finish it, and then the "busy" line."""
+        until = deadline
+        while True:
+            now = time.monotonic()
+            if until == deadline and slots.was_evicted(sock):
+                until = min(deadline, now + _HANDSHAKE_GRACE)
+            if now >= until:
+                return False
+            sock.settimeout(min(until - now, _HANDSHAKE_SLICE))
+            try:
+                sock.do_handshake()
+                break
+            except TimeoutError:  # not done yet: look again whether it was displaced
+                continue
+        if slots.handshaken(sock):
+            return True
+        self._send(_busy_reply(self.server.net, None), self.server.net)  # type: ignore[attr-defined]
+        return False
 
     def _token(
         self, reader: _LineReader, net: NetOptions, deadline: float
@@ -281,11 +308,13 @@ def _full(net: NetOptions) -> str:
     )
 
 
-def _busy_waiting(net: NetOptions) -> str:
-    return (
+def _busy_reply(net: NetOptions, rid: Any) -> dict[str, Any]:
+    """The line to a connection closed to make room ("busy": it may try again at once)."""
+    error = (
         f"the server is busy: {net.max_pending} newer connections are waiting to show "
         "the token (disco serve --max-pending); try again"
     )
+    return {"id": rid, "ok": False, "error": error, "busy": True}
 
 
 class _Slots:
@@ -300,6 +329,7 @@ class _Slots:
         self.clients: set[Any] = set()
         self.waiting: dict[Any, float] = {}  # in order of arrival: the oldest first
         self.evicted: set[Any] = set()
+        self.shaking: set[Any] = set()  # TLS connections still in their handshake
         self.arrival: dict[Any, float] = {}
         self._lock = threading.Lock()
 
@@ -311,18 +341,29 @@ class _Slots:
             self.clients.add(sock)
             return True
 
-    def wait(self, sock: Any) -> Any:
-        """A connection that must show the token first; the one it displaces, if any."""
+    def wait(self, sock: Any, tls: bool) -> Any:
+        """A connection that must show the token first; the one it displaces, if that
+        must be woken (a TLS handshake is not: its thread looks for itself)."""
         with self._lock:
             victim = None
             if len(self.waiting) >= self.max_pending:
                 victim = next(iter(self.waiting))
                 del self.waiting[victim]
                 self.evicted.add(victim)
+                if victim in self.shaking:
+                    victim = None
             now = time.monotonic()
             self.waiting[sock] = now
             self.arrival[sock] = now
+            if tls:
+                self.shaking.add(sock)
             return victim
+
+    def handshaken(self, sock: Any) -> bool:
+        """A TLS connection's handshake is done: whether it still waits (not displaced)."""
+        with self._lock:
+            self.shaking.discard(sock)
+            return sock not in self.evicted
 
     def arrived(self, sock: Any) -> float:
         with self._lock:
@@ -332,12 +373,14 @@ class _Slots:
         with self._lock:
             return sock in self.evicted
 
-    def admit(self, sock: Any) -> bool:
-        """A connection that showed the token: a client now, unless the server is full.
-        One displaced while its token was on the way is let in all the same."""
+    def admit(self, sock: Any) -> bool | None:
+        """A connection that showed the token: a client now (True), unless the server
+        is full (False) or it was closed to make room before (None: its reading side
+        is shut down, so it cannot go on; the client connects again)."""
         with self._lock:
+            if sock in self.evicted:
+                return None
             self.waiting.pop(sock, None)
-            self.evicted.discard(sock)
             if len(self.clients) >= self.max_clients:
                 return False
             self.clients.add(sock)
@@ -348,6 +391,7 @@ class _Slots:
             self.clients.discard(sock)
             self.waiting.pop(sock, None)
             self.evicted.discard(sock)
+            self.shaking.discard(sock)
             self.arrival.pop(sock, None)
 
 
@@ -374,7 +418,7 @@ class _Limited(socketserver.ThreadingMixIn):
 
     def verify_request(self, request: Any, client_address: Any) -> bool:
         if self.net.token is not None:
-            victim = self.slots.wait(request)
+            victim = self.slots.wait(request, self.net.tls is not None)
             if victim is not None:
                 try:  # its thread wakes at end of stream, says why, and closes it
                     socket.socket.shutdown(victim, socket.SHUT_RD)
