@@ -451,7 +451,9 @@ def test_a_client_kept_busy_gives_up_at_its_connect_timeout() -> None:
     t0 = time.monotonic()
     with pytest.raises(ClientError, match="the server is busy") as info:
         Client(port=port, token="t", connect_timeout=0.5)
-    assert time.monotonic() - t0 < 30 and len(got) >= 2
+    # It kept asking until its timeout was nearly spent (it stops when the next wait,
+    # at most 0.2 s, would pass it), not at the first busy line.
+    assert 0.3 < time.monotonic() - t0 < 30 and len(got) >= 1
     assert not isinstance(info.value, ServerError) and "\n" not in str(info.value)
 
 
