@@ -12,7 +12,7 @@ OUT := out/demo
 MODEL ?= default
 
 .PHONY: demo test install install-test dev bench clean check-aarch64 docs-check docs-update \
-  check-sanitize check-sanitize-python
+  check-sanitize check-sanitize-python check-tools
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -87,16 +87,25 @@ check-aarch64:
 # The C++ core's checks (tests/cpp/check_core) built with AddressSanitizer and
 # UndefinedBehaviorSanitizer (float-cast-overflow too: gcc's -fsanitize=undefined
 # leaves it out) and run; any report stops the run with a non-zero exit. Needs g++
-# (or CXX=clang++), cmake and Eigen (.venv's cmeel-eigen or libeigen3-dev, or
-# CHECK_EIGEN=DIR). Not part of `make test`.
+# (or CXX=clang++) with its sanitizer runtimes; installs what else it needs into .venv
+# with pip (no apt, no root): Eigen's headers (the cmeel-eigen wheel) unless
+# CHECK_EIGEN=DIR or /usr/include/eigen3 has them, and cmake where the machine has
+# none. Not part of `make test`.
 SANITIZE_FLAGS := -fsanitize=address,undefined,float-cast-overflow -fno-sanitize-recover=all \
   -fno-omit-frame-pointer -g -O1
-check-sanitize:
-	@[ -n "$(CHECK_EIGEN)" ] || { echo "check-sanitize: no Eigen headers (pip install cmeel-eigen, or CHECK_EIGEN=DIR)"; exit 1; }
-	cmake -S tests/cpp -B $(CHECK)/sanitize -DCMAKE_BUILD_TYPE=Debug \
+# cmake: the machine's, else the one check-tools put into .venv (expanded when used).
+CHECK_CMAKE = $(or $(shell command -v cmake 2>/dev/null),$(VENV)/bin/cmake)
+check-tools: | $(PY)
+	@[ -n "$(CHECK_EIGEN)" ] || { echo "make: installing Eigen's headers (cmeel-eigen) into $(VENV)"; \
+	  $(PIP_INSTALL) 'cmeel-eigen>=3.4'; }
+	@command -v cmake >/dev/null 2>&1 || [ -x $(VENV)/bin/cmake ] || { \
+	  echo "make: installing cmake into $(VENV)"; $(PIP_INSTALL) 'cmake>=3.18'; }
+check-sanitize: check-tools
+	@[ -n "$(CHECK_EIGEN)" ] || { echo "check-sanitize: no Eigen headers after installing cmeel-eigen into $(VENV) (or pass CHECK_EIGEN=DIR)"; exit 1; }
+	$(CHECK_CMAKE) -S tests/cpp -B $(CHECK)/sanitize -DCMAKE_BUILD_TYPE=Debug \
 	  -DCMAKE_CXX_FLAGS="$(SANITIZE_FLAGS)" -DCMAKE_EXE_LINKER_FLAGS="$(SANITIZE_FLAGS)" \
 	  -DEIGEN3_INCLUDE_DIR="$(CHECK_EIGEN)" >/dev/null
-	cmake --build $(CHECK)/sanitize -j 2
+	$(CHECK_CMAKE) --build $(CHECK)/sanitize -j 2
 	ASAN_OPTIONS=detect_leaks=1:halt_on_error=1:abort_on_error=0 \
 	  UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 \
 	  $(CHECK)/sanitize/check_core > $(CHECK)/sanitize.txt
