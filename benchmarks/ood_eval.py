@@ -49,18 +49,23 @@ def with_fields(policy, settings: list[str]):
     """`policy` with FIELD=VALUE settings, each VALUE read as the field's type."""
     from dataclasses import fields, replace
 
+    from disco_cli.errors import DiscoError
+
     types = {f.name: type(getattr(policy, f.name)) for f in fields(policy)}
-    changes = {}
     for item in settings:
         key, sep, value = item.partition("=")
         if not sep or key not in types:
             raise SystemExit(f"--policy {item}: FIELD=VALUE with FIELD one of {', '.join(types)}")
         kind = types[key]
-        if kind is tuple:
-            changes[key] = tuple(float(v) for v in value.split(",") if v.strip())
-        else:
-            changes[key] = kind(float(value)) if kind is int else kind(value)
-    return replace(policy, **changes)
+        try:
+            if kind is tuple:
+                new = tuple(float(v) for v in value.split(",") if v.strip())
+            else:
+                new = kind(float(value)) if kind is int else kind(value)
+            policy = replace(policy, **{key: new})  # QueryPolicy checks the value's range
+        except (DiscoError, ValueError, OverflowError) as exc:
+            raise SystemExit(f"--policy {item}: {exc}") from None
+    return policy
 
 
 def main() -> int:

@@ -4,8 +4,12 @@ leaves out what a model cannot do."""
 
 from __future__ import annotations
 
-from dataclasses import FrozenInstanceError, replace
+import subprocess
+import sys
+from dataclasses import FrozenInstanceError, fields, replace
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from disco_cli.errors import DiscoError
@@ -32,6 +36,73 @@ from disco_cli.query.search import effective_policy
 def test_a_bad_setting_is_refused_by_name(field, value) -> None:
     with pytest.raises(DiscoError, match=field.split("_")[0]):
         replace(QueryPolicy(), **{field: value})
+
+
+# For every field, values out of its range (or of no number at all) and the words its
+# one-line refusal starts with: "<field> must be ...".
+BAD = {
+    "rerank_candidates": [-1, 2.5, True, float("inf"), float("nan"), "10", None],
+    "rerank_wider": [-40, 0.5, False, float("inf")],
+    "rerank_wider_above": [-0.1, 2.5, -float("inf"), float("nan"), "0.7", None],
+    "signature_weight": [-0.3, float("inf"), float("nan"), "0.3", True],
+    "signature_floor": [0.0, -0.05, 2.5, float("inf"), float("nan"), None],
+    "view_offsets": [(4.0, -6.0), (float("inf"),), (0.0,), "4,6", 4.0, (4.0, "x"), None],
+    "view_penalty": [-0.03, float("inf"), float("nan"), "0.03"],
+    "approximate_views_from": [-1, 4096.5, float("inf")],
+    "snap_radius": [-1.0, float("inf"), float("nan"), "5"],
+    "snap_margin": [-0.1, -1e-9, -float("inf"), float("nan"), "0.1", None],
+    "refine_yaw": [-2, 1.5, float("nan")],
+    "yaw_check_below": [-0.1, 1.5, float("inf"), float("nan"), "0.6"],
+    "check_candidates": [-1, 2.5, True, float("inf")],
+}
+
+
+def test_every_field_has_a_range_and_is_refused_out_of_it_in_one_line() -> None:
+    names = [f.name for f in fields(QueryPolicy)]
+    assert not [n for n in names if n not in BAD], "a field without a range: check it"
+    for name in names:
+        for value in BAD[name]:
+            with pytest.raises(DiscoError) as info:
+                replace(QueryPolicy(), **{name: value})
+            message = str(info.value)
+            assert message.startswith(f"{name} must be ") and "\n" not in message, message
+            assert message.endswith(f", not {value!r}"), message
+
+
+def test_the_ends_of_each_range_are_accepted() -> None:
+    p = QueryPolicy()
+    for name, value in (
+        ("rerank_wider_above", 0.0), ("rerank_wider_above", 2.0),
+        ("rerank_wider_above", float("inf")),  # never wider
+        ("signature_weight", 0.0), ("signature_floor", 2.0), ("view_penalty", 0.0),
+        ("snap_radius", 0.0), ("snap_margin", 0.0), ("snap_margin", float("inf")),  # any
+        ("yaw_check_below", 0.0), ("yaw_check_below", 1.0), ("view_offsets", ()),
+        ("rerank_candidates", 0), ("check_candidates", 0), ("signature_weight", np.float32(1)),
+    ):  # fmt: skip
+        if name in {f.name for f in fields(QueryPolicy)}:
+            assert getattr(replace(p, **{name: value}), name) == value, name
+    # Whole numbers given as floats (a JSON file, numpy) become ints: a slice takes them.
+    q = replace(p, rerank_candidates=4.0, rerank_wider=np.int64(12), refine_yaw=np.float64(2))
+    assert (q.rerank_candidates, q.rerank_wider, q.refine_yaw) == (4, 12, 2)
+    assert all(type(v) is int for v in (q.rerank_candidates, q.rerank_wider, q.refine_yaw))
+
+
+def test_a_negative_snap_margin_is_one_line_not_a_crash(tmp_path) -> None:
+    """It crashed the snap ("attempt to get argmin of an empty sequence"): refused when
+    the policy is made, by `Map.query`'s caller and by an ablation's `--policy`."""
+    with pytest.raises(DiscoError, match=r"^snap_margin must be a re-rank distance >= 0"):
+        replace(load_model("default").query_policy, snap_margin=-0.1)
+    script = Path(__file__).resolve().parent.parent / "benchmarks" / "ood_eval.py"
+    res = subprocess.run(
+        [sys.executable, str(script), str(tmp_path / "no-world"), "--models", "spectral",
+         "--policy", "snap_margin=-0.1"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 1 and res.stdout == "", res.stdout
+    assert res.stderr.strip().splitlines() == [
+        "--policy snap_margin=-0.1: snap_margin must be a re-rank distance >= 0, or inf: any, "
+        "not -0.1"
+    ], res.stderr
 
 
 def test_a_policy_is_a_value() -> None:

@@ -87,20 +87,52 @@ class QueryPolicy:
     yaw_check_below: float = 0.6
 
     def __post_init__(self) -> None:
-        for name in ("rerank_candidates", "rerank_wider", "refine_yaw", "approximate_views_from"):
+        """Every field against its range, refused in one `DiscoError` line naming it
+        (a value out of range crashed the stage, or quietly turned a rule around: a
+        negative `snap_margin` left the snap no candidate to choose; a negative weight or
+        penalty favours what it should hold back). Integral floats become ints; an
+        infinite margin or threshold is one that never binds. (tests/test_query_policy.py
+        holds every field to having a range here.)"""
+        import numbers  # here, not at the top: the fields' checks are this method's own
+
+        counts = ("rerank_candidates", "rerank_wider", "approximate_views_from", "refine_yaw",
+                  "check_candidates")  # fmt: skip
+        # Each number's range, as (in range?, what it must be). Re-rank distances are
+        # 1 - a correlation (0..2), signature distances those of unit vectors (0..2), a
+        # yaw confidence 0..1; inf is allowed only where it means "never binds".
+        ranges = {
+            "rerank_wider_above": (
+                lambda v: 0 <= v <= 2 or v == math.inf,
+                "a re-rank distance in 0..2 (1 - a correlation), or inf: never wider",
+            ),
+            "signature_weight": (lambda v: 0 <= v < math.inf, "a finite weight >= 0"),
+            "signature_floor": (lambda v: 0 < v <= 2, "a signature distance in (0, 2]"),
+            "view_penalty": (lambda v: 0 <= v < math.inf, "a finite re-rank distance >= 0"),
+            "snap_radius": (lambda v: 0 <= v < math.inf, "a finite snap radius >= 0 m (0: none)"),
+            "snap_margin": (lambda v: v >= 0, "a re-rank distance >= 0, or inf: any"),
+            "yaw_check_below": (lambda v: 0 <= v <= 1, "a yaw confidence in 0..1 (0: no check)"),
+        }
+        for name in self.__dataclass_fields__:
             value = getattr(self, name)
-            if isinstance(value, bool) or int(value) != value or value < 0:
-                raise DiscoError(f"{name} must be an integer >= 0, not {value!r}")
-        numbers = ("rerank_wider_above", "signature_weight", "view_penalty", "snap_margin")
-        for name in (*numbers, "yaw_check_below"):
-            if math.isnan(float(getattr(self, name))):  # inf is a bound that never binds
-                raise DiscoError(f"{name} must be a number, not {getattr(self, name)!r}")
-        radius = float(self.snap_radius)
-        if not math.isfinite(radius) or radius < 0:
-            raise DiscoError(f"snap radius must be a finite distance >= 0 m, not {radius}")
-        offsets = tuple(float(o) for o in self.view_offsets)
-        if any(not math.isfinite(o) or o <= 0 for o in offsets):
-            raise DiscoError(f"view offsets must be distances > 0 m, not {self.view_offsets!r}")
+            real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+            if name in counts:
+                if not real or not math.isfinite(value) or int(value) != value or value < 0:
+                    raise DiscoError(f"{name} must be an integer >= 0, not {value!r}")
+                object.__setattr__(self, name, int(value))
+            elif name in ranges:
+                in_range, what = ranges[name]
+                if not real or math.isnan(value) or not in_range(float(value)):
+                    raise DiscoError(f"{name} must be {what}, not {value!r}")
+        try:
+            if isinstance(self.view_offsets, str):
+                raise TypeError
+            offsets = tuple(float(o) for o in self.view_offsets)
+        except (TypeError, ValueError):
+            offsets = None
+        if offsets is None or any(not math.isfinite(o) or o <= 0 for o in offsets):
+            raise DiscoError(
+                f"view_offsets must be distances > 0 m (none: no views), not {self.view_offsets!r}"
+            )
         object.__setattr__(self, "view_offsets", offsets)
 
     @property
