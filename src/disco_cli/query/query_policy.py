@@ -16,6 +16,7 @@ nothing changes a model.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -93,8 +94,6 @@ class QueryPolicy:
         penalty favours what it should hold back). Integral floats become ints; an
         infinite margin or threshold is one that never binds. (tests/test_query_policy.py
         holds every field to having a range here.)"""
-        import numbers  # here, not at the top: the fields' checks are this method's own
-
         counts = ("rerank_candidates", "rerank_wider", "approximate_views_from", "refine_yaw",
                   "check_candidates")  # fmt: skip
         # Each number's range, as (in range?, what it must be). Re-rank distances are
