@@ -80,7 +80,9 @@ def imu_to_velo(calibration: str | Path | None = None) -> np.ndarray:
         if not lines:
             raise PoseFileError(f"{velo_file}: empty")
         cam_to_velo = to_4x4(floats(velo_file, 1, lines[0].split(), 12))
-        out = cam_to_pose @ invert_calibration(cam_to_velo, velo_file)
+        inverse = invert_calibration(cam_to_velo, velo_file)
+        with np.errstate(over="ignore", invalid="ignore"):  # refused below, not warned of
+            out = cam_to_pose @ inverse
         if not np.isfinite(out).all():
             raise PoseFileError(f"{folder}: calibration values overflow (far too large)")
         return out
