@@ -10,18 +10,47 @@ DISCO := $(VENV)/bin/disco
 SAMPLES := data/samples
 OUT := out/demo
 MODEL ?= default
+NPROC := $(shell nproc 2>/dev/null || echo 2)
+# pytest's workers (pytest-xdist): one per core by default; TEST_WORKERS=0 runs serially.
+TEST_WORKERS ?= auto
 
 .PHONY: demo test install install-test dev bench clean check-aarch64 docs-check docs-update \
-  check-sanitize check-sanitize-python check-tools
+  check-sanitize check-sanitize-python check-startup check-tools
+
+# What an install is built from: a rerun of `make demo` or `make test` with none of
+# these changed skips the build (issue 41: a rebuilt wheel took a minute every time).
+# The stamps live in the venv, so a new venv installs again.
+INSTALL_SOURCES := pyproject.toml CMakeLists.txt constraints.txt \
+  $(shell find src -type f ! -path '*/__pycache__/*' ! -name '*.pyc' ! -name '*.so' 2>/dev/null)
+STAMP := $(VENV)/.disco-installed
+STAMP_TEST := $(VENV)/.disco-installed-test
 
 $(PY):
+	@echo "make: creating the virtual environment $(VENV)"
 	$(PYTHON) -m venv $(VENV)
 
-install: $(PY)
-	$(PIP_INSTALL) .
+# pip prints nothing while the C++ core compiles: say what happens, and tick meanwhile.
+define pip_install_watched
+	@echo "make: installing disco$(1) into $(VENV): downloads what is missing and compiles the C++ core"
+	@echo "make: about 3 minutes on 2 cores the first time; a rerun with unchanged sources skips this"
+	@( t=0; while sleep 20 >/dev/null 2>&1; do t=$$((t + 20)); \
+	    echo "make: ... still installing ($$t s)"; done ) & tick=$$!; \
+	  CMAKE_BUILD_PARALLEL_LEVEL=$(NPROC) $(PIP_INSTALL) '.$(1)'; rc=$$?; \
+	  kill $$tick 2>/dev/null; [ $$rc -eq 0 ] && echo "make: disco$(1) installed" ; exit $$rc
+endef
 
-install-test: $(PY)
-	$(PIP_INSTALL) '.[test]'
+$(STAMP): $(INSTALL_SOURCES) | $(PY)
+	$(call pip_install_watched,)
+	@touch $@
+
+# The test extras hold the package too: they satisfy `install` as well.
+$(STAMP_TEST): $(INSTALL_SOURCES) | $(PY)
+	$(call pip_install_watched,[test])
+	@touch $@ $(STAMP)
+
+install: $(STAMP)
+
+install-test: $(STAMP_TEST)
 
 # Developers: rebuild the extension into .venv as an editable install
 # (Python changes take effect at once; rerun after C++ changes).
@@ -33,19 +62,26 @@ dev: $(PY)
 # The main job on the bundled sample: map session 00, localize session 01's
 # scans in it (reverse-direction revisits), and find loop closures along 00.
 demo: install
+	@echo "make: the demo, into $(OUT)/ (about 10 s)"
 	@rm -rf $(OUT) && mkdir -p $(OUT)
 	$(DISCO) --version
 	$(DISCO) build-db $(SAMPLES)/00 -o $(OUT)/map.db --model $(MODEL)
 	$(DISCO) info $(OUT)/map.db
 	$(DISCO) query $(SAMPLES)/01/velodyne/000005.bin $(SAMPLES)/01/velodyne/000018.bin \
 	  --db $(OUT)/map.db --topk 3 --pose
-	$(DISCO) loops $(SAMPLES)/00 --model $(MODEL) --exclude-frames 5 --max-distance 0.55 \
-	  --verify -o $(OUT)/loops.g2o
+	$(DISCO) loops $(SAMPLES)/00 --model $(MODEL) --exclude-frames 5 -o $(OUT)/loops.g2o
 	$(DISCO) bev $(SAMPLES)/00/velodyne/000000.bin -o $(OUT)/bev.png
 	@echo "demo outputs in $(OUT)/"
 
+# The suite on every core (pytest-xdist), then the start-up guard: the first answer of a
+# fresh `disco query` against `import numpy` (benchmarks/check_startup.py, issue 41).
 test: install-test
-	$(PY) -m pytest -q
+	@echo "make: the test suite on $(TEST_WORKERS) workers ($(NPROC) cores; about 8 minutes on 2)"
+	$(PY) -m pytest -q -n $(TEST_WORKERS)
+	$(MAKE) --no-print-directory check-startup
+
+check-startup: install-test
+	$(PY) benchmarks/check_startup.py
 
 # Every command block of README.md and docs/ run as written, outputs compared with the
 # pages (tests/docs_check.py; the test suite runs the same). docs-update rewrites the

@@ -82,7 +82,13 @@ def main() -> None:
     from disco_cli.model import DEFAULT_WEIGHTS
 
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO / "src"), *filter(None, [env.get("PYTHONPATH")])])
+    # Byte-code caches as an installed package has them (pip writes them); with this
+    # set, an editable install compiles disco's 70 modules anew in every run (+0.1 s).
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    if any((REPO / "src" / "disco_cli").glob("_core*")):  # a checkout with its core built in
+        env["PYTHONPATH"] = os.pathsep.join(
+            [str(REPO / "src"), *filter(None, [env.get("PYTHONPATH")])]
+        )
     with tempfile.TemporaryDirectory() as tmp:
         db = Path(tmp) / "map.db"
         subprocess.run(

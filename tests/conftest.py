@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -33,6 +34,34 @@ DISCO_WITH_DEFAULT_SIGINT = [
     "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
     "sys.argv[0] = 'disco'; runpy.run_module('disco_cli.cli', run_name='__main__')",
 ]
+
+
+# pytest-xdist's workers (`make test` runs -n auto) find COLUMNS=80 and LINES=24 in their
+# environment, which the shell and a serial run did not have (set as a worker starts). With
+# both, rich sizes a dumb terminal by them instead of its 80 columns, and `disco query`'s
+# table in the README's check came out wider. The workers get the shell's own values.
+_TERMINAL_VARS = ("COLUMNS", "LINES")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if not os.environ.get("PYTEST_XDIST_WORKER"):  # the controller, or a serial run
+        os.environ["DISCO_TEST_SHELL_TERMINAL"] = ",".join(
+            f"{k}={os.environ[k]}" for k in _TERMINAL_VARS if k in os.environ
+        )
+
+
+@pytest.fixture(autouse=True)
+def _shell_terminal_size() -> None:
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    given = dict(
+        kv.split("=", 1) for kv in os.environ.get("DISCO_TEST_SHELL_TERMINAL", "").split(",") if kv
+    )
+    for key in _TERMINAL_VARS:
+        if key in given:
+            os.environ[key] = given[key]
+        else:
+            os.environ.pop(key, None)
 
 
 @pytest.fixture(scope="session")
