@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import package_path
+from conftest import package_path, socket_listening
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
@@ -182,7 +182,7 @@ def test_serve_on_a_read_only_map(site: Path, samples: Path) -> None:
     proc = subprocess.Popen(cmd, cwd=site / "work", env=_env(), stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
-        while not sock.exists():
+        while not sock.exists() or not socket_listening(sock):
             assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
             time.sleep(0.1)
         with Client(socket=sock) as c:

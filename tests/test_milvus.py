@@ -17,7 +17,7 @@ import pytest
 pytest.importorskip("pymilvus")
 pytest.importorskip("milvus_lite")
 
-from conftest import package_path  # noqa: E402
+from conftest import package_path, socket_listening  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from disco_cli.cli import app  # noqa: E402
@@ -330,7 +330,7 @@ def test_serve_answers_from_a_milvus_map(maps, samples: Path, tmp_path: Path) ->
     )
     try:
         deadline = time.monotonic() + 120
-        while not sock.exists():
+        while not sock.exists() or not socket_listening(sock):
             assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
             time.sleep(0.1)
         with Client(sock) as c:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DISCO_WITH_DEFAULT_SIGINT
+from conftest import DISCO_WITH_DEFAULT_SIGINT, socket_listening
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
@@ -48,29 +48,12 @@ def start_server(
     )
     wait_for = wait_for or sock
     deadline = time.monotonic() + 120
-    while not wait_for.exists() or (wait_for == sock and not _listening(sock)):
+    while not wait_for.exists() or (wait_for == sock and not socket_listening(sock)):
         if proc.poll() is not None or time.monotonic() > deadline:
             proc.kill()
             raise AssertionError(f"the server did not start: {proc.stderr.read()}")
         time.sleep(0.1)
     return proc
-
-
-def _listening(sock: Path) -> bool:
-    """Whether a Unix socket at `sock` listens yet, without connecting to it (a test may
-    count the server's clients). The file appears at bind(), before listen(): a client in
-    between is refused, which a loaded machine (make test's parallel workers) hit once
-    in test_serve_fleet. Linux's /proc/net/unix marks listening sockets with the
-    __SO_ACCEPTCON flag (0x10000); elsewhere the file's existence has to do."""
-    try:
-        lines = Path("/proc/net/unix").read_text().splitlines()[1:]
-    except OSError:
-        return True
-    for line in lines:
-        fields = line.split(None, 7)  # the path may hold spaces
-        if len(fields) == 8 and fields[7] == str(sock) and int(fields[3], 16) & 0x10000:
-            return True
-    return False
 
 
 @pytest.fixture(scope="module")
