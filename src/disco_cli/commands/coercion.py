@@ -55,6 +55,8 @@ def _leaf(annotation: Any, info: Any, value: Any, param: Any, ctx: Any) -> Any:
     if annotation is int or annotation is float:
         if kind is annotation:
             number = value
+        elif annotation is float and kind is int:  # a default written `= 0`
+            number = float(value)
         elif kind is str and (_INT if annotation is int else _FLOAT).fullmatch(value):
             number = annotation(value)
         else:
