@@ -424,9 +424,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PEM",
         help="TCP: speak TLS, trusting the server's certificate if this CA signed it",
     )
-    ap.add_argument(
-        "--tls", action="store_true", help="TCP: speak TLS, trusting the system's CAs"
-    )
+    ap.add_argument("--tls", action="store_true", help="TCP: speak TLS, trusting the system's CAs")
     ap.add_argument("--topk", "-k", type=int, help="matches per query (server's default)")
     ap.add_argument("--pose", action="store_true", help="add the verified relative pose")
     ap.add_argument(

@@ -357,8 +357,7 @@ class QueryService:
         parts = [path, path.rpartition("@")[0].rpartition("#")[0]]
         if not all(_inside(self._root, p) for p in parts if p):
             raise RequestError(
-                f"{scan}: outside the folder this server reads scans from "
-                "(disco serve --scan-root)"
+                f"{scan}: outside the folder this server reads scans from (disco serve --scan-root)"
             )
         if os.path.isdir(path) and not is_bag(path):
             raise RequestError(f"{scan}: a folder, not a scan file: send one scan per request")

@@ -18,9 +18,9 @@ connections that never show a token cannot keep out a client that has it.
 from __future__ import annotations
 
 import hmac
+import ipaddress
 import json
 import os
-import ipaddress
 import secrets
 import select
 import signal
@@ -411,9 +411,7 @@ class _Limited(socketserver.ThreadingMixIn):
     def get_request(self) -> tuple[Any, Any]:
         conn, addr = super().get_request()  # type: ignore[misc]
         if self.net.tls is not None:  # the handshake is the connection's thread's work
-            conn = self.net.tls.wrap_socket(
-                conn, server_side=True, do_handshake_on_connect=False
-            )
+            conn = self.net.tls.wrap_socket(conn, server_side=True, do_handshake_on_connect=False)
         return conn, addr
 
     def verify_request(self, request: Any, client_address: Any) -> bool:
