@@ -18,29 +18,35 @@ from disco_cli.maps.map_side_views import ViewIndex
 from disco_cli.query.search import match_queries, ranking_score
 
 
-def _order(rows, rerank_d, sig_d, weight):
-    return np.lexsort((rows, ranking_score(rerank_d, sig_d, weight))).tolist()
+def _order(rows, rerank_d, sig_d, weight, floor=0.05):
+    return np.lexsort((rows, ranking_score(rerank_d, sig_d, weight, floor))).tolist()
 
 
 def test_ranking_score_by_hand() -> None:
     rows = np.array([5, 7, 9, 11])
     rerank_d = np.array([0.70, 0.72, 0.71, 0.70])
     sig_d = np.array([0.50, 0.30, 0.45, 0.50])
-    # 0.70 - 0.3 / 0.50 = 0.10, 0.72 - 1.00 = -0.28, 0.71 - 0.667 = 0.043, 0.10 (tie:
-    # row 5 first)
-    assert ranking_score(rerank_d, sig_d, 0.3) == pytest.approx(
-        [0.1, -0.28, 0.71 - 0.3 / 0.45, 0.1]
+    # r + 0.3 (1/0.05 - 1/s): 0.70 + 6 - 0.6 = 6.10, 0.72 + 6 - 1 = 5.72,
+    # 0.71 + 6 - 0.667 = 6.043, 6.10 (tie: row 5 first)
+    assert ranking_score(rerank_d, sig_d, 0.3, 0.05) == pytest.approx(
+        [6.1, 5.72, 0.71 + 6 - 0.3 / 0.45, 6.1]
     )
     assert _order(rows, rerank_d, sig_d, 0.3) == [1, 2, 0, 3]
     # Weight 0: the re-rank distance alone, ties by row.
     assert _order(rows, rerank_d, sig_d, 0.0) == [0, 3, 2, 1]
     # Far signatures, as under heavy change: 0.75 - 0.3 / 0.60 = 0.250 against
-    # 0.82 - 0.545 = 0.275, 0.80 - 0.526 = 0.274, 0.85 - 0.536 = 0.314: the re-ranking's
-    # best stays first although its signature is the farthest.
+    # 0.82 - 0.545 = 0.275, 0.80 - 0.526 = 0.274, 0.85 - 0.536 = 0.314 (plus 6 each):
+    # the re-ranking's best stays first although its signature is the farthest.
     far = np.array([0.60, 0.55, 0.57, 0.56])
     assert _order(rows, np.array([0.75, 0.82, 0.80, 0.85]), far, 0.3) == [0, 2, 1, 3]
-    # A signature at distance 0 (a copy of the query) comes first.
-    assert _order(rows, rerank_d, np.array([0.5, 0.5, 0.0, 0.5]), 0.3)[0] == 2
+    # A signature at distance 0 (a copy of the query) comes first, with a bounded
+    # distance: its re-rank distance, the bonus whole (no division by 0).
+    copy = np.array([0.5, 0.5, 0.0, 0.5])
+    assert _order(rows, rerank_d, copy, 0.3)[0] == 2
+    assert ranking_score(rerank_d, copy, 0.3, 0.05)[2] == pytest.approx(0.71)
+    # At or below the floor the bonus stops growing: 0.01 and 0.04 score alike.
+    tiny = ranking_score(np.array([0.2, 0.2]), np.array([0.01, 0.04]), 0.3, 0.05)
+    assert tiny[0] == tiny[1] == pytest.approx(0.2)
 
 
 class _Db:
@@ -75,9 +81,8 @@ def test_a_side_view_match_stays_first_through_re_ranking(weight: float) -> None
     want = np.lexsort((np.arange(4), score))[:3].tolist()
     assert [m.row for m in found] == want
     assert want[0] == (2 if weight else 0)
-    # Shown: the score, shifted so that the first row shows the query's own re-rank
-    # distance to it; the rows are sorted by it.
-    shown = score[want] - score[want[0]] + scores[want[0]]
+    # Shown: each row's own bounded score, r + weight (1/0.05 - 1/s); sorted by it.
+    shown = score[want] + weight / 0.05
     assert [m.distance for m in found] == pytest.approx(shown.tolist())
 
 

@@ -138,9 +138,9 @@ def test_match_queries_snaps_and_carries_the_yaw_to_the_new_first() -> None:
     model = _Model(at=(1.8, 0.0))
     found = _match(model, db)
     assert [m.row for m in found] == [3, 1]
-    # The tie-break: row 3 takes row 1's score and the first row shows the query's own
-    # re-rank distance to it, so row 1 shows the same and the rows stay sorted.
-    assert [m.distance for m in found] == pytest.approx([0.45, 0.45])
+    # The tie-break: row 3 takes row 1's distance (0.40, not its own 0.45), so the two
+    # show the same and the rows stay sorted.
+    assert [m.distance for m in found] == pytest.approx([0.40, 0.40])
     assert model.asked == [1] and model.refined == []
     assert [m.yaw_deg for m in found] == [30.0, 0.0]
 

@@ -12,12 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def wrap_deg(angle: np.ndarray | float) -> np.ndarray:
-    """Angles in degrees wrapped into (-180, 180]."""
-    wrapped = np.mod(np.asarray(angle, dtype=np.float64) + 180.0, 360.0) - 180.0
-    # mod puts +180 at -180; the convention keeps +180.
-    return np.where(wrapped == -180.0, 180.0, wrapped)
+# The one angle wrap of the package, where evaluation code has long imported it from.
+from disco_cli.io.poses.geometry import wrap_deg  # noqa: F401
 
 
 def yaw_errors_deg(estimated: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -223,18 +219,35 @@ def _nan_to_none(value: float) -> float | None:
     return None if value is None or not np.isfinite(value) else float(value)
 
 
+def confidence_metrics(
+    confidence: np.ndarray | None, correct: np.ndarray, has_true: np.ndarray
+) -> dict[str, float | None]:
+    """F1max and recall at 100 % precision over the top 1's confidence (highest first;
+    a query without one is never accepted); empty where there is none."""
+    if confidence is None or not np.isfinite(np.asarray(confidence, np.float64)).any():
+        return {}
+    c = np.asarray(confidence, np.float64)
+    pr = precision_recall(np.where(np.isfinite(c), -c, np.inf), correct, has_true)
+    return {
+        "f1_max_by_confidence": _nan_to_none(pr.f1_max),
+        "recall@100%precision_by_confidence": _nan_to_none(pr.recall_at_full_precision),
+    }
+
+
 def retrieval_evaluation(
     retrieved: np.ndarray,
     distances: np.ndarray,
     truth: np.ndarray,
     yaw_est_top1: np.ndarray | None = None,
     yaw_true_top1: np.ndarray | None = None,
+    confidence_top1: np.ndarray | None = None,
 ) -> Evaluation:
     """The multi-session protocol: queries against a database of another session.
 
     `retrieved` [Q, K] database indices (-1 for none), `distances` [Q, K] their
     distances, `truth` [Q, M] from `within_radius`; yaw arrays [Q] for the top-1
     (degrees, the estimate and the ground truth). K must reach recall@1%'s depth.
+    `confidence_top1` [Q] (NaN: none) adds the precision-recall figures over it.
     """
     retrieved = np.asarray(retrieved, np.int64)
     distances = np.asarray(distances, np.float64)
@@ -264,6 +277,7 @@ def retrieval_evaluation(
         "f1_max": _nan_to_none(pr.f1_max),
         "f1_max_threshold": _nan_to_none(pr.f1_max_threshold),
         "recall@100%precision": _nan_to_none(pr.recall_at_full_precision),
+        **confidence_metrics(confidence_top1, top1_ok, has_true),
         **{k: _nan_to_none(v) for k, v in yaw_error_stats(yaw_err).items()},
         "num_queries": int(len(truth)),
         "num_queries_with_match": int(has_true.sum()),
@@ -285,8 +299,10 @@ def loop_evaluation(
     has_true: np.ndarray,
     yaw_est_top1: np.ndarray | None = None,
     yaw_true_top1: np.ndarray | None = None,
+    confidence_top1: np.ndarray | None = None,
 ) -> Evaluation:
-    """The single-sequence loop-closure protocol: one top-1 per scan among earlier scans."""
+    """The single-sequence loop-closure protocol: one top-1 per scan among earlier scans
+    (`confidence_top1`: as in `retrieval_evaluation`)."""
     dist = np.asarray(top1_distance, np.float64)
     ok = np.asarray(top1_correct, bool)
     has_true = np.asarray(has_true, bool)
@@ -303,6 +319,7 @@ def loop_evaluation(
         "f1_max": _nan_to_none(pr.f1_max),
         "f1_max_threshold": _nan_to_none(pr.f1_max_threshold),
         "recall@100%precision": _nan_to_none(pr.recall_at_full_precision),
+        **confidence_metrics(confidence_top1, ok, has_true),
         **{k: _nan_to_none(v) for k, v in yaw_error_stats(yaw_err).items()},
         "num_queries": int(len(dist)),
         "num_queries_with_match": n_pos,

@@ -32,9 +32,10 @@ from disco_cli.maps.index import check_index_kind, index_for_database
 from disco_cli.maps.map_side_views import side_offsets, side_views_m
 from disco_cli.maps.writing import MapWriting, map_address, store_class
 from disco_cli.model import MODELS, load_model
-from disco_cli.query.localize import Match, PointCache, as_match, refine_matches
+from disco_cli.query.localize import Match, PointCache, as_match
 from disco_cli.query.query_policy import policy_for
 from disco_cli.query.search import match_queries
+from disco_cli.query.verification import check_candidates
 from disco_cli.runtime.threads import get_threads
 
 __all__ = ["Map", "QueryResult", "model_for_database", "stored_embeddings"]
@@ -429,6 +430,7 @@ class Map(MapWriting):
         refine_yaw: int | None = None,
         snap_radius: float | None = None,
         policy: Any = None,
+        min_confidence: float | None = None,
     ) -> list[Match]:
         """The `topk` best matches of one scan (an N x 3 or N x 4 array), best first.
 
@@ -444,6 +446,10 @@ class Map(MapWriting):
         (default: the model's, 5 m for DiSCO; 0: the best re-ranked).
         `policy`: a `QueryPolicy` for all of the query stage's settings (default: the
         model's); `rerank`, `refine_yaw` and `snap_radius` change it.
+        Each match carries `confidence`, the estimated probability that it is a true
+        revisit (query/confidence.py); the best `policy.check_candidates` are checked
+        geometrically first where the map's scans can be read (query/verification.py).
+        `min_confidence` drops matches below it.
         """
         self._check_open()
         pts = array_points(points, name)
@@ -452,9 +458,32 @@ class Map(MapWriting):
             self._model, policy, rerank=rerank, refine_yaw=refine_yaw, snap_radius=snap_radius
         )
         found = self._search(sig, feat, topk, policy, exclude, max_distance)
-        if not (pose or verify):
-            return [as_match(m) for m in found]
-        return refine_matches(found, pts, self._points.get, verify=verify)
+        return _confident(self._finish(found, pts, policy, pose or verify, verify), min_confidence)
+
+    def _finish(self, found: list, points: Any, policy: Any, pose: bool, verify: bool) -> list:
+        """The search's rows as `Match`es: every one with its pose (`pose`; only the
+        accepted with `verify`), or the best few checked (`policy.check_candidates`)."""
+        if pose:
+            return check_candidates(
+                self._model, found, points, self._pose_points, 0, pose=True, verify=verify
+            )
+        if policy.check_candidates and points is not None:
+            return check_candidates(
+                self._model, found, points, self._checkable_points, policy.check_candidates
+            )
+        return [as_match(m) for m in found]
+
+    def _pose_points(self, row: Match) -> np.ndarray:
+        """A map scan's points for a relative pose (a missing file is told once)."""
+        return self._points.get(row.name)
+
+    def _checkable_points(self, row: Match) -> np.ndarray:
+        """A map scan's points for the geometric check, quietly refused where its file
+        is not found (a map of arrays has none; `--pose` is where that is said)."""
+        name = row.name
+        if name in self._missing or self.locate(name) is None:
+            raise ScanReadError(name, "not found")
+        return self._points.get(name)
 
     def query_many(self, scans: Iterable[Any], **options: Any) -> Iterator[list[Match]]:
         """`query` of each scan in turn, yielded as each is done (same options)."""
@@ -475,6 +504,7 @@ class Map(MapWriting):
         refine_yaw: int | None = None,
         snap_radius: float | None = None,
         policy: Any = None,
+        min_confidence: float | None = None,
     ) -> Iterator[QueryResult]:
         """Query scan files, streamed: reading and voxelizing run ahead on `threads`
         threads (None: `disco_cli.get_threads()`), and each result is yielded as soon as
@@ -488,7 +518,13 @@ class Map(MapWriting):
         )
         threads = get_threads() if threads is None else threads
         with pipeline.embedded(  # looked up at each call: tests replace it
-            paths, self._model, 1, threads, scan_format, prefetch=2 * threads, keep_points=pose
+            paths,
+            self._model,
+            1,
+            threads,
+            scan_format,
+            prefetch=2 * threads,
+            keep_points=pose or policy.check_candidates > 0,
         ) as chunks:
             for chunk in chunks:
                 for item in chunk.errors:
@@ -507,12 +543,17 @@ class Map(MapWriting):
                     except DiscoError as exc:
                         yield QueryResult(item.index, item.path, [], exc)
                         continue
-                    if pose:
-                        matches = refine_matches(found, item.points, self._points.get)
-                    else:
-                        matches = [as_match(m) for m in found]
+                    matches = self._finish(found, item.points, policy, pose, False)
+                    matches = _confident(matches, min_confidence)
                     item.points = None
                     yield QueryResult(item.index, item.path, matches)
+
+
+def _confident(matches: list[Match], min_confidence: float | None) -> list[Match]:
+    """The matches whose confidence is at least `min_confidence` (None: all)."""
+    if min_confidence is None:
+        return matches
+    return [m for m in matches if m.confidence is not None and m.confidence >= min_confidence]
 
 
 def stored_embeddings(

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.io.poses.geometry import wrap_deg
 from disco_cli.model import fft
 
 # Relative floor of the cross-power normalization: keeps empty rings and empty
@@ -32,12 +33,6 @@ def ring_weights(rings: int) -> np.ndarray:
     """Weights [R] proportional to the ring's mean radius, summing to 1."""
     w = np.arange(rings, dtype=np.float64) + 0.5
     return w / w.sum()
-
-
-def wrap_deg(angle: np.ndarray | float) -> np.ndarray:
-    """Angles wrapped into (-180, 180]."""
-    a = np.mod(np.asarray(angle, dtype=np.float64) + 180.0, 360.0) - 180.0
-    return np.where(a <= -180.0, a + 360.0, a)
 
 
 def shift_to_yaw(shift: np.ndarray | float, sectors: int) -> np.ndarray:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -34,7 +34,7 @@ import numpy as np
 from disco_cli.errors import DiscoError, ScanReadError
 from disco_cli.io.poses.geometry import wrap_deg
 
-__all__ = ["Match", "PointCache", "euler_deg", "pose_columns", "refine_matches"]
+__all__ = ["Match", "PointCache", "euler_deg", "pose_columns", "refine_matches", "surest_first"]
 
 
 @dataclass(frozen=True, eq=False)  # eq would compare the arrays ambiguously
@@ -56,12 +56,19 @@ class Match:
     roll_deg: float | None = None
     pitch_deg: float | None = None
     yaw_conf: float | None = None  # in [0, 1]; None: the model gives none
+    # The estimated probability that this is a true revisit (query/confidence.py), with
+    # the fit's evidence where the match was checked (`verified`); None: the model has
+    # no calibration.
+    confidence: float | None = None
+    verified: bool = False  # whether the geometric check ran on this match
+    cues: Any = field(default=None, repr=False)  # confidence.PlaceCues behind it
 
     def as_dict(self) -> dict[str, Any]:
         """The match as the columns of `disco query`, plus the pose columns and `T` (as
         nested lists) when it has a pose."""
         row = {"rank": self.rank, "match": self.name, "match_id": self.match_id}
         row.update(distance=self.distance, yaw_deg=self.yaw_deg, yaw_conf=self.yaw_conf)
+        row["confidence"] = self.confidence
         return {**row, **pose_columns(self)}
 
     @property
@@ -128,7 +135,8 @@ def refine_matches(
     A match whose pose cannot be estimated keeps its place-recognition fields, with `T`
     None and the problem in `reason`; `accepted` is None when its scan could not be
     read, False when the estimator failed. With `verify`, only accepted matches are
-    kept (ranks unchanged).
+    kept (ranks unchanged). Each keeps the match's place confidence (maps check
+    their candidates with `verification.check_candidates`, which adds the fit's).
     """
     from disco_cli.query import relative_pose  # deferred: --pose only; every query loads localize
 
@@ -141,6 +149,8 @@ def refine_matches(
             "distance": m.distance,
             "yaw_deg": m.yaw_deg,
             "yaw_conf": conf_or_none(m),
+            "confidence": number_or_none(getattr(m, "confidence", math.nan)),
+            "cues": getattr(m, "cues", None),
         }
         try:
             points = match_points(m.path)
@@ -161,14 +171,46 @@ def refine_matches(
     return out
 
 
+def surest_first(rows: list[Match]) -> list[Match]:
+    """`rows` with the checked row of the highest confidence first, where it beats the
+    first row's; it takes the first's distance (a tie-break, as the snap's), so that the
+    rows stay sorted by the distance they show. Ranks are renumbered."""
+    checked = [j for j, r in enumerate(rows) if r.verified and r.confidence is not None]
+    if len(rows) < 2 or not checked:
+        return rows
+    best = max(checked, key=lambda j: (rows[j].confidence, -j))
+    first = rows[0].confidence
+    if best == 0 or (first is not None and rows[best].confidence <= first):
+        return rows
+    moved = [rows[best], *rows[:best], *rows[best + 1 :]]
+    top = min(r.distance for r in rows[: best + 1])
+    return [
+        replace(r, rank=k + 1, distance=top if k == 0 else r.distance) for k, r in enumerate(moved)
+    ]
+
+
 def as_match(m: Any) -> Match:
     """A search result as a `Match` without a pose."""
-    return Match(m.rank, m.match_id, m.path, m.distance, m.yaw_deg, yaw_conf=conf_or_none(m))
+    return Match(
+        m.rank,
+        m.match_id,
+        m.path,
+        m.distance,
+        m.yaw_deg,
+        yaw_conf=conf_or_none(m),
+        confidence=number_or_none(m.confidence),
+        cues=m.cues,
+    )
 
 
 def conf_or_none(m: Any) -> float | None:
     """A search match's `yaw_conf`, None where it has none (NaN)."""
-    return float(m.yaw_conf) if math.isfinite(m.yaw_conf) else None
+    return number_or_none(m.yaw_conf)
+
+
+def number_or_none(x: float) -> float | None:
+    """`x` as a float, None where it is NaN."""
+    return float(x) if math.isfinite(x) else None
 
 
 def pose_columns(x: Any) -> dict[str, Any]:

@@ -45,6 +45,12 @@ class QueryPolicy:
     # and Oxford-like R@100%P 0.518 -> 0.453 (docs/results.md). 0: the re-rank distance
     # alone.
     signature_weight: float = 0.3
+    # The signature distance the bonus above stops growing at: a copy of the query in
+    # the map (s = 0) gets weight / floor, no more, so the distance stays bounded and
+    # no row's distance depends on another's. Below every true match's signature
+    # distance on the selection worlds 8621-8623 (docs/confidence.md), so the rows'
+    # order is today's wherever the map holds no copy.
+    signature_floor: float = 0.05
     # The query's views: its feature images re-centred this many metres to either side
     # along its own y axis (a revisit 4-8 m beside the map's route), searched beside the
     # query and re-ranked at their best. +-4/6 m gave what +-4..6 m did on every
@@ -86,6 +92,13 @@ class QueryPolicy:
     # (The search's grid, 3 m steps reaching 6 m to the query's sides, is the model's:
     # model/yaw_refine.py.)
     yaw_check_below: float = 0.6
+    # The geometric check (query/verification.py): the best this many rows are aligned
+    # to the query in turn (ICP), until one is accepted; the surest checked row goes
+    # first and every checked row's confidence holds the fit's evidence. It needs the
+    # map's scans (their files); where they cannot be read the rows stay unchecked.
+    # Chosen on the selection worlds 8621-8623 (docs/confidence.md). 0: no check, the
+    # cheaper path (`--no-check`).
+    check_candidates: int = 3
 
     def __post_init__(self) -> None:
         """Every field against its range, refused in one `DiscoError` line naming it
@@ -173,10 +186,12 @@ def policy_for(
     rerank_wider: int | None = None,
     snap_radius: float | None = None,
     refine_yaw: int | None = None,
+    check: bool = True,
 ) -> QueryPolicy:
     """`base` (default: the model's own `query_policy`) with the settings given (None:
     unchanged), checked against what the model can do: one `DiscoError` naming the
-    option otherwise."""
+    option otherwise. `check=False`: no geometric check of the candidates
+    (`check_candidates` 0, the cheaper path)."""
     policy = model.query_policy if base is None else base
     can = model.abilities
     changes: dict[str, Any] = {}
@@ -201,4 +216,6 @@ def policy_for(
         changes["refine_yaw"] = refine_yaw if can.refine_yaw else 0
         if refine_yaw < 0:
             changes["refine_yaw"] = refine_yaw  # refused by the check below
+    if not check:
+        changes["check_candidates"] = 0
     return replace(policy, **changes) if changes else policy

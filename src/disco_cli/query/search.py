@@ -9,25 +9,27 @@ One function, `match_queries`, under one `QueryPolicy` (query_policy.py):
 2. Re-ranking (`policy.rerank_candidates`): each candidate's feature images against the
    query's and its views' (`model.rerank_distances_views`); where none of the first ones
    re-ranks better than `rerank_wider_above`, the next ones down to `rerank_wider`.
-3. One score ranks the rows and is the `distance` they show (`ranking_score`,
-   `shown_distances`):
+3. One score ranks the rows and is the `distance` they show (`ranking_score`):
 
-       score = r - signature_weight / s
-       distance = score - score(first row) + r_own(first row)
+       distance = r + signature_weight * (1 / floor - 1 / max(s, floor))
 
    r: the candidate's best re-rank distance over the query (r_own: its own) and its
    views (a view's plus `view_penalty`); s: its nearest signature distance over the
-   same. The shift makes the first row show how well the query itself matches it,
-   which compares across queries (thresholds, precision); within a query the order is
-   the score's. Without re-ranking the distance is the signature distance.
-   `max_distance` applies to it before the top-k cut, so the rows are sorted by what
-   they show.
+   same; floor: `policy.signature_floor`. A near signature outweighs re-rank distances
+   that are all alike, far ones differ by little; the floor bounds the bonus, so a
+   copy of the query in the map (s = 0) cannot push the other rows' distances apart:
+   each row's distance is its own, whatever else the map holds. Without re-ranking the
+   distance is the signature distance. `max_distance` applies to it before the top-k
+   cut, so the rows are sorted by what they show.
 4. The snap, a tie-break of that score (`snap_first`): among the candidates within
    `snap_radius` m of the best on the map whose own re-rank distance is within
    `snap_margin` of the best's, the one nearest the query's position (estimated from
    the best match) takes the best's score and comes first.
 5. The yaw of the rows kept: parallax-free for the best `refine_yaw`, plain phase
    correlation for the others.
+6. Each row's `confidence` from its cues (`confidence.place_confidence`): the
+   probability that it is a true revisit, before any geometric check
+   (`verification.py` adds the check's evidence).
 """
 
 from __future__ import annotations
@@ -38,9 +40,12 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.io.poses.geometry import wrap_deg
+
 # The index's names, where callers have long imported them from here.
 from disco_cli.maps.signature_index import SignatureIndex, brute_force_topk  # noqa: F401
 from disco_cli.model.interface import QueryModel
+from disco_cli.query.confidence import PlaceCues, place_confidence, place_cues
 from disco_cli.query.query_policy import QueryPolicy
 from disco_cli.query.query_views import candidates_with_views, views_search
 
@@ -62,13 +67,18 @@ class Match:
     row: int  # row in the index (0-based, id order)
     match_id: int
     path: str
-    # The score that ranks the rows, shifted per query (`shown_distances`): lower is better.
+    # The score that ranks the rows (`ranking_score`): lower is better; bounded, and a
+    # row's own (no other row changes it, but the snap's tie-break).
     distance: float
     yaw_deg: float
     pose: np.ndarray  # x, y, z, yaw (rad) of the match, NaN where unknown
     # In [0, 1]: 1 - (the best other heading's correlation peak) / (the yaw's own); low
     # where the place looks alike both ways (model/yaw_refine.py). NaN: the model has none.
     yaw_conf: float = float("nan")
+    # The estimated probability that the row is a true revisit (`confidence.py`).
+    confidence: float = float("nan")
+    # The cues behind it (`confidence.PlaceCues`).
+    cues: PlaceCues | None = None
 
 
 def effective_policy(model: QueryModel, policy: QueryPolicy | None = None) -> QueryPolicy:
@@ -87,30 +97,24 @@ def effective_policy(model: QueryModel, policy: QueryPolicy | None = None) -> Qu
     return replace(p, **changes) if changes else p
 
 
-def ranking_score(best: np.ndarray, signature_d: np.ndarray, weight: float) -> np.ndarray:
-    """The shown distance of re-ranked candidates: `best - weight / signature_d`.
+def ranking_score(
+    best: np.ndarray, signature_d: np.ndarray, weight: float, floor: float
+) -> np.ndarray:
+    """The distance of re-ranked candidates: `best + weight * (1/floor - 1/max(s, floor))`.
 
     The re-rank distance compares the query's feature images with each candidate
     scan's own. Where the query was taken 4-8 m to the side of every candidate, or the
     street looks alike all along, those distances differ by a few hundredths of noise;
-    a near signature then tells the place apart. `weight / s` grows fast as s shrinks
+    a near signature then tells the place apart. `-weight / s` grows fast as s shrinks
     and changes little among far signatures: under heavy change, where every signature
-    is far, the re-ranking decides."""
+    is far, the re-ranking decides. The floor bounds it: at or below `floor` (a copy of
+    the query, or nearly) the bonus is whole, and the distance never leaves
+    [best, best + weight / floor]."""
     score = np.array(best, np.float64)  # a copy: the snap writes into it
     if weight:
-        # A signature at distance 0 (a copy) wins; the floor keeps the score finite.
-        score = score - weight / np.maximum(np.asarray(signature_d, np.float64), 1e-9)
+        s = np.maximum(np.asarray(signature_d, np.float64), floor)
+        score = score + weight * (1.0 / floor - 1.0 / s)
     return score
-
-
-def shown_distances(score: np.ndarray, own: np.ndarray, first: int) -> np.ndarray:
-    """The distance a query's re-ranked rows show: `score` shifted so that the `first`
-    row shows the query's own re-rank distance to it. Within a query the order is the
-    score's; across queries the first rows compare by how well the query itself
-    matches them, which a threshold (`max_distance`, precision) needs: a view's or a
-    near signature's bonus says which of a query's candidates is the place, not how
-    sure that is."""
-    return np.asarray(score, np.float64) - score[first] + own[first]
 
 
 def query_on_map_conf(
@@ -170,13 +174,7 @@ def snap_first(
     if not np.isfinite(pose[nearest, 3]):
         return nearest, None, float("nan")
     turned = yaw + math.degrees(pose[best, 3] - pose[nearest, 3])
-    return nearest, float(_wrapped_deg(turned)), conf
-
-
-def _wrapped_deg(yaw: float) -> float:
-    """An angle in degrees in (-180, 180]."""
-    out = (yaw + 180.0) % 360.0 - 180.0
-    return 180.0 if out <= -180.0 else out
+    return nearest, float(wrap_deg(turned)), conf
 
 
 def _joined_rows(a: Any, b: Any) -> Any:
@@ -294,7 +292,7 @@ def match_queries(
             r, stored, own, best, sig_d = _reranked(
                 model, policy, features[i], db, ids, r, d, first, views
             )
-            d = ranking_score(best, sig_d, policy.signature_weight)
+            d = ranking_score(best, sig_d, policy.signature_weight, policy.signature_floor)
             order = np.lexsort((r, d))
             if policy.snaps:
                 b = int(order[0])
@@ -312,10 +310,11 @@ def match_queries(
                 snapped = (n, yaw, conf)
                 ahead = np.arange(len(r)) != n
                 order = np.lexsort((r, ahead, d))
-            d = shown_distances(d, own, int(order[0]))
+            cues = place_cues(d, own, best, sig_d, stored.poses, r)
         else:
             stored = db.rows(ids[r]) if len(r) else None
             order = np.arange(len(r))
+            cues = place_cues(d, d, d, d, stored.poses if stored else None, r)
         if max_distance is not None:
             order = order[d[order] <= max_distance]
         order = order[:k]
@@ -342,6 +341,8 @@ def match_queries(
                     yaw_deg=float(yaw[j]),
                     pose=stored.poses[o],
                     yaw_conf=float(conf[j]),
+                    confidence=place_confidence(model, cues[o], float(conf[j])),
+                    cues=cues[o],
                 )
                 for j, o in enumerate(order)
             ]
