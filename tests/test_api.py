@@ -121,12 +121,12 @@ def test_refined_pose_recovers_a_known_transform(maps: tuple[Path, Path], tmp_pa
 
 
 def test_loop_detector_streams_the_loops_of_disco_loops(samples: Path, seq_paths) -> None:
-    args = ["--exclude-frames", "5", "--max-distance", "0.5", "--verify", "--format", "jsonl"]
+    args = ["--exclude-frames", "5", "--verify", "--format", "jsonl"]
     code, out, err = run("loops", samples / "00", *args)
     assert code == 0, err
     want = jsonl(out)
     assert want, "no loops in data/samples/00"
-    det = LoopDetector(exclude_frames=5, threshold=0.5, verify=True)
+    det = LoopDetector(exclude_frames=5, verify=True)
     got = []
     for i, p in enumerate(seq_paths):
         new = det.add(read_scan(p), name=p)
@@ -139,6 +139,7 @@ def test_loop_detector_streams_the_loops_of_disco_loops(samples: Path, seq_paths
     for g, w in zip(got, want):
         assert g.accepted and g.query == w["query"] and g.match == w["match"]
         assert abs(g.distance - w["distance"]) < 1e-6 and abs(g.yaw_deg - w["yaw_deg"]) < 1e-6
+        assert abs(g.confidence - w["confidence"]) < 1e-9 and g.confidence >= 0.9
         np.testing.assert_allclose(g.T, np.array(w["T"]), atol=1e-6)
 
 

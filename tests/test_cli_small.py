@@ -77,7 +77,7 @@ def test_quiet_leaves_only_results_warnings_and_errors(samples: Path, tmp_path: 
     # a warning still prints under -q: a scan without a pose
     res = _run("build-db", one, "-o", tmp_path / "c.db", "-q")
     assert res.exit_code == 0 and res.stderr.startswith("warning: ")
-    loops = _run("loops", samples / "00", "--exclude-frames", "5", "--max-distance", "0.55", "-q")
+    loops = _run("loops", samples / "00", "--exclude-frames", "5", "-q")
     assert loops.exit_code == 0 and loops.stderr == "" and len(_tsv(loops.stdout)) > 0
 
 
@@ -114,7 +114,7 @@ def test_match_id_counts_from_1_and_loop_indices_from_0(spectral_map: Path, samp
     res = _run("query", samples / "01", "--db", spectral_map, "--topk", "3", "--format", "tsv")
     rows = _tsv(res.stdout)
     assert rows and all(int(r["match_id"]) == int(Path(r["match"]).stem) + 1 for r in rows)
-    res = _run("loops", samples / "00", "--exclude-frames", "5", "--max-distance", "0.55")
+    res = _run("loops", samples / "00", "--exclude-frames", "5")
     loops = _tsv(res.stdout)
     assert loops
     for r in loops:

@@ -66,12 +66,13 @@ def test_loop_columns_and_build_summary() -> None:
         == ["query_index", "query", "match_index", "match"]
         + [
             "distance",
+            "confidence",
             "yaw_deg",
             "yaw_conf",
         ]
     )
     columns, keys = loop_columns(pose=True, verbose=True)
-    assert columns[7:] == ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "rmse"] + [
+    assert columns[8:] == ["roll_deg", "pitch_deg", "dx", "dy", "dz", "fitness", "rmse"] + [
         "accepted",
         "reason",
     ]

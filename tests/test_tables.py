@@ -115,7 +115,7 @@ def test_query_table_keeps_every_column_whole(
 
 @pytest.mark.parametrize("columns", WIDTHS)
 def test_loops_verify_table_keeps_every_column_whole(samples: Path, columns: int) -> None:
-    args = ["loops", str(samples / "00"), "--exclude-frames", "5", "--max-distance", "0.55"]
+    args = ["loops", str(samples / "00"), "--exclude-frames", "5"]
     args += ["--verify"]
     truth = _tsv(*args)
     assert truth, "the samples have loops"

@@ -498,3 +498,60 @@ ReuseDbOpt = Annotated[
         panel=PANEL_RUN,
     ),
 ]
+
+# One confidence per answer (query/confidence.py): the estimated probability that a row
+# is a true revisit, and the geometric check of the best few candidates behind it.
+MinConfidenceOpt = Annotated[
+    Optional[float],
+    opt(
+        "--min-confidence",
+        min=0.0,
+        max=1.0,
+        panel=PANEL_FILTER,
+        help="Keep only matches whose confidence (the estimated probability of a true "
+        "revisit) is at least this; default: all.",
+    ),
+]
+NoCheckOpt = Annotated[
+    bool,
+    opt(
+        "--no-check",
+        panel=PANEL_RUN,
+        help="Skip the geometric check (ICP) of the best 3 candidates: faster, rows in "
+        "place-recognition order, confidence from place recognition alone (lower where "
+        "places look alike).",
+    ),
+]
+# `disco loops`: the loops it reports. The default of --min-confidence is
+# query/loop_detector.LOOP_MIN_CONFIDENCE (a test keeps the two equal; the command line
+# does not load the detector for --help).
+DEFAULT_MIN_CONFIDENCE = 0.85
+LoopMinConfidenceOpt = Annotated[
+    Optional[float],
+    opt(
+        "--min-confidence",
+        min=0.0,
+        max=1.0,
+        panel=PANEL_FILTER,
+        help="Report only loops whose confidence (the estimated probability that the loop "
+        f"is true) is at least this; default {DEFAULT_MIN_CONFIDENCE}, chosen on the "
+        "selection worlds: no false loop on any of them, precision 99.5 % or more asked "
+        "(docs/confidence.md).",
+    ),
+]
+AllLoopsOpt = Annotated[
+    bool,
+    opt(
+        "--all",
+        panel=PANEL_FILTER,
+        help="Report every candidate, whatever its confidence (each scan's best --topk).",
+    ),
+]
+SequenceArg = Annotated[
+    Path,
+    typer.Argument(
+        show_default=False,
+        help="The sequence: a folder of scans (KITTI-style DIR/velodyne/ or a folder of scan "
+        "files), or a ROS bag.",
+    ),
+]

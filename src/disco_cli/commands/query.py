@@ -23,6 +23,8 @@ from disco_cli.commands.options import (
     IndexOpt,
     MaxDistanceOpt,
     MaxTimeGapOpt,
+    MinConfidenceOpt,
+    NoCheckOpt,
     OutputFormatOpt,
     PoseOpt,
     PosesFormatOpt,
@@ -74,6 +76,7 @@ def query(
     extrinsic: ExtrinsicOpt = None,
     max_time_gap: MaxTimeGapOpt = None,
     max_distance: MaxDistanceOpt = None,
+    min_confidence: MinConfidenceOpt = None,
     pose: PoseOpt = False,
     verify: VerifyMatchesOpt = False,
     model: Annotated[Optional[str], model_option(MODEL_OF_MAP)] = None,
@@ -86,6 +89,7 @@ def query(
     rerank_wider: RerankWiderOpt = None,
     refine_yaw: RefineYawOpt = None,
     snap_radius: SnapRadiusOpt = None,
+    no_check: NoCheckOpt = False,
     index: IndexOpt = "auto",
 ) -> None:
     """Find the places in a map database that scans were taken at, and the yaw to each.
@@ -114,11 +118,9 @@ def query(
     paths, known = query_paths(scans, fmt_name, topic)
     failed, poses_of, exclude = 0, None, None
     with Map.open(db_path, model=model, device=device, scan_root=scan_root, index=index) as m:
-        m.on_missing_scan = warn
-        m.on_index_note = note
-        m.on_damaged = warn
+        m.on_missing_scan, m.on_index_note, m.on_damaged = warn, note, warn
         settings = dict(rerank=rerank, rerank_wider=rerank_wider, snap_radius=snap_radius)
-        policy = policy_for(m.model, **settings, refine_yaw=refine_yaw)
+        policy = policy_for(m.model, **settings, refine_yaw=refine_yaw, check=not no_check)
         if exclude_radius is not None:  # the query's own scan, and those near its pose
             opts = pose_options(poses_format, calib, extrinsic, max_time_gap)
             poses_of = QueryPoses(query_poses, opts, known, warn=error)
@@ -129,6 +131,7 @@ def query(
             pose=with_pose,
             exclude=exclude,
             max_distance=max_distance,
+            min_confidence=min_confidence,
             threads=threads,
             scan_format=fmt_name,
             policy=policy,

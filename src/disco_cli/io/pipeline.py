@@ -394,6 +394,21 @@ def sequence_times(folder: Any, paths: list[str], times_file: Any = None) -> np.
     return t[frame_rows(paths, len(t), str(times_file))]
 
 
+def window_times(
+    folder: Any, paths: list[str], times_file: Any, exclude_seconds: float | None, warn: Any
+) -> np.ndarray | None:
+    """`sequence_times` for a window of `exclude_seconds` (a `DiscoError` where there
+    are none; `warn` hears of times that go backwards)."""
+    stamps = sequence_times(folder, paths, times_file)
+    if exclude_seconds is None:
+        return stamps
+    if stamps is None:
+        raise DiscoError(f"{folder}: --exclude-seconds needs times.txt beside the scans or --times")
+    if np.any(np.diff(stamps) < 0):
+        warn(f"{folder}: timestamps are not increasing; frames are taken in file order")
+    return stamps
+
+
 class QueryPoses:
     """The pose rows (x, y, z, yaw; NaN when unknown) of query scans from a pose file
     (`disco_cli.io.poses.ScanPoser`): for scans known up front (`paths`) KITTI's "row i for

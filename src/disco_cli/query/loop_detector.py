@@ -7,10 +7,13 @@
 
 Each scan is searched only against the scans added at least an exclusion window
 before it (frames, seconds, or metres travelled), as a robot would when it reaches
-that scan, then added to the searchable set. The pairs within `threshold` are loop
-candidates; with `verify` each gets its relative pose (phase correlation + ICP, see
-`relative_pose.py`) and only accepted ones are returned. `disco loops` runs this
-same class over a sequence's files, so both give the same loops.
+that scan, then added to the searchable set. Its best few candidates are checked
+geometrically (`verification.py`: the layout check of `relative_pose.py`) and
+each loop carries a `confidence`, the estimated probability that it is a true revisit
+(`confidence.py`); by default only loops at or above `LOOP_MIN_CONFIDENCE` are
+returned, chosen on the selection worlds for a precision of 99.5 % or more
+(docs/confidence.md). `min_confidence=None` returns every candidate. `disco loops`
+runs this same class over a sequence's files, so both give the same loops.
 
 Frames and units of `Loop`: as `Match` in `localize.py` (`T` is T_match<-query).
 To verify later loops the detector keeps each scan's points (x, y, z as float32,
@@ -35,12 +38,20 @@ from disco_cli.maps.database import MatchRows
 from disco_cli.maps.facade import _load_model
 from disco_cli.maps.map_side_views import ViewIndex, side_offsets, side_view_bevs
 from disco_cli.maps.signature_index import SignatureIndex
-from disco_cli.query import relative_pose
-from disco_cli.query.localize import PointCache, conf_or_none, pose_columns, pose_fields
+from disco_cli.query.confidence import calibrated
+from disco_cli.query.localize import Match, PointCache, as_match, pose_columns
 from disco_cli.query.query_policy import policy_for
 from disco_cli.query.search import match_queries
+from disco_cli.query.verification import check_candidates, check_row
 
-__all__ = ["Loop", "LoopDetector", "loop_columns"]
+__all__ = ["Loop", "LoopDetector", "loop_columns", "loops_found", "LOOP_MIN_CONFIDENCE"]
+
+# The confidence a loop needs by default: the lowest bar, in steps of 0.05, at which the
+# default loops on none of the nine selection worlds' joined sequences (8621-8623, every
+# family) held a false loop; precision 100 % on each, where 99.5 % was asked. Wrong
+# places (28-239 m off) reached 0.80 at most there (docs/confidence.md,
+# `benchmarks/calibrate_confidence.py loops`).
+LOOP_MIN_CONFIDENCE = 0.85
 
 
 @dataclass(frozen=True, eq=False)  # eq would compare the arrays ambiguously
@@ -66,23 +77,39 @@ class Loop:
     query_time: float = math.nan  # seconds, NaN when unknown
     match_time: float = math.nan
     yaw_conf: float | None = None  # in [0, 1] (localize.py); None: the model gives none
+    # The estimated probability that the loop is true (confidence.py); None: the model
+    # has no calibration.
+    confidence: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """The loop as the columns of `disco loops`, plus the pose columns and `T` (as
         nested lists) when it has a pose."""
         row = {"query_index": self.query_index, "query": self.query}
         row.update(match_index=self.match_index, match=self.match, distance=self.distance)
-        return {**row, "yaw_deg": self.yaw_deg, "yaw_conf": self.yaw_conf, **pose_columns(self)}
+        row.update(confidence=self.confidence, yaw_deg=self.yaw_deg, yaw_conf=self.yaw_conf)
+        return {**row, **pose_columns(self)}
 
 
 def loop_columns(pose: bool, verbose: bool = False) -> tuple[list[str], list[str]]:
     """The columns of `disco loops` (with a `pose`, yaw_deg is the refined yaw and roll
     and pitch are added; `verbose` adds the rest of the pose and its scores), and the
     keys of its rows (JSON lines also carry `T`)."""
-    columns = ["query_index", "query", "match_index", "match", "distance", "yaw_deg", "yaw_conf"]
+    columns = ["query_index", "query", "match_index", "match", "distance", "confidence"]
+    columns += ["yaw_deg", "yaw_conf"]
     columns += ["roll_deg", "pitch_deg"] if pose else []
     columns += ["dx", "dy", "dz", "fitness", "rmse", "accepted", "reason"] if verbose else []
     return columns, columns + (["T"] if pose else [])
+
+
+def loops_found(loops: int, scans: int, bar: float | None) -> str:
+    """`6 loops with confidence >= 0.9 among 26 scans` (`bar` None: every candidate)."""
+    s = "" if loops == 1 else "s"
+    kept = (
+        f"{loops} loop candidate{s}"
+        if bar is None
+        else f"{loops} loop{s} with confidence >= {bar:g}"
+    )
+    return f"{kept} among {scans} scan{'' if scans == 1 else 's'}"
 
 
 def _check_window(value: Any, name: str, minimum: float) -> Any:
@@ -142,10 +169,15 @@ class LoopDetector:
     searches scans 0 .. i - N; None: every earlier scan), `exclude_seconds` (scans at
     least S s older; every `add` needs `time`), `exclude_distance` (scans at least D m
     of travel back; every `add` needs `pose`). `threshold`: keep pairs with a distance
-    at most this (None: all). `topk`: candidates per scan. `verify`: estimate each
-    pair's relative pose and keep the accepted ones; `pose=True` without `verify`
-    estimates it and keeps every pair. `on_pose_error(message)` hears of a pair whose
-    pose cannot be estimated (that pair is left out); by default it is a warning.
+    at most this (None: all). `topk`: candidates per scan. `min_confidence`: keep the
+    loops whose confidence is at least this (default `LOOP_MIN_CONFIDENCE`; None: every
+    candidate; a model without a calibration gives no confidence, so it reports every
+    candidate, and `on_note(message)` hears so: by default a warning). The best
+    `policy.check_candidates` candidates are checked geometrically (0: none, the
+    cheaper path). `verify`: also estimate every reported pair's relative pose and keep
+    the accepted ones; `pose=True` without `verify` estimates it and keeps every pair.
+    `on_pose_error(message)` hears of a pair whose pose cannot be estimated (that pair
+    is left out); by default it is a warning.
     `side_views`: also search each earlier scan as seen from that many metres to its
     left and right (`map_side_views.py`), for revisits in another lane (a map's stored
     embeddings are then not reused: it holds no views of the sequence). `policy`: the
@@ -161,7 +193,8 @@ class LoopDetector:
         exclude_seconds: float | None = None,
         exclude_distance: float | None = None,
         threshold: float | None = None,
-        verify: bool = True,
+        min_confidence: float | None = LOOP_MIN_CONFIDENCE,
+        verify: bool = False,
         pose: bool | None = None,
         topk: int = 1,
         rerank: int | None = None,
@@ -170,6 +203,7 @@ class LoopDetector:
         on_pose_error: Callable[[str], None] | None = None,
         side_views: float = 0.0,
         policy: Any = None,
+        on_note: Callable[[str], None] | None = None,
     ):
         if exclude_frames is not None and (
             isinstance(exclude_frames, bool) or int(exclude_frames) != exclude_frames
@@ -179,6 +213,13 @@ class LoopDetector:
         self.exclude_seconds = _check_window(exclude_seconds, "exclude_seconds", 0.0)
         self.exclude_distance = _check_window(exclude_distance, "exclude_distance", 0.0)
         self.threshold = _check_window(threshold, "threshold", 0.0)
+        if min_confidence is not None and not (
+            isinstance(min_confidence, (int, float))
+            and not isinstance(min_confidence, bool)
+            and 0.0 <= min_confidence <= 1.0
+        ):
+            raise DiscoError(f"min_confidence must lie in [0, 1], not {min_confidence!r}")
+        self.min_confidence = min_confidence
         if isinstance(topk, bool) or not isinstance(topk, int) or topk < 1:
             raise DiscoError(f"topk must be an integer >= 1, not {topk!r}")
         self.topk = topk
@@ -187,12 +228,19 @@ class LoopDetector:
         except ValueError as exc:
             raise DiscoError(str(exc)) from None
         self.verify = bool(verify)
-        self.estimate_pose = bool(verify or pose)
         self.pose_config = pose_config
         self._model = _load_model(model, device)
         # The query stage's settings (`QueryPolicy`; default: the model's).
         self.policy = policy_for(self._model, policy, rerank=rerank)
+        self._pose = bool(verify or pose)
         self._on_pose_error = on_pose_error or (lambda msg: warnings.warn(msg, stacklevel=3))
+        if self.min_confidence is not None and not calibrated(self._model):
+            note = on_note or (lambda msg: warnings.warn(msg, stacklevel=3))
+            note(
+                f"model {self._model.name} has no calibrated confidence: every candidate is "
+                "reported (cut them with threshold, --max-distance)"
+            )
+            self.min_confidence = None
         self._index: Any = None  # SignatureIndex, created with the first scan
         self._store = _Features()
         self._times = np.empty(0)
@@ -204,6 +252,12 @@ class LoopDetector:
     @property
     def model(self) -> Any:
         return self._model
+
+    @property
+    def estimate_pose(self) -> bool:
+        """Whether the detector needs each scan's points: to check candidates, or for
+        the relative pose of every loop."""
+        return self._pose or self.policy.check_candidates > 0
 
     def __len__(self) -> int:
         return self._store.n
@@ -237,10 +291,13 @@ class LoopDetector:
         time: float | None = None,
         name: str | None = None,
         side_signatures: np.ndarray | None = None,
+        limit: int | None = None,
     ) -> list[Loop]:
         """`add` for a scan embedded already (by `model.embed`); `points` is its point
-        array or a function that reads it (needed when poses are estimated);
-        `side_signatures` `[V, D]` its side views' (when the detector has side views)."""
+        array or a function that reads it (needed when candidates are checked or poses
+        estimated); `side_signatures` `[V, D]` its side views' (when the detector has
+        side views); `limit`: search only the first `limit` scans (an evaluation's own
+        window, in place of the detector's)."""
         i = len(self)
         label = name or f"scan-{i}"
         t = self._time(time, label)
@@ -255,9 +312,10 @@ class LoopDetector:
             if points is None:
                 raise DiscoError(f"{label}: no points to estimate the relative pose from")
             self._sources[i] = points
-        limit = self._limit(i, t, travelled)
+        limit = self._limit(i, t, travelled) if limit is None else min(int(limit), i)
         loops: list[Loop] = []
         if limit > 0:
+            depth = self.policy.check_candidates
             found = match_queries(
                 self._index,
                 np.arange(i),
@@ -265,12 +323,13 @@ class LoopDetector:
                 self._model,
                 sig[None],
                 np.asarray(features, dtype=np.float32)[None],
-                self.topk,
+                max(self.topk, depth),
                 self.policy,
                 limit=[limit],
                 max_distance=self.threshold,
             )[0]
-            loops = [lp for m in found if (lp := self._loop(i, label, t, m)) is not None]
+            rows = self._checked(i, label, found, depth)[: self.topk]
+            loops = [lp for m in rows if (lp := self._loop(i, label, t, m)) is not None]
         # Only now is the scan searchable: never by itself.
         empty = np.empty((0, len(sig)), np.float32)
         if self._index is None and self.side_offsets:
@@ -387,28 +446,56 @@ class LoopDetector:
         source = self._sources[i]
         return source() if callable(source) else source
 
-    def _loop(self, i: int, label: str, t: float, m: Any) -> Loop | None:
+    def _checked(self, i: int, label: str, found: list, depth: int) -> list[Match]:
+        """The search's rows as `Match`es, the best `depth` checked (`verification.py`)."""
+        if depth == 0 or not found:
+            return [as_match(m) for m in found]
+        try:
+            query_points = self._points.get(i)
+        except DiscoError as exc:
+            self._on_pose_error(f"{label}: its candidates are not checked ({exc})")
+            return [as_match(m) for m in found]
+        return check_candidates(
+            self._model, found, query_points, self._row_points, depth, config=self.pose_config
+        )
+
+    def _row_points(self, row: Match) -> np.ndarray:
+        return self._points.get(row.match_id)
+
+    def _loop(self, i: int, label: str, t: float, m: Match) -> Loop | None:
+        if m.T is None and self._pose:
+            try:
+                query_points = self._points.get(i)
+            except DiscoError as exc:
+                self._on_pose_error(f"{label} -> {m.name}: no relative pose ({exc})")
+                return None
+            m = check_row(self._model, m, query_points, self._row_points, True, self.pose_config)
+            if m.T is None:
+                # One unusable pair (a scan with no valid points) must not cost the others.
+                self._on_pose_error(f"{label} -> {m.name}: {m.reason}")
+                return None
+        if self.verify and not m.accepted:
+            return None
+        if self.min_confidence is not None and not (
+            m.confidence is not None and m.confidence >= self.min_confidence
+        ):
+            return None
         base = {
             "query_index": i,
             "match_index": m.match_id,
             "distance": m.distance,
             "yaw_deg": m.yaw_deg,
             "query": label,
-            "match": m.path,
+            "match": m.name,
             "query_time": t,
             "match_time": float(self._times[m.match_id]),
-            "yaw_conf": conf_or_none(m),
+            "yaw_conf": m.yaw_conf,
+            "confidence": m.confidence,
         }
-        if not self.estimate_pose:
-            return Loop(**base)
-        try:
-            rp = relative_pose.estimate_relative_pose(
-                self._points.get(i), self._points.get(m.match_id), m.yaw_deg, self.pose_config
-            )
-        except DiscoError as exc:
-            # One unusable pair (a scan with no valid points) must not cost the others.
-            self._on_pose_error(f"{label} -> {m.path}: no relative pose ({exc})")
-            return None
-        if self.verify and not rp.accepted:
-            return None
-        return Loop(**{**base, **pose_fields(rp)})
+        return Loop(**base, **(_pose_of(m) if m.T is not None else {}))
+
+
+def _pose_of(m: Match) -> dict[str, Any]:
+    """A checked `Match`'s pose fields, as `pose_fields` gives them for a `Loop`."""
+    keys = ("T", "fitness", "rmse", "accepted", "reason", "roll_deg", "pitch_deg")
+    return {k: getattr(m, k) for k in keys}
