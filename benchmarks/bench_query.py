@@ -202,11 +202,22 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
     from disco_cli.model import load_model
     from disco_cli.model.yaw_refine import forget_kept_views
     from disco_cli.query.search import SignatureIndex, effective_policy, match_queries
+    from disco_cli.query.verification import check_candidates
 
     model = load_model(model_name)
     policy = effective_policy(model)
     db_path = tmp / "map10k.db"
     build_synthetic_db(db_path, model, n_map)
+    # The map's scans for the geometric check: a pool of synthetic scans on disk, read
+    # back as a map's are (each row's by its id).
+    pool = []
+    for j in range(50):
+        pool.append(tmp / f"m{j:03d}.bin")
+        synthetic_scan(10_000 + j).tofile(pool[-1])
+
+    def map_points(row):
+        return read_scan(pool[row.match_id % len(pool)])
+
     scans = []
     for i in range(n_queries):
         p = tmp / f"q{i:04d}.bin"
@@ -226,6 +237,8 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
         "wider",
         "snap",
         "views",
+        "check",
+        "checked_total",
     )
     cpu = {"total": [], "embed": []}  # process CPU time: the work, apart from waiting
     stages = {k: [] for k in keys}
@@ -246,8 +259,12 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
         c3, t3 = time.process_time(), time.perf_counter()
         index.search(sig, 10)
         c4, t4 = time.process_time(), time.perf_counter()
-        match_queries(index, ids, db, model, sig, feat, 10)  # search again + rows + yaw
+        found = match_queries(index, ids, db, model, sig, feat, 10)[0]  # + rows + yaw
         c5, t5_first = time.process_time(), time.perf_counter()
+        # The geometric check of the best rows (query/verification.py): the verified
+        # query is the streaming query plus this.
+        check_candidates(model, found, pts, map_points, policy.check_candidates)
+        t_check = time.perf_counter() - t5_first
         cpu["total"].append((c3 - c0) + (c5 - c4))
         cpu["embed"].append(c3 - c2)
         # Costs as differences, all three with the rows now in SQLite's page cache (the
@@ -285,6 +302,8 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
                 (ta - t5) - (tc - tb),
                 (ta - t5) - (td - tc),
                 (ta - t5) - (te - td),
+                t_check,
+                (t3 - t0) + (t5_first - t4) + t_check,
             ),
         ):
             stages[k].append(v)
@@ -583,6 +602,12 @@ def main() -> None:
             "and re-ranking); "
             f"process CPU time per query {s['cpu_total']:.2f} ms, of the embed "
             f"{s['cpu_embed']:.2f} ms (medians)"
+        )
+        print(
+            f"verified query (the default: the streaming query, then the layout check of "
+            f"the best 3 rows, their scans read from disk): {s['checked_total']:.2f} ms/query "
+            f"= {s['checked_total'] / s['total']:.2f}x the streaming query; the check "
+            f"{s['check']:.2f} ms (medians, same queries)"
         )
         e = bench_embed(model)
         if e is not None:

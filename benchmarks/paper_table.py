@@ -46,6 +46,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from disco_cli.evaluation.loop_sequences import loop_rows, loop_summary
 from disco_cli.evaluation.paper_families import (
     FAMILIES,
     PAPER,
@@ -57,8 +58,10 @@ from disco_cli.evaluation.paper_families import (
 )
 
 ROOT = Path(__file__).resolve().parent.parent
-
-FAMILIES_SHIPPED = dict(FAMILIES)
+# The table's rows: the families, then the variants scored apart (the lagged MulRan-like
+# ground truth, the NCLT-like map with unseen places).
+HEADS = ("nclt", "mulran", "oxford")
+VARIANTS = ("mulran_lagged", "nclt_unseen")
 
 
 # -- worlds ----------------------------------------------------------------------------
@@ -68,7 +71,7 @@ def world_folder(out: Path, fam: Family, seed: int) -> Path:
     """The world of `fam` at `seed` under `out`, simulated on first use (quick mode runs
     the first seed of the set: the same world as the full table's)."""
     name = f"{fam.name}-{seed}"
-    shipped = FAMILIES_SHIPPED[fam.name]
+    shipped = FAMILIES[fam.name]
     sim = (fam.simulate_args(seed), fam.town_toml())
     if sim != (shipped.simulate_args(seed), shipped.town_toml()):
         # a calibration variant of what is simulated: a folder of its own
@@ -93,27 +96,49 @@ def world_folder(out: Path, fam: Family, seed: int) -> Path:
 # -- evaluation ------------------------------------------------------------------------
 
 
-def cached_rows(out: Path, fam: Family, seed: int, method: str, policy: dict):
+def code_version() -> str:
+    """A hash of the package's sources and shipped files: rows computed by other code
+    are never taken for this code's."""
+    h = hashlib.sha1()
+    pkg = ROOT / "src" / "disco_cli"
+    for f in sorted(pkg.rglob("*")):
+        if f.is_file() and f.suffix in (".py", ".json", ".npz", ".pt", ".toml"):
+            h.update(str(f.relative_to(pkg)).encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def cached_rows(out: Path, fam: Family, seed: int, method: str, policy: dict, kind: str = "query"):
+    """The rows of one (family, seed, method): `query` (paper_families.evaluate) or
+    `loops` (loop_sequences.loop_rows, the default `disco loops` on the joined sessions),
+    cached under `out` by everything that makes them: the family, seed, method, the
+    model's fingerprint, the full query policy and the code version."""
     from disco_cli.model import load_model
 
     folder = world_folder(out, fam, seed)
     if method == "oracle":  # no model: the map scan nearest the query's real position
         return oracle_rows(fam, folder)
     model = load_model(method)
-    key = {"family": asdict(fam), "seed": seed, "method": method}
-    if policy:  # an ablation: cached apart
-        key["policy"] = policy
-    key["fingerprint"] = str(getattr(model, "fingerprint", method))
-    variant = hashlib.sha1(repr(fam).encode()).hexdigest()[:8]
-    if policy:
-        variant += "-" + hashlib.sha1(repr(sorted(policy.items())).encode()).hexdigest()[:8]
-    f = out / "rows" / f"{folder.name}--{variant}--{Path(method).stem}.jsonl"
+    full_policy = {**model.query_policy.report(), **policy}
+    key = {
+        "kind": kind,
+        "family": asdict(fam),
+        "seed": seed,
+        "method": method,
+        "fingerprint": str(getattr(model, "fingerprint", method)),
+        "policy": json.loads(json.dumps(full_policy)),
+        "code": code_version(),
+    }
+    digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    f = out / "rows" / f"{folder.name}--{kind}--{Path(method).stem}--{digest}.jsonl"
     if f.is_file():
         lines = f.read_text().splitlines()
-        if json.loads(lines[0]) == json.loads(json.dumps(key)):
+        if json.loads(lines[0]) == key:
             return [json.loads(x) for x in lines[1:]]
     t0 = time.monotonic()
-    rows = evaluate(fam, folder, method, policy)
+    if kind == "loops":
+        rows = loop_rows(fam, folder, out / "joined")
+    else:
+        rows = evaluate(fam, folder, method, policy)
     f.parent.mkdir(parents=True, exist_ok=True)
     tmp = f.with_suffix(".partial")
     tmp.write_text("\n".join(json.dumps(r) for r in [key, *rows]) + "\n")
@@ -136,30 +161,59 @@ def fmt(v: float, digits: int = 3) -> str:
     return "-" if v is None or v != v else f"{v:.{digits}f}"
 
 
+def family_label(fam: str) -> str:
+    return {
+        "mulran_lagged": "mulran-like, ground truth 1.75 m behind",
+        "nclt_unseen": "nclt-like, a fifth unseen",
+    }.get(fam, f"{fam}-like")
+
+
 def table(results: dict, families: list[str], methods: list[str]) -> list[str]:
     lines = [
         "| family | method | queries | Recall@1 | Recall@1% | R@100%P | F1max "
-        "| yaw err mean / median (deg) | yaw err > 10 deg |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| R@100%P by confidence | F1max by confidence "
+        "| yaw err mean / median (deg) | yaw err > 10 deg | median ms a query |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for fam in families:
-        paper = PAPER[fam]
         for method in methods:
             s = results[(fam, method)]
             label = LABELS.get(method, Path(method).stem)
             lines.append(
-                f"| {fam}-like | {label} | {s['queries']} | {fmt(s['r1'])} | {fmt(s['r1p'])} "
-                f"| {fmt(s['r100p'])} | {fmt(s['f1max'])} "
-                f"| {fmt(s['yaw_mean'], 2)} / {fmt(s['yaw_median'], 2)} | {s['yaw_over10']} |"
+                f"| {family_label(fam)} | {label} | {s['queries']} | {fmt(s['r1'])} "
+                f"| {fmt(s['r1p'])} | {fmt(s['r100p'])} | {fmt(s['f1max'])} "
+                f"| {fmt(s.get('r100p_conf'))} | {fmt(s.get('f1max_conf'))} "
+                f"| {fmt(s['yaw_mean'], 2)} / {fmt(s['yaw_median'], 2)} | {s['yaw_over10']} "
+                f"| {fmt(s.get('median_ms'), 1)} |"
             )
+        if fam not in PAPER:
+            continue
+        paper = PAPER[fam]
         yaw = "-" if paper["yaw"] is None else f"{paper['yaw']:.2f} / -"
         lines.append(
             f"| {fam} (paper) | Scan Context | - | {paper['sc_r1']:.3f} | {paper['sc_r1p']:.3f} "
-            "| - | - | - | - |"
+            "| - | - | - | - | - | - | - |"
         )
         lines.append(
             f"| {fam} (paper) | DiSCO | - | {paper['disco_r1']:.3f} | {paper['disco_r1p']:.3f} "
-            f"| - | - | {yaw} | - |"
+            f"| - | - | - | - | {yaw} | - | - |"
+        )
+    return lines
+
+
+def loops_table(loops: dict, families: list[str]) -> list[str]:
+    """Default `disco loops` (disco's shipped model and threshold) on each family's two
+    sessions joined into one sequence."""
+    lines = [
+        "| family | scans | scans with a true revisit | loops reported | false loops "
+        "| recall | median ms a scan |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for fam in families:
+        s = loops[fam]
+        lines.append(
+            f"| {family_label(fam)} | {s['scans']} | {s['with_revisit']} | {s['loops']} "
+            f"| {s['false']} | {fmt(s['recall'])} | {fmt(s['median_ms'], 1)} |"
         )
     return lines
 
@@ -230,26 +284,40 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def clean_tree() -> bool:
+    """Whether the package, benchmarks and docs are as committed (what `--update-docs`
+    publishes must be reproducible from a commit)."""
+    out = subprocess.run(
+        ["git", "status", "--porcelain", "--", "src", "benchmarks", "pyproject.toml"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    return out.returncode == 0 and not out.stdout.strip()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="the first seed of the set only")
     ap.add_argument("--seeds", choices=sorted(SEEDS), default="report")
-    ap.add_argument("--families", nargs="+", choices=sorted(FAMILIES), default=list(FAMILIES))
+    ap.add_argument("--families", nargs="+", choices=sorted(FAMILIES), default=[*HEADS, *VARIANTS])
     ap.add_argument("--models", nargs="+", default=["oracle", "scancontext", "spectral", "default"])
+    ap.add_argument("--no-loops", action="store_true", help="leave out the loop-sequence table")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "paper")
     ap.add_argument("--threads", type=int, default=int(os.environ.get("DISCO_THREADS", "2")))
     ap.add_argument("--json", type=Path, help="also write the summaries here")
     ap.add_argument(
         "--update-docs",
         action="store_true",
-        help="write the tables into docs/results.md (report seeds, full mode only)",
+        help="write the tables into docs/results.md (report seeds, full mode, committed tree)",
     )
     ap.add_argument(
         "--set",
         action="append",
         default=[],
         metavar="FAMILY.FIELD=VALUE",
-        help="calibration: change one family field (e.g. nclt.change=0.6); cached apart",
+        help="calibration: change one family field (e.g. nclt.change=0.6); cached apart; "
+        "not on report seeds",
     )
     ap.add_argument(
         "--policy",
@@ -257,46 +325,53 @@ def main() -> None:
         default=[],
         metavar="FIELD=VALUE",
         help="ablation: change a field of the model's QueryPolicy (e.g. snap_radius=0, "
-        "view_offsets=); cached apart",
+        "view_offsets=); cached apart; not on report seeds",
     )
     args = ap.parse_args()
+    # Seed roles, enforced: nothing is tuned on the report seeds, and what is published
+    # comes from a commit.
+    if args.seeds == "report" and (args.policy or args.set):
+        raise SystemExit("report seeds take the shipped families and policy: no --policy, --set")
+    if args.update_docs:
+        if args.quick or args.seeds != "report":
+            raise SystemExit("--update-docs writes the report seeds' full tables only")
+        if not clean_tree():
+            raise SystemExit("--update-docs publishes from a committed tree: commit src/ first")
     policy = dict(policy_field(item) for item in args.policy)
+    families = dict(FAMILIES)  # the shipped ones stay as they are
     for item in args.set:
-        FAMILIES.update([override(FAMILIES, item)])
+        families.update([override(families, item)])
     os.environ.setdefault("DISCO_THREADS", str(args.threads))
     seeds = SEEDS[args.seeds][:1] if args.quick else SEEDS[args.seeds]
     t0 = time.monotonic()
-    results = {}
+    results, loops = {}, {}
     for fam in args.families:
         for method in args.models:
             rows = []
             for seed in seeds:
-                rows += cached_rows(args.out, FAMILIES[fam], seed, method, policy)
+                rows += cached_rows(args.out, families[fam], seed, method, policy)
             results[(fam, method)] = summarize(rows)
+    loop_families = [f for f in args.families if f in HEADS and not args.no_loops]
+    for fam in loop_families:
+        rows = []
+        for seed in seeds:
+            rows += cached_rows(args.out, families[fam], seed, "default", policy, "loops")
+        loops[fam] = loop_summary(rows)
     mode = "quick" if args.quick else "full"
     head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}"
-    print(f"# {head}")
-    print("\n".join(table(results, args.families, args.models)))
-    print()
-    print("\n".join(precision_table(results, args.families, args.models)))
+    parts = [head, "", *table(results, args.families, args.models), ""]
+    parts += [*precision_table(results, args.families, args.models)]
+    if loops:
+        parts += ["", *loops_table(loops, loop_families)]
+    text = "\n".join(parts)
+    print(f"# {text}")
     print(f"\n({time.monotonic() - t0:.0f} s)")
     if args.update_docs:
-        if args.quick or args.seeds != "report":
-            raise SystemExit("--update-docs writes the report seeds' full tables only")
-        text = "\n".join(
-            [
-                head,
-                "",
-                *table(results, args.families, args.models),
-                "",
-                *precision_table(results, args.families, args.models),
-            ]
-        )
         write_between(ROOT / "docs" / "results.md", "paper", text)
     if args.json:
-        args.json.write_text(
-            json.dumps({f"{f}/{m}": s for (f, m), s in results.items()}, indent=1) + "\n"
-        )
+        summary = {f"{f}/{m}": s for (f, m), s in results.items()}
+        summary.update({f"{f}/loops": s for f, s in loops.items()})
+        args.json.write_text(json.dumps(summary, indent=1) + "\n")
 
 
 if __name__ == "__main__":

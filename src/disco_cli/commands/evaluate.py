@@ -131,9 +131,7 @@ def evaluate(
         steps("embedding", len(paths)) as step,
     ):
         policy = policy_for(m.model, **settings)
-        ev = multi_session(
-            paths, q_poses, m.database, m.model, radius, topk, scan_format, step, policy=policy
-        )
+        ev = multi_session(paths, q_poses, m, radius, topk, scan_format, step, policy=policy)
     run = {
         "protocol": "multi-session",
         **model_run(m.model, policy),

@@ -28,10 +28,10 @@ from disco_cli.evaluation.metrics import (
 from disco_cli.io import pipeline
 from disco_cli.io.pipeline import frame_rows
 from disco_cli.io.poses import ScanPoser, read_times, relative_yaw_deg, xy_yaw
+from disco_cli.io.readers import read_scan
 from disco_cli.io.readers.bags import bag_poses, scan_stamps
-from disco_cli.maps.database import MatchRows, damaged_line
-from disco_cli.maps.index import index_for_database
-from disco_cli.query.search import SignatureIndex, match_queries
+from disco_cli.maps.database import damaged_line
+from disco_cli.query.loop_detector import LoopDetector
 
 __all__ = [
     "multi_session",
@@ -94,21 +94,20 @@ def posed_times(times_file: Any, all_paths: list[Any], paths: list[Any]) -> np.n
 def multi_session(
     paths: list[str],
     query_poses: np.ndarray,
-    db: Any,
-    model: Any,
+    m: Any,
     radius: float = 3.0,
     topk: int = 25,
     scan_format: str | None = None,
     on_progress: Callable[[int], None] | None = None,
     source: str = "query poses",
-    index: str = "auto",
-    note: Callable[[str], None] | None = None,
     policy: Any = None,
 ) -> Any:
-    """Recall@1..topk, Recall@1%, PR AUC, F1max and yaw error of `paths` (with their
-    `[N, 4, 4]` `query_poses`) against the `Database` `db`, built by `model`, searched
-    with the `index` kind (`disco_cli.maps.index`; `note` hears of an index being built),
-    under the query stage's `policy` (None: the model's)."""
+    """Recall@1..topk, Recall@1%, PR AUC, F1max (over the distance and over the
+    confidence) and yaw error of `paths` (with their `[N, 4, 4]` `query_poses`) against
+    the open `Map` `m`, queried as `disco query` queries it (`Map.query_files`, the
+    stored signatures, the geometric check, the confidence) under the query stage's
+    `policy` (None: the model's)."""
+    db = m.database
     if len(query_poses) != len(paths):
         raise PoseFileError(f"{source}: {len(query_poses)} poses for {len(paths)} query scans")
 
@@ -122,13 +121,27 @@ def multi_session(
     if not np.isfinite(db_poses[:, :2]).all():
         raise DatabaseError(db.path, "some scans have no pose; build it with --poses")
     check_retrieval_queries(query_poses, db_poses, radius)  # before the work
-    ids, searched = index_for_database(db, index, note)
-    refuse_damaged()
-    # pipeline.embed_paths is looked up at each call: tests replace it
-    sigs, feats = pipeline.embed_paths(paths, model, scan_format, on_progress=on_progress)
+    ids = db.ids()
+    row_of = {int(i): r for r, i in enumerate(ids)}
     depth = max(topk, one_percent_n(len(ids)))
-    matches = match_queries(searched, ids, db, model, sigs, feats, depth, policy)
+    matches = []
+    for res in m.query_files(paths, topk=depth, scan_format=scan_format, policy=policy):
+        if res.error is not None:
+            raise res.error
+        matches.append([_Scored(x, row_of[x.match_id]) for x in res.matches])
+        if on_progress is not None:
+            on_progress(1)
+    refuse_damaged()
     return score_retrieval(matches, depth, topk, query_poses, db_poses, radius)
+
+
+class _Scored:
+    """A `Map.query` row as `score_retrieval` reads it: its row in the map's id order."""
+
+    def __init__(self, match: Any, row: int):
+        self.rank, self.row, self.distance = match.rank, row, match.distance
+        self.yaw_deg = match.yaw_deg
+        self.confidence = np.nan if match.confidence is None else match.confidence
 
 
 def check_retrieval_queries(query_poses: np.ndarray, map_rows: np.ndarray, radius: float) -> None:
@@ -200,17 +213,19 @@ def score_retrieval(
     retrieved = np.full((len(matches), depth), -1, np.int64)
     distances = np.full((len(matches), depth), np.inf)
     yaw_est = np.full(len(matches), np.nan)
+    conf = np.full(len(matches), np.nan)
     for i, found in enumerate(matches):
         for m in found:
             retrieved[i, m.rank - 1], distances[i, m.rank - 1] = m.row, m.distance
         if found:
             yaw_est[i] = found[0].yaw_deg
+            conf[i] = getattr(found[0], "confidence", np.nan)
     qx, qy, qyaw = xy_yaw(query_poses)
     truth = within_radius(np.c_[qx, qy], map_rows[:, :2], radius)
     top1 = np.maximum(retrieved[:, 0], 0)
     # Ground-truth yaw of T_match^-1 T_query for planar poses: the heading difference.
     yaw_true = wrap_deg(np.degrees(qyaw - map_rows[top1, 3]))
-    ev = retrieval_evaluation(retrieved, distances, truth, yaw_est, yaw_true)
+    ev = retrieval_evaluation(retrieved, distances, truth, yaw_est, yaw_true, conf)
     # The search went deep enough for recall@1%; report recall@N up to the N asked for.
     ev.metrics["recall@N"] = ev.metrics["recall@N"][:topk]
     ev.metrics["topk"] = topk
@@ -249,37 +264,32 @@ def loop_closure(
         raise PoseFileError(f"{source}: {len(poses)} poses for {n} scans")
     check_loop_queries(poses, limit, radius, "shorten the exclusion window")  # before the work
     sigs, feats = pipeline.embed_paths(paths, model, scan_format, on_progress=on_progress)
-
-    class _Memory:
-        """The scans of this run, standing in for a database in `match_queries`."""
-
-        def rows(self, ids: np.ndarray) -> MatchRows:
-            ids = np.asarray(ids, np.int64)
-            no_pose = np.full((len(ids), 4), np.nan)
-            return MatchRows(ids, [str(paths[i]) for i in ids], no_pose, feats[ids])
-
+    # Every scan through the detector `disco loops` runs (its check and confidence),
+    # every candidate kept: the scores are over all of them.
+    det = LoopDetector(model, exclude_frames=None, min_confidence=None, policy=policy)
     queries = np.flatnonzero(limit > 0)
-    matches = match_queries(
-        SignatureIndex(sigs),
-        np.arange(n),
-        _Memory(),
-        model,
-        sigs[queries],
-        feats[queries],
-        1,
-        policy,
-        limit=limit[queries],
-    )
+    found: dict[int, Any] = {}
+    for i in range(n):
+
+        def read(p: str = str(paths[i])) -> np.ndarray:
+            return read_scan(p, scan_format)
+
+        loops = det.add_embedded(sigs[i], feats[i], points=read, name=str(paths[i]), limit=limit[i])
+        if loops:
+            found[i] = loops[0]
     xy = poses[:, :2, 3]
     near = within_radius(xy[queries], xy, radius)
     near &= np.arange(n)[None, :] < limit[queries][:, None]
     has_true = near.any(axis=1)
     dist = np.full(len(queries), np.nan)
+    conf = np.full(len(queries), np.nan)
     top = np.zeros(len(queries), np.int64)
     yaw_est = np.full(len(queries), np.nan)
-    for i, found in enumerate(matches):
-        if found:
-            dist[i], top[i], yaw_est[i] = found[0].distance, found[0].row, found[0].yaw_deg
+    for k, i in enumerate(queries):
+        if i in found:
+            lp = found[i]
+            dist[k], top[k], yaw_est[k] = lp.distance, lp.match_index, lp.yaw_deg
+            conf[k] = np.nan if lp.confidence is None else lp.confidence
     correct = np.isfinite(dist) & near[np.arange(len(queries)), top]
     yaw_true = relative_yaw_deg(poses[top], poses[queries])
-    return loop_evaluation(dist, correct, has_true, yaw_est, yaw_true)
+    return loop_evaluation(dist, correct, has_true, yaw_est, yaw_true, conf)
