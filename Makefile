@@ -32,7 +32,7 @@ $(PY):
 # pip prints nothing while the C++ core compiles: say what happens, and tick meanwhile.
 define pip_install_watched
 	@echo "make: installing disco$(1) into $(VENV): downloads what is missing and compiles the C++ core"
-	@echo "make: 2-4 minutes on 2 cores the first time, 20-30 s after a source change; skipped when none changed"
+	@echo "make: 2-4 minutes on 2 cores the first time, less after a change (about 25 s for Python files); skipped when nothing changed"
 	@( t=0; while sleep 20 >/dev/null 2>&1; do t=$$((t + 20)); \
 	    echo "make: ... still installing ($$t s)"; done ) & tick=$$!; \
 	  CMAKE_BUILD_PARALLEL_LEVEL=$(NPROC) $(PIP_INSTALL) '.$(1)'; rc=$$?; \
