@@ -312,7 +312,9 @@ def test_query_finds_the_turned_scene_with_its_yaw(map_db: Path, seq: Path, quer
     assert abs(first[0]["yaw_deg"] - (-TURN_DEG)) <= 3.0
     assert abs(first[1]["yaw_deg"] - 60.0) <= 3.0
     assert all(-180.0 < r["yaw_deg"] <= 180.0 for r in rows)
-    assert set(rows[0]) == {"query", "rank", "match", "match_id", "distance", "yaw_deg", "yaw_conf"}
+    assert set(rows[0]) == {
+        "query", "rank", "match", "match_id", "distance", "confidence", "yaw_deg", "yaw_conf"
+    }  # fmt: skip
     # Every row rates its yaw (yaw_refine.py): an unambiguous scene here.
     assert all(0.0 <= r["yaw_conf"] <= 1.0 for r in rows)
     assert first[0]["yaw_conf"] > 0.5
@@ -401,6 +403,7 @@ def test_tsv_has_a_header_and_the_same_columns(map_db: Path, queries: Path) -> N
         "match",
         "match_id",
         "distance",
+        "confidence",
         "yaw_deg",
         "yaw_conf",
     ]
@@ -553,10 +556,10 @@ def test_default_model_reranks_the_nearest_signatures(
     assert code == 0, err
     rows = jsonl(text)
     assert [r["match_id"] for r in rows] == [int(ids[i]) for i in cand[order]]
-    # The distance shown is that score, shifted so that the first row shows the query's
-    # own re-rank distance to it (how well it matches from where it stands).
-    own = np.array([1 - corr(feat[0, 1], stored.features[i, 1]) for i in cand])
-    shown = score[order] - score[order[0]] + own[order[0]]
+    # The distance shown is that score, bounded: r + 0.3 (1/0.05 - 1/max(s, 0.05)), each
+    # row's own.
+    bounded = rerank + 0.3 * (1 / 0.05 - 1 / np.maximum(d_best[cand], 0.05))
+    shown = bounded[order]
     np.testing.assert_allclose([r["distance"] for r in rows], shown, atol=2e-3)
     # --rerank 0: the signature order of the paper.
     code, text, err = run(*args, "--topk", "4", "--rerank", "0")
@@ -611,7 +614,8 @@ def test_closed_pipe_is_quiet(map_db: Path, queries: Path) -> None:
     proc = subprocess.run(
         ["bash", "-o", "pipefail", "-c", shell], capture_output=True, text=True, timeout=120
     )
-    assert proc.stdout.splitlines() == ["query\trank\tmatch\tmatch_id\tdistance\tyaw_deg\tyaw_conf"]
+    header = "query\trank\tmatch\tmatch_id\tdistance\tconfidence\tyaw_deg\tyaw_conf"
+    assert proc.stdout.splitlines() == [header]
     assert "Traceback" not in proc.stderr and "Error" not in proc.stderr, proc.stderr
 
 
@@ -764,7 +768,7 @@ def test_loops_export_g2o_tum_csv(samples: Path, tmp_path: Path) -> None:
     assert rows, "no verified loops in data/samples/00"
     # With a pose, yaw_deg is the refined yaw of T; roll, pitch and the full T come along.
     base = {"query_index", "query", "match_index", "match", "distance", "yaw_deg", "yaw_conf"}
-    assert set(rows[0]) == base | {"roll_deg", "pitch_deg", "T"}
+    assert set(rows[0]) == base | {"confidence", "roll_deg", "pitch_deg", "T"}
     for r in rows:
         T = np.array(r["T"])
         assert T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])

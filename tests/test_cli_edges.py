@@ -76,7 +76,7 @@ def test_loops_says_so_when_it_finds_no_loop(samples: Path) -> None:
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     # A distance of 0 is never reached between two different scans: no row, but the header.
-    header = "query_index\tquery\tmatch_index\tmatch\tdistance\tyaw_deg\tyaw_conf"
+    header = "query_index\tquery\tmatch_index\tmatch\tdistance\tconfidence\tyaw_deg\tyaw_conf"
     assert res.stdout.splitlines() == [header]
     n = len(_scans(samples / "00"))
     assert f"0 loop candidates among {n} scans" in res.stderr

@@ -54,6 +54,7 @@ BAD = {
     "refine_yaw": [-2, 1.5, float("nan")],
     "yaw_check_below": [-0.1, 1.5, float("inf"), float("nan"), "0.6"],
     "check_candidates": [-1, 2.5, True, float("inf")],
+    "check_promotes_below": [-0.1, 1.5, float("inf"), float("nan"), "0.3", None],
 }
 
 
@@ -78,6 +79,7 @@ def test_the_ends_of_each_range_are_accepted() -> None:
         ("snap_radius", 0.0), ("snap_margin", 0.0), ("snap_margin", float("inf")),  # any
         ("yaw_check_below", 0.0), ("yaw_check_below", 1.0), ("view_offsets", ()),
         ("rerank_candidates", 0), ("check_candidates", 0), ("signature_weight", np.float32(1)),
+        ("check_promotes_below", 0.0), ("check_promotes_below", 1.0),
     ):  # fmt: skip
         if name in {f.name for f in fields(QueryPolicy)}:
             assert getattr(replace(p, **{name: value}), name) == value, name

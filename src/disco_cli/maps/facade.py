@@ -465,11 +465,23 @@ class Map(MapWriting):
         accepted with `verify`), or the best few checked (`policy.check_candidates`)."""
         if pose:
             return check_candidates(
-                self._model, found, points, self._pose_points, 0, pose=True, verify=verify
+                self._model,
+                found,
+                points,
+                self._pose_points,
+                0,
+                pose=True,
+                verify=verify,
+                promote_below=policy.check_promotes_below,
             )
         if policy.check_candidates and points is not None:
             return check_candidates(
-                self._model, found, points, self._checkable_points, policy.check_candidates
+                self._model,
+                found,
+                points,
+                self._checkable_points,
+                policy.check_candidates,
+                promote_below=policy.check_promotes_below,
             )
         return [as_match(m) for m in found]
 

@@ -31,10 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.errors import DiscoError, ScanReadError
 from disco_cli.io.poses.geometry import wrap_deg
 
-__all__ = ["Match", "PointCache", "euler_deg", "pose_columns", "refine_matches", "surest_first"]
+__all__ = ["Match", "PointCache", "euler_deg", "pose_columns", "surest_first"]
 
 
 @dataclass(frozen=True, eq=False)  # eq would compare the arrays ambiguously
@@ -122,65 +121,17 @@ class PointCache:
         return points
 
 
-def refine_matches(
-    found: list[Any],
-    query_points: np.ndarray,
-    match_points: Callable[[str], np.ndarray],
-    verify: bool = False,
-    config: Any = None,
-) -> list[Match]:
-    """`Match`es with the refined pose of each (search) match: phase correlation + ICP
-    seeded by its place-recognition yaw (`relative_pose.estimate_relative_pose`).
-
-    A match whose pose cannot be estimated keeps its place-recognition fields, with `T`
-    None and the problem in `reason`; `accepted` is None when its scan could not be
-    read, False when the estimator failed. With `verify`, only accepted matches are
-    kept (ranks unchanged). Each keeps the match's place confidence (maps check
-    their candidates with `verification.check_candidates`, which adds the fit's).
-    """
-    from disco_cli.query import relative_pose  # deferred: --pose only; every query loads localize
-
-    out = []
-    for m in found:
-        base = {
-            "rank": m.rank,
-            "match_id": m.match_id,
-            "name": m.path,
-            "distance": m.distance,
-            "yaw_deg": m.yaw_deg,
-            "yaw_conf": conf_or_none(m),
-            "confidence": number_or_none(getattr(m, "confidence", math.nan)),
-            "cues": getattr(m, "cues", None),
-        }
-        try:
-            points = match_points(m.path)
-        except ScanReadError as exc:
-            # The place is known, the pose is not: keep the match (not when verifying).
-            if not verify:
-                out.append(Match(**base, reason=str(exc)))
-            continue
-        try:
-            rp = relative_pose.estimate_relative_pose(query_points, points, m.yaw_deg, config)
-        except DiscoError as exc:
-            if not verify:
-                out.append(Match(**base, accepted=False, reason=f"no relative pose ({exc})"))
-            continue
-        if verify and not rp.accepted:
-            continue
-        out.append(Match(**{**base, **pose_fields(rp)}))
-    return out
-
-
-def surest_first(rows: list[Match]) -> list[Match]:
-    """`rows` with the checked row of the highest confidence first, where it beats the
-    first row's; it takes the first's distance (a tie-break, as the snap's), so that the
-    rows stay sorted by the distance they show. Ranks are renumbered."""
+def surest_first(rows: list[Match], below: float) -> list[Match]:
+    """`rows` with the checked row of the highest confidence first, where the first
+    row's confidence is below `below` and lower than its; it takes the first's distance
+    (a tie-break, as the snap's), so that the rows stay sorted by the distance they
+    show. Ranks are renumbered."""
     checked = [j for j, r in enumerate(rows) if r.verified and r.confidence is not None]
     if len(rows) < 2 or not checked:
         return rows
     best = max(checked, key=lambda j: (rows[j].confidence, -j))
     first = rows[0].confidence
-    if best == 0 or (first is not None and rows[best].confidence <= first):
+    if best == 0 or (first is not None and (rows[best].confidence <= first or first >= below)):
         return rows
     moved = [rows[best], *rows[:best], *rows[best + 1 :]]
     top = min(r.distance for r in rows[: best + 1])

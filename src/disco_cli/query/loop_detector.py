@@ -234,13 +234,16 @@ class LoopDetector:
         self.policy = policy_for(self._model, policy, rerank=rerank)
         self._pose = bool(verify or pose)
         self._on_pose_error = on_pose_error or (lambda msg: warnings.warn(msg, stacklevel=3))
+        # Told with the first scan, not here: a command that fails before it (a damaged
+        # map) says only why it failed.
+        self._untold: str | None = None
         if self.min_confidence is not None and not calibrated(self._model):
-            note = on_note or (lambda msg: warnings.warn(msg, stacklevel=3))
-            note(
+            self._untold = (
                 f"model {self._model.name} has no calibrated confidence: every candidate is "
                 "reported (cut them with threshold, --max-distance)"
             )
             self.min_confidence = None
+        self._on_note = on_note or (lambda msg: warnings.warn(msg, stacklevel=4))
         self._index: Any = None  # SignatureIndex, created with the first scan
         self._store = _Features()
         self._times = np.empty(0)
@@ -299,6 +302,9 @@ class LoopDetector:
         side views); `limit`: search only the first `limit` scans (an evaluation's own
         window, in place of the detector's)."""
         i = len(self)
+        if self._untold is not None:
+            self._on_note(self._untold)
+            self._untold = None
         label = name or f"scan-{i}"
         t = self._time(time, label)
         travelled = self._travel(pose, label)
@@ -456,7 +462,13 @@ class LoopDetector:
             self._on_pose_error(f"{label}: its candidates are not checked ({exc})")
             return [as_match(m) for m in found]
         return check_candidates(
-            self._model, found, query_points, self._row_points, depth, config=self.pose_config
+            self._model,
+            found,
+            query_points,
+            self._row_points,
+            depth,
+            config=self.pose_config,
+            promote_below=self.policy.check_promotes_below,
         )
 
     def _row_points(self, row: Match) -> np.ndarray:

@@ -92,13 +92,20 @@ class QueryPolicy:
     # (The search's grid, 3 m steps reaching 6 m to the query's sides, is the model's:
     # model/yaw_refine.py.)
     yaw_check_below: float = 0.6
-    # The geometric check (query/verification.py): the best this many rows are aligned
-    # to the query in turn (ICP), until one is accepted; the surest checked row goes
-    # first and every checked row's confidence holds the fit's evidence. It needs the
-    # map's scans (their files); where they cannot be read the rows stay unchecked.
-    # Chosen on the selection worlds 8621-8623 (docs/confidence.md). 0: no check, the
-    # cheaper path (`--no-check`).
+    # The geometric check (query/verification.py): the best this many rows get the
+    # layout check (their height images phase-correlated with the query's, a few ms
+    # each) and a confidence with its evidence. It needs the map's scans (their files);
+    # where they cannot be read the rows stay unchecked. The best 3 hold the true place
+    # for 0.3-1.0 % more queries than the first alone on the selection worlds 8621-8623
+    # (docs/confidence.md). 0: no check, the cheaper path (`--no-check`).
     check_candidates: int = 3
+    # A checked row goes first only where the first's confidence is below this and its
+    # own is higher: of 8 promotion rules tried on the selection worlds' rows (always,
+    # by margins of 0.1-0.5, below 0.3 or 0.5), the one that lost no NCLT-like query
+    # (0.960) and gained MulRan- and Oxford-like ones (0.930 -> 0.935, 0.741 -> 0.749);
+    # always promoting lost 2 % on NCLT-like, whose neighbours 1 m apart all look right
+    # (docs/confidence.md). 0: never.
+    check_promotes_below: float = 0.3
 
     def __post_init__(self) -> None:
         """Every field against its range, refused in one `DiscoError` line naming it
@@ -123,6 +130,7 @@ class QueryPolicy:
             "snap_radius": (lambda v: 0 <= v < math.inf, "a finite snap radius >= 0 m (0: none)"),
             "snap_margin": (lambda v: v >= 0, "a re-rank distance >= 0, or inf: any"),
             "yaw_check_below": (lambda v: 0 <= v <= 1, "a yaw confidence in 0..1 (0: no check)"),
+            "check_promotes_below": (lambda v: 0 <= v <= 1, "a confidence in 0..1 (0: never)"),
         }
         for name in self.__dataclass_fields__:
             value = getattr(self, name)

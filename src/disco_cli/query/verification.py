@@ -6,8 +6,8 @@ where their points lie. Here each of the best `depth` rows gets the layout check
 at the recognised yaw, a few milliseconds), and with `pose` every row gets the ICP of
 `relative_pose.estimate_relative_pose` as well (tens of milliseconds). Each row
 checked gets a confidence with that evidence (`confidence.checked_confidence`); the
-others keep their place confidence. Where a checked row below
-the first is surer than the first, it goes first and takes the first's distance (a
+others keep their place confidence. Where the first is unsure after its check and a
+checked row below it is surer, that row goes first and takes the first's distance (a
 tie-break, as the snap's), so the rows stay sorted by the distance they show.
 
 A row whose map scan cannot be read stays unchecked (its place confidence stands;
@@ -26,6 +26,7 @@ from disco_cli.errors import DiscoError, ScanReadError
 from disco_cli.query import relative_pose
 from disco_cli.query.confidence import checked_confidence
 from disco_cli.query.localize import Match, as_match, number_or_none, pose_fields, surest_first
+from disco_cli.query.query_policy import QueryPolicy
 
 __all__ = ["check_candidates", "check_row"]
 
@@ -40,10 +41,12 @@ def check_candidates(
     pose: bool = False,
     verify: bool = False,
     config: Any = None,
+    promote_below: float = QueryPolicy.check_promotes_below,
 ) -> list[Match]:
     """`found` (search matches, best first) as `Match`es, the best `depth` checked (all
     of them with `pose`, which adds each one's relative pose); the surest checked row
-    first (see the module). `match_points(row)` reads a row's map scan
+    first where the first is unsure (`promote_below`, the policy's
+    `check_promotes_below`; see the module). `match_points(row)` reads a row's map scan
     (`ScanReadError`: left unchecked). `verify` keeps only rows whose pose is accepted
     (implies `pose`)."""
     pose = pose or verify
@@ -52,7 +55,7 @@ def check_candidates(
         rows[j] = check_row(model, rows[j], query_points, match_points, pose, config)
     if verify:
         rows = [r for r in rows if r.accepted]
-    return surest_first(rows)
+    return surest_first(rows, promote_below)
 
 
 def check_row(

@@ -39,7 +39,7 @@ import queue
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -49,7 +49,9 @@ from disco_cli.errors import DiscoError
 from disco_cli.io.pipeline import array_points
 from disco_cli.io.readers import is_bag, read_scan
 from disco_cli.maps.facade import QueryResult
-from disco_cli.query.localize import refine_matches
+from disco_cli.query.localize import surest_first
+from disco_cli.query.query_policy import policy_for
+from disco_cli.query.verification import check_row
 from disco_cli.runtime.columns import POSE_COLUMNS, RESULT_COLUMNS
 from disco_cli.runtime.console import _plain
 from disco_cli.service.appends import APPEND_FIELDS, Appender
@@ -371,7 +373,7 @@ class QueryService:
                     topk=topk,
                     max_distance=max_distance,
                     scan_format=scan_format,
-                    policy=self.options.policy,
+                    policy=self._policy(pose),
                 )
             )
         )
@@ -387,31 +389,31 @@ class QueryService:
     def _query_points(self, field, name, topk, pose, verify, max_distance) -> Any:
         points = array_points(_decode_points(field), name)
         matches = self.map.query(
-            points, topk=topk, max_distance=max_distance, name=name, policy=self.options.policy
+            points, topk=topk, max_distance=max_distance, name=name, policy=self._policy(pose)
         )
         if pose:
             matches = self._refine(matches, points, verify=verify)
         return QueryResult(0, name, matches)
 
+    def _policy(self, pose: bool) -> Any:
+        """The query stage's policy; with a pose the rows come unchecked, as `_refine`
+        checks each of them with its pose (what `Map.query(..., pose=True)` does)."""
+        policy = policy_for(self.map.model, self.options.policy)
+        return replace(policy, check_candidates=0) if pose else policy
+
     def _refine(self, matches: list, points: np.ndarray, verify: bool) -> list:
-        """`Map.query(..., pose=True)`'s poses of `matches`, checking between two that
-        the client is still there (a `topk` of 10,000 with poses is 10,000 ICPs)."""
+        """`Map.query(..., pose=True)`'s rows from `matches` (unchecked): each checked
+        with its pose in turn, the client asked between two whether it is still there
+        (a `topk` of 100 with poses is 100 ICPs), then the surest first."""
         read_match = self.map._points.get  # the map's own cache of its scans' points
         out = []
         for m in matches:
             if not self._alive():
                 raise Cancelled
-            out += refine_matches([_Found(m)], points, read_match, verify=verify)
-        return out
-
-
-class _Found:
-    """A `Match` without a pose, as the search result `refine_matches` takes."""
-
-    def __init__(self, m: Any):
-        self.path, self.rank, self.match_id = m.name, m.rank, m.match_id
-        self.distance, self.yaw_deg = m.distance, m.yaw_deg
-        self.yaw_conf = float("nan") if m.yaw_conf is None else m.yaw_conf
+            row = check_row(self.map.model, m, points, lambda r: read_match(r.name), True)
+            if not verify or row.accepted:
+                out.append(row)
+        return surest_first(out, self._policy(True).check_promotes_below)
 
 
 def _inside(root: str, path: str) -> bool:
