@@ -106,8 +106,11 @@ def correct(
         truth, _ = poses_for_scans(paths, gt, times=stamps)
         if not np.isfinite(truth).all():
             raise fail(f"{gt}: not every scan has a true pose; --gt needs one for each")
+    # The trusted defaults of disco loops (confident loops only), each with its ICP pose:
+    # not its acceptance, whose fitness bar refuses true loops on a changed campus; the
+    # graph's robust kernel holds back a pose gone wrong.
     detector = LoopDetector(
-        "default", exclude_frames=exclude_frames or 50, threshold=max_distance, verify=True
+        "default", exclude_frames=exclude_frames or 50, threshold=max_distance, pose=True
     )
     with steps("loops", len(paths)) as advance:
         result = correct_sequence(

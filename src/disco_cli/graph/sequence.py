@@ -2,7 +2,7 @@
 the pose graph optimized, the corrected trajectory out in the odometry's own format.
 
     odo = read_odometry(paths, "odom.tum", times=stamps)          # one pose per scan
-    detector = LoopDetector("default", verify=True)
+    detector = LoopDetector("default", pose=True)
     result = correct_sequence(paths, odo.poses, detector, times=stamps)
     write_trajectory("corrected.tum", odo, result.correction.poses)
 
@@ -114,7 +114,7 @@ def correct_sequence(
     extra_loops: list[Any] | None = None,
     **graph_options: Any,
 ) -> SequenceCorrection:
-    """Find the loops along `paths` with `detector` (a `LoopDetector`, verifying: each
+    """Find the loops along `paths` with `detector` (a `LoopDetector` with `pose=True`: each
     loop needs its T), then optimize the `PoseGraph` of `odometry` and those loops.
     `graph_options`: `PoseGraph`'s (kernel, kernel_width, noise). `extra_loops` join
     the graph's input as they are (a test's injected false loop, say)."""
