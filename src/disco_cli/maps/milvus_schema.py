@@ -19,6 +19,7 @@ from disco_cli.maps.database import (
     _view_crc,
 )
 from disco_cli.maps.milvus_address import MilvusAddress, reason_of
+from disco_cli.maps.milvus_lock import fold_state, is_protocol_key
 
 __all__ = [
     "create_collections",
@@ -55,15 +56,23 @@ def read_meta(address: MilvusAddress, client: Any) -> dict[str, str]:
             f"{address.name}_meta",
             filter='key != ""',
             output_fields=["key", "value"],
-            limit=1000,
+            limit=16384,
             consistency_level="Strong",
         )
     except DiscoError:
         raise
     except Exception as exc:
         raise DatabaseError(address, f"Milvus error ({reason_of(exc)})") from None
-    # Writers' claims (`milvus_lock.py`) share the collection; they are no meta.
-    meta = {r["key"]: r["value"] for r in got if not r["key"].startswith("lock:")}
+    # The write protocol's rows (`milvus_lock.py`) share the collection; they are no
+    # meta, but hold the counters (each the largest of its rows).
+    rows = {r["key"]: r["value"] for r in got}
+    meta = {k: v for k, v in rows.items() if not is_protocol_key(k)}
+    if "next_id" in meta and "generation" in meta:
+        try:
+            state = fold_state(rows)
+            meta["next_id"], meta["generation"] = str(state.next_id), str(state.generation)
+        except ValueError:
+            raise DatabaseError(address, "corrupt map: unreadable counters") from None
     needed = (
         "format_version",
         "model_name",

@@ -16,12 +16,13 @@ Three collections, named `<NAME>_scans`, `<NAME>_views` and `<NAME>_meta` (NAME 
 - meta: the SQLite map's meta keys (model, fingerprint, configurations, generation,
   next id), one row each.
 
-Milvus has no multi-collection transactions: an append inserts its scan rows in one
-request, then raises `next_id` and `generation`, holding the map's writers' lock
-(`milvus_lock.py`: without it two appends at once took the same ids, and Milvus let the
-later rows replace the earlier ones). Rows a crash left past `next_id` are found by the
-next append, or when the map is next opened for writing, and counted in. Milvus Lite
-takes one process per map folder; several writers need a server (docs/scaling.md).
+Milvus has no multi-collection transactions: an append is three requests (side views,
+scans, then the counters), made holding the map's writers' lock with its fence checked
+before each (`milvus_lock.py`: without the lock two appends at once took the same ids,
+and Milvus let the later rows replace the earlier ones). An append cut off between them
+leaves its intent row: `check` reports it and `build-db --repair` finishes or undoes it
+(`milvus_repair.py`). Milvus Lite takes one process per map folder; several writers
+need a server (docs/scaling.md).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from disco_cli.maps.database import (
     ScanBatch,
     _bad_signatures,
     _locate,
+    _note_on_stderr,
     _view_crc,
     damaged_line,
 )
@@ -59,7 +61,16 @@ from disco_cli.maps.milvus_address import (
 )
 from disco_cli.maps.milvus_address import milvus_errors as _milvus_errors
 from disco_cli.maps.milvus_index import MilvusIndex
-from disco_cli.maps.milvus_lock import WriteLock
+from disco_cli.maps.milvus_lock import (
+    LostLock,
+    MapState,
+    WriteLock,
+    advance_counters,
+    drop_intent,
+    read_state,
+    write_intent,
+)
+from disco_cli.maps.milvus_repair import check_map, settle, undo
 from disco_cli.maps.milvus_schema import (
     create_collections,
     encode_rows,
@@ -107,6 +118,8 @@ class MilvusDatabase(Database):
         self._scans = f"{address.name}_scans"
         self._views_c = f"{address.name}_views"
         self._meta_c = f"{address.name}_meta"
+        self._writable = False
+        self._on_note: Callable[[str], None] = _note_on_stderr
 
     # -- opening --------------------------------------------------------------
 
@@ -130,7 +143,10 @@ class MilvusDatabase(Database):
             load_collections(address, client)
             meta = read_meta(address, client)
             db = cls(address, client, meta)
+            if on_note is not None:
+                db._on_note = on_note
             if writable:
+                db._writable = True
                 db._open_for_writing()
             return db
         except BaseException:
@@ -181,6 +197,7 @@ class MilvusDatabase(Database):
         try:
             create_collections(address, client, dim, bool(first.side_offsets), overwrite)
             db = cls(address, client, meta)
+            db._writable = True
             # The meta goes in last: a map without it is no map (and is replaced).
             db.append(first, _meta_first=meta)
             return db
@@ -197,30 +214,42 @@ class MilvusDatabase(Database):
 
     @_milvus_errors
     def append(self, batch: ScanBatch, _meta_first: dict | None = None) -> list[int]:
-        """Append one batch (its scan rows in one insert); their ids."""
+        """Append one batch; their ids. Three requests (side views, scans, counters)
+        under the writers' lock, its fence checked before each (`milvus_lock.py`)."""
         if not batch.paths:
             return []
         self.check_batch_shapes(batch)
         if _meta_first is not None:  # a new map: no other writer knows it yet
-            ids = self._append_rows(batch)
+            ids = list(range(1, 1 + len(batch.paths)))
+            self._put_rows(*self._encode(ids, batch), lock=None)
+            # The meta goes in last: a map without it is no map (and is replaced).
             self._write_meta(self.meta)
+            advance_counters(self._client, self._meta_c, MapState(), len(ids) + 1, 1)
+            self.meta.update(next_id=str(len(ids) + 1), generation="1")
             self._choose_index()
             return ids
-        with WriteLock(self._client, self._meta_c):
+        with WriteLock(self._client, self._meta_c, self.path) as lock:
+            state = lock.check()
             # Another process may have appended since this one last did.
-            self._read_counters()
-            self._count_in_orphans()
-            ids = self._append_rows(batch)
-            self._write_meta({k: self.meta[k] for k in ("next_id", "generation")})
+            start = self._count_in_orphans(state)
+            ids = list(range(start, start + len(batch.paths)))
+            rows, views = self._encode(ids, batch)
+            intent = {"start": start, "end": ids[-1] + 1, "token": lock.token}
+            intent["crcs"] = [r["crc"] for r in rows]
+            write_intent(self._client, self._meta_c, lock.epoch, intent)
+            try:
+                lock.check()  # after the intent: see milvus_lock.py
+                self._put_rows(rows, views, lock)
+                state = lock.check()
+            except LostLock:
+                self._undo(lock.epoch, intent)
+                raise
+            advance_counters(
+                self._client, self._meta_c, state, intent["end"], state.generation + 1
+            )
+            drop_intent(self._client, self._meta_c, lock.epoch, None)
+            self.meta.update(next_id=str(intent["end"]), generation=str(state.generation + 1))
             self._choose_index()
-        return ids
-
-    def _append_rows(self, batch: ScanBatch) -> list[int]:
-        start = int(self.meta["next_id"])
-        ids = list(range(start, start + len(batch.paths)))
-        self._insert(ids, batch)
-        self.meta["next_id"] = str(start + len(ids))
-        self.meta["generation"] = str(int(self.meta["generation"]) + 1)
         return ids
 
     @_milvus_errors
@@ -232,59 +261,81 @@ class MilvusDatabase(Database):
         if not ids:
             return
         self.check_batch_shapes(batch)
-        with WriteLock(self._client, self._meta_c):
+        rows, views = self._encode(ids, batch)
+        with WriteLock(self._client, self._meta_c, self.path) as lock:
+            lock.check()
             if self.side_offsets:
                 self._client.delete(self._views_c, filter=f"scan_id in {ids}")
-            self._insert(ids, batch, upsert=True)
-            self._read_counters()
-            self.meta["generation"] = str(int(self.meta["generation"]) + 1)
-            self._write_meta({"generation": self.meta["generation"]})
+            self._put_rows(rows, views, lock, upsert=True)
+            state = lock.check()
+            advance_counters(
+                self._client, self._meta_c, state, state.next_id, state.generation + 1
+            )
+            self.meta.update(next_id=str(state.next_id), generation=str(state.generation + 1))
         for i in ids:
             self.damaged.pop(i, None)
 
-    def _insert(self, ids: list[int], batch: ScanBatch, upsert: bool = False) -> None:
+    def _encode(self, ids: list[int], batch: ScanBatch) -> tuple[list[dict], list[dict]]:
         # Relative paths mean nothing on a server: none are stored there.
         rels = batch.rel_paths if self.address.lite else [None] * len(ids)
-        rows, views = encode_rows(self.path, ids, batch, rels)  # type: ignore[arg-type]
-        # Views first: a scan row is only ever seen with its views stored.
+        return encode_rows(self.path, ids, batch, rels)  # type: ignore[arg-type]
+
+    def _put_rows(
+        self, rows: list[dict], views: list[dict], lock: WriteLock | None, upsert: bool = False
+    ) -> None:
+        # Views first: a scan row is only ever seen with its views stored. The views'
+        # keys are the scan's id and the view's number: a rewrite deletes them first.
         if views:
-            self._client.upsert(self._views_c, views)
+            (self._client.upsert if upsert else self._client.insert)(self._views_c, views)
+            if lock is not None:
+                lock.check()
         (self._client.upsert if upsert else self._client.insert)(self._scans, rows)
 
     def _write_meta(self, values: dict[str, str]) -> None:
+        """Meta keys (the model's record, `index_type`); never the counters."""
         self._client.upsert(
             self._meta_c, [{"key": k, "value": v, "v": [0.0, 0.0]} for k, v in values.items()]
         )
 
-    def _read_counters(self) -> None:
-        got = self._client.query(
-            self._meta_c,
-            filter='key in ["next_id", "generation", "index_type"]',
-            output_fields=["key", "value"],
-            consistency_level="Strong",
-        )
-        self.meta.update({r["key"]: r["value"] for r in got})
+    def _read_counters(self) -> MapState:
+        state = read_state(self._client, self._meta_c)
+        self.meta.update(next_id=str(state.next_id), generation=str(state.generation))
+        return state
 
     @_milvus_errors
     def _open_for_writing(self) -> None:
-        lock = WriteLock(self._client, self._meta_c)
+        lock = WriteLock(self._client, self._meta_c, self.path)
         if self.address.lite:
-            # One process per Milvus Lite folder: every claim there is a dead writer's.
-            lock.clear()
-            self._count_in_orphans()
-            return
+            # One process per Milvus Lite folder: another process's claim is a dead
+            # writer's; this process's own may be a live one's (another open map).
+            lock.clear_other_processes()
         with lock:
-            self._read_counters()
-            self._count_in_orphans()
+            self._count_in_orphans(lock.check())
 
-    def _count_in_orphans(self) -> None:
-        """Rows an interrupted append inserted before raising `next_id`: counted in."""
-        start = int(self.meta["next_id"])
+    def _count_in_orphans(self, state: MapState) -> int:
+        """Rows past every id given or being given, without an intent (an older disco's
+        interrupted append): counted in. The first id free now."""
+        self.meta.update(next_id=str(state.next_id), generation=str(state.generation))
+        start = state.free_from()
         got = self._query(f"id >= {start}", ["id"])
-        if got:
-            self.meta["next_id"] = str(max(int(r["id"]) for r in got) + 1)
-            self.meta["generation"] = str(int(self.meta["generation"]) + 1)
-            self._write_meta({k: self.meta[k] for k in ("next_id", "generation")})
+        if not got:
+            return start
+        end = max(int(r["id"]) for r in got) + 1
+        advance_counters(self._client, self._meta_c, state, end, state.generation + 1)
+        self.meta.update(next_id=str(end), generation=str(state.generation + 1))
+        return end
+
+    def _undo(self, epoch: int, intent: dict) -> None:
+        undo(self, epoch, intent)
+
+    @_milvus_errors
+    def settle(self) -> list[str]:
+        """Finish or undo every append cut off halfway (`milvus_repair.settle`)."""
+        return settle(self)
+
+    def _row(self, rid: int) -> dict:
+        got = self._query(f"id == {rid}", self._SCAN_FIELDS)
+        return got[0] if got else {"id": rid}
 
     def _choose_index(self) -> None:
         """FLAT (exact) below `HNSW_MIN_ROWS` scans, HNSW from there on."""
@@ -348,15 +399,9 @@ class MilvusDatabase(Database):
     @property
     @_milvus_errors
     def generation(self) -> int:
-        row = self._client.query(
-            self._meta_c,
-            filter='key == "generation"',
-            output_fields=["value"],
-            consistency_level="Strong",
-        )
         try:
-            return int(row[0]["value"])
-        except (IndexError, KeyError, TypeError, ValueError):
+            return read_state(self._client, self._meta_c).generation
+        except ValueError:
             raise DatabaseError(self.path, "corrupt map: bad generation") from None
 
     @_milvus_errors
@@ -574,38 +619,12 @@ class MilvusDatabase(Database):
 
     @_milvus_errors
     def check(self) -> list[str]:
-        """Every problem of the map: every row through the checks a read makes, the
-        side views, and ids missing below `next_id` (ids are never skipped)."""
-        self.damaged = {}
-        problems: list[str] = []
-        fields = [*self._SCAN_FIELDS, "features", "feature_scale", "feature_crc"]
-        rows = sorted(self._query("", fields), key=lambda r: int(r["id"]))
-        names = {int(r["id"]): r.get("path") for r in rows}
-        _, _, bad = self._sound_rows(rows)
-        for r in rows:
-            rid = int(r["id"])
-            if rid not in bad:
-                problem = self._features_of(rid, r)[1]
-                if problem:
-                    bad[rid] = problem
-        if self.side_offsets:
-            views = self._view_rows()
-            for rid, problem in self._view_problems(views)[1].items():
-                bad.setdefault(rid, problem)
-            counts: dict[int, int] = {}
-            for v in views:
-                counts[int(v["scan_id"])] = counts.get(int(v["scan_id"]), 0) + 1
-            for rid in names:
-                if counts.get(rid, 0) != len(self.side_offsets):
-                    bad.setdefault(rid, "lacks some of its side views")
-        gone = sorted(set(range(1, int(self.meta["next_id"]))) - set(names))
-        if gone:
-            shown = ", ".join(map(str, gone[:20])) + (" ..." if len(gone) > 20 else "")
-            problems.append(f"{len(gone)} scans missing (ids {shown}): rows deleted")
-        for rid in sorted(bad):
-            problems.append(f"scan {rid} ({names.get(rid, '?')}): {bad[rid]}")
-        self._note_damaged(bad, names)
-        return problems
+        """Every problem of the map (`milvus_repair.check_map`). On a map opened for
+        writing (`build-db --repair`) the appends cut off halfway are settled first."""
+        if self._writable:
+            for line in self.settle():
+                self._on_note(f"{self.address}: {line}")
+        return check_map(self)
 
     # -- searching --------------------------------------------------------------
 
