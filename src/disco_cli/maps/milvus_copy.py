@@ -3,6 +3,7 @@ SQLite to Milvus, Milvus to SQLite, or either to another of its kind."""
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +22,7 @@ from disco_cli.maps.database import (
     stored_paths,
 )
 from disco_cli.maps.milvus_address import parse_address
+from disco_cli.maps.milvus_repair import COPY_MARK
 from disco_cli.maps.milvus_store import MilvusDatabase
 
 __all__ = ["copy_map", "copy_command", "open_database"]
@@ -43,9 +45,15 @@ def copy_map(
 ) -> int:
     """Copy the map at `source` into a new map at `target` (either may be a `milvus:`
     address or an SQLite file) without embedding again: signatures, features, poses,
-    times, paths and meta; ids are renumbered 1, 2, ... in order. Damaged rows are
-    left out and `on_damaged` hears one line naming them. The scans copied."""
-    if _exists(target):
+    times, paths and meta; ids are renumbered 1, 2, ... in order. Every scan left out
+    (a damaged row, or side views missing) is named in one line to `on_damaged`. The
+    scans copied.
+
+    The copy is whole only at its end: an SQLite copy is written under a temporary name
+    and renamed into place; a Milvus copy carries the meta key `copy_incomplete` until
+    its last batch is in (`info --check` reports it, and a copy again replaces it)."""
+    replace = _unfinished_copy(target)
+    if _exists(target) and not replace:
         raise DatabaseError(target, "already exists; copy into a new map")
     with open_database(source, on_note=lambda _line: None) as src:
         ids, sigs = src.signatures()
@@ -57,13 +65,19 @@ def copy_map(
         views: dict[int, list] = {}
         for i, s in zip(side_ids, side_sigs):
             views.setdefault(int(i), []).append(s)
-        keep = [
-            k
-            for k, i in enumerate(ids)
-            if not src.side_offsets or len(views.get(int(i), ())) == len(src.side_offsets)
-        ]
         skipped = dict(src.damaged)
+        keep = []
+        for k, i in enumerate(ids):
+            if not src.side_offsets or len(views.get(int(i), ())) == len(src.side_offsets):
+                keep.append(k)
+            else:
+                skipped[int(i)] = "lacks some of its side views"
         meta = {k: v for k, v in src.meta.items() if k in ("model_source",)}
+        milvus = parse_address(target) is not None
+        if milvus:
+            meta[COPY_MARK] = str(source)
+        # An SQLite copy is built under another name, renamed into place at the end.
+        into = target if milvus else _partial_name(Path(target))
         dst: Database | None = None
         written = 0
         try:
@@ -94,18 +108,27 @@ def copy_map(
                 )
                 if dst is None:
                     dst = _create_database(
-                        target, src.model, scan_batch, src.meta.get("disco_version", ""), meta
+                        into, src.model, scan_batch, src.meta.get("disco_version", ""), meta,
+                        replace,
                     )
                 else:
                     dst.append(scan_batch)
                 written += len(part)
                 if on_progress is not None:
                     on_progress(written, len(keep))
+            if isinstance(dst, MilvusDatabase):
+                dst._client.delete(dst._meta_c, filter=f'key in ["{COPY_MARK}"]')
+        except BaseException:
+            if not milvus:
+                Path(into).unlink(missing_ok=True)
+            raise
         finally:
             if dst is not None:
                 dst.close()
         if dst is None:
             raise DatabaseError(source, "no sound scan to copy")
+        if not milvus:
+            _move_into_place(Path(into), Path(target))
         skipped.update(src.damaged)
         if skipped and on_damaged is not None:
             on_damaged(f"{source}: {damaged_line(skipped, source)}")
@@ -117,11 +140,43 @@ def _exists(path: Any) -> bool:
     return address.exists() if address is not None else Path(path).exists()
 
 
+def _unfinished_copy(path: Any) -> bool:
+    """Whether `path` is a Milvus map that a copy began and never finished."""
+    address = parse_address(path)
+    if address is None or not address.exists():
+        return False
+    try:
+        with MilvusDatabase.open(address, on_note=lambda _line: None) as db:
+            return COPY_MARK in db.meta
+    except DatabaseError:
+        return False
+
+
+def _partial_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.copy-{os.getpid()}")
+
+
+def _move_into_place(partial: Path, target: Path) -> None:
+    """Rename the finished copy to `target`, never over a map that appeared meanwhile."""
+    try:
+        os.link(partial, target)
+    except FileExistsError:
+        partial.unlink(missing_ok=True)
+        raise DatabaseError(target, "already exists; copy into a new map") from None
+    except OSError:
+        if target.exists():
+            partial.unlink(missing_ok=True)
+            raise DatabaseError(target, "already exists; copy into a new map") from None
+        os.replace(partial, target)
+    partial.unlink(missing_ok=True)
+
+
 def _create_database(
-    path: Any, model: ModelInfo, first: ScanBatch, version: str, meta: dict
+    path: Any, model: ModelInfo, first: ScanBatch, version: str, meta: dict, replace: bool
 ) -> Database:
     if parse_address(path) is not None:
-        return MilvusDatabase.create(path, model, first, version, meta)
+        return MilvusDatabase.create(path, model, first, version, meta, overwrite=replace)
+    Path(path).unlink(missing_ok=True)  # a partial copy an earlier run of this pid left
     return Database.create(path, model, first, version, meta)
 
 

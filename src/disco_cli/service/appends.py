@@ -11,7 +11,10 @@ One scan per request, or several under `scans`:
     {"op": "append", "scans": [{"scan": ...}, {"scan": ...}]}
 
 A request is all or nothing: every scan in it is read and checked before anything is
-written, and written in one transaction. A scan the map holds already (a file by its
+written, and written as one batch: one SQLite transaction, or on a Milvus map one
+append of three requests (side views, scans, counters) whose ids stay reserved by its
+intent until the last, so that one cut off halfway is found by `disco info --check`
+and finished or undone by `disco build-db --repair` (`maps/milvus_repair.py`). A scan the map holds already (a file by its
 absolute path, inline points by their name) is not added again: its id is replied,
 so that a writer may resend a request whose reply it never got.
 """
@@ -160,7 +163,7 @@ class Appender:
             paths,
             poses=poses,
             times=times,
-            batch=len(paths),  # one transaction
+            batch=len(paths),  # one batch: all or nothing
             threads=min(len(paths), get_threads()),
             scan_format=scan_format,
         )
@@ -171,7 +174,7 @@ class Appender:
     def _add_points(self, scans: list[_Scan]) -> tuple[list, int]:
         names = [s.name for s in scans]
         held = self.map.database.existing(names)
-        # add_many embeds every scan before it writes the batch (one transaction), so
+        # add_many embeds every scan before it writes the batch (all or nothing), so
         # a bad one (no finite point, none in range, a bad pose) writes nothing.
         items = [(s.points, s.name, s.pose, s.time) for s in scans if s.name not in held]
         added = self.map.add_many(items, batch=len(items) + 1) if items else []
