@@ -217,6 +217,23 @@ def table(results: dict, families: list[str], methods: list[str]) -> list[str]:
     return lines
 
 
+def confident_table(results: dict, families: list[str]) -> list[str]:
+    """disco's top 1s of confidence >= 0.85 that were wrong, and how many of them stood
+    farther than twice the family's radius from the query (a wrong place)."""
+    lines = [
+        "| family | disco's wrong top 1s with confidence >= 0.85 | of them farther than "
+        "twice the radius |",
+        "| --- | ---: | ---: |",
+    ]
+    for fam in families:
+        s = results.get((fam, "default"), {})
+        if "confident_wrong" in s:
+            lines.append(
+                f"| {family_label(fam)} | {s['confident_wrong']} | {s['confident_wrong_far']} |"
+            )
+    return lines
+
+
 def loops_table(loops: dict, families: list[str]) -> list[str]:
     """Default `disco loops` (disco's shipped model and threshold) on each family's two
     sessions joined into one sequence."""
@@ -247,7 +264,8 @@ def precision_table(results: dict, families: list[str], methods: list[str]) -> l
             s = results[(fam, method)]
             label = LABELS.get(method, Path(method).stem)
             lines.append(
-                f"| {fam}-like | {label} | {fmt(s['p99_distance'], 4)} | {fmt(s['p99_recall'])} "
+                f"| {family_label(fam)} | {label} | {fmt(s['p99_distance'], 4)} "
+                f"| {fmt(s['p99_recall'])} "
                 f"| {fmt(s['p100_distance'], 4)} | {fmt(s['p100_recall'])} |"
             )
     return lines
@@ -366,7 +384,7 @@ def main() -> None:
             rows = []
             for seed in seeds:
                 rows += cached_rows(args.out, families[fam], seed, method, policy)
-            results[(fam, method)] = summarize(rows)
+            results[(fam, method)] = summarize(rows, families[fam].radius)
     loop_families = [f for f in args.families if f in HEADS and not args.no_loops]
     for fam in loop_families:
         rows = []
@@ -377,6 +395,8 @@ def main() -> None:
     head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}"
     parts = [head, "", *table(results, args.families, args.models), ""]
     parts += [*precision_table(results, args.families, args.models)]
+    if "default" in args.models:
+        parts += ["", *confident_table(results, args.families)]
     if loops:
         parts += ["", *loops_table(loops, loop_families)]
     text = "\n".join(parts)

@@ -211,6 +211,10 @@ def evaluate(fam: Family, folder: Path, method: str, policy: dict | None = None)
                         "has": bool(d_all.min() <= fam.radius),
                         "d1": float(matches[0].distance) if matches else None,
                         "c1": matches[0].confidence if matches else None,
+                        # How far the top 1 stands from the query's labelled position:
+                        # a wrong top 1 just past the radius is a near miss, not a
+                        # wrong place.
+                        "m1": round(float(d_all[rowsof[0]]), 2) if matches else None,
                         "ms": round(ms, 2),
                         "r1": bool(any(hits[:1])),
                         "r1p": bool(any(hits[:n1p])),
@@ -248,8 +252,15 @@ def oracle_rows(fam: Family, folder: Path) -> list[dict]:
     return rows
 
 
-def summarize(rows: list[dict]) -> dict[str, float]:
-    """The table's metrics over one family's rows (all its seeds together)."""
+# A top 1 at least this confident counts as one a user would act on (disco loops' bar).
+CONFIDENT = 0.85
+
+
+def summarize(rows: list[dict], radius: float | None = None) -> dict[str, float]:
+    """The table's metrics over one family's rows (all its seeds together); with the
+    family's `radius`, how many wrong top 1s of confidence >= CONFIDENT there were and
+    how many of them stood farther than twice the radius (a wrong place, not a near
+    miss)."""
     nan = float("nan")
     has = np.array([r["has"] for r in rows], bool)
     n = int(has.sum())
@@ -273,6 +284,7 @@ def summarize(rows: list[dict]) -> dict[str, float]:
         "r100p_conf": by_conf.recall_at_full_precision if np.isfinite(c1).any() else nan,
         "f1max_conf": by_conf.f1_max if np.isfinite(c1).any() else nan,
         "median_ms": float(np.median(ms)) if len(ms) else nan,
+        **_confident_wrong(rows, r1 & has, c1, radius),
         "yaw_mean": float(errs.mean()) if len(errs) else nan,
         "yaw_median": float(np.median(errs)) if len(errs) else nan,
         "yaw_over10": int((errs > 10.0).sum()),
@@ -283,6 +295,16 @@ def summarize(rows: list[dict]) -> dict[str, float]:
         out[f"{key}_distance"] = float(curve.thresholds[ok[-1]]) if ok.size else nan
         out[f"{key}_recall"] = float(curve.recall[ok[-1]]) if ok.size else 0.0
     return out
+
+
+def _confident_wrong(
+    rows: list[dict], right: np.ndarray, c1: np.ndarray, radius: float | None
+) -> dict[str, int]:
+    if radius is None or not np.isfinite(c1).any():
+        return {}
+    wrong = np.flatnonzero(~right & (np.nan_to_num(c1, nan=-1.0) >= CONFIDENT))
+    far = [i for i in wrong if rows[i].get("m1") is not None and rows[i]["m1"] > 2 * radius]
+    return {"confident_wrong": int(len(wrong)), "confident_wrong_far": len(far)}
 
 
 def _or_nan(x: float | None) -> float:
