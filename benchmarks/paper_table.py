@@ -392,7 +392,11 @@ def main() -> None:
             rows += cached_rows(args.out, families[fam], seed, "default", policy, "loops")
         loops[fam] = loop_summary(rows)
     mode = "quick" if args.quick else "full"
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.strip()
     head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}"
+    head += f"; commit {commit or 'unknown'}"
     parts = [head, "", *table(results, args.families, args.models), ""]
     parts += [*precision_table(results, args.families, args.models)]
     if "default" in args.models:
