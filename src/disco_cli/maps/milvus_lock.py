@@ -181,7 +181,9 @@ def _rows(client: Any, collection: str, filt: str = 'key != ""') -> dict[str, st
 
 
 def read_state(client: Any, collection: str) -> MapState:
-    return fold_state(_rows(client, collection, 'key like "%:%"'))
+    # The protocol's rows, and the plain counters an older disco wrote alone.
+    filt = 'key like "%:%" or key in ["next_id", "generation"]'
+    return fold_state(_rows(client, collection, filt))
 
 
 def insert_keys(client: Any, collection: str, values: dict[str, str]) -> None:
