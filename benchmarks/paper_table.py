@@ -371,6 +371,11 @@ def main() -> None:
             raise SystemExit("--update-docs writes the report seeds' full tables only")
         if not clean_tree():
             raise SystemExit("--update-docs publishes from a committed tree: commit src/ first")
+    # The commit the rows come from, taken before any is computed.
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.strip()
+    code_version()  # and the code's hash, once for the whole run
     policy = dict(policy_field(item) for item in args.policy)
     families = dict(FAMILIES)  # the shipped ones stay as they are
     for item in args.set:
@@ -392,9 +397,6 @@ def main() -> None:
             rows += cached_rows(args.out, families[fam], seed, "default", policy, "loops")
         loops[fam] = loop_summary(rows)
     mode = "quick" if args.quick else "full"
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-    ).stdout.strip()
     head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}"
     head += f"; commit {commit or 'unknown'}"
     parts = [head, "", *table(results, args.families, args.models), ""]
