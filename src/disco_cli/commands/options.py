@@ -517,9 +517,9 @@ NoCheckOpt = Annotated[
     opt(
         "--no-check",
         panel=PANEL_RUN,
-        help="Skip the geometric check (ICP) of the best 3 candidates: faster, rows in "
-        "place-recognition order, confidence from place recognition alone (lower where "
-        "places look alike).",
+        help="Skip the geometric check of the best 3 candidates (their height images "
+        "phase-correlated with the query's, a few ms each): faster, rows in "
+        "place-recognition order, confidence from place recognition alone.",
     ),
 ]
 # `disco loops`: the loops it reports. The default of --min-confidence is
