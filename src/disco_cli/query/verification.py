@@ -75,13 +75,12 @@ def check_row(
         return replace(row, reason=str(exc)) if pose else row
     except DiscoError as exc:
         return replace(row, accepted=False, reason=f"no relative pose ({exc})")
+    # A pose's fit adds no confidence of its own (docs/confidence.md): the layout's stands.
+    conf = number_or_none(checked_confidence(model, row.cues, yaw_conf, layout))
     if not pose:
-        conf = checked_confidence(model, row.cues, yaw_conf, layout)
-        return replace(row, confidence=number_or_none(conf), verified=True)
+        return replace(row, confidence=conf, verified=True)
     try:
         rp = relative_pose.estimate_relative_pose(query_points, points, row.yaw_deg, config)
     except DiscoError as exc:
         return replace(row, accepted=False, reason=f"no relative pose ({exc})")
-    # The fit adds no confidence of its own (docs/confidence.md): the layout's stands.
-    conf = checked_confidence(model, row.cues, yaw_conf, layout)
-    return replace(row, **pose_fields(rp), confidence=number_or_none(conf), verified=True)
+    return replace(row, **pose_fields(rp), confidence=conf, verified=True)
