@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import cpu_model
 
 from disco_cli.evaluation.paper_families import FAMILIES
 from disco_cli.evaluation.trajectory import ate
@@ -48,16 +49,6 @@ def true_loops(truth: np.ndarray, radius: float, exclude: int = 50) -> list:
         if d[j] <= radius:
             loops.append((j, i, np.linalg.inv(truth[j]) @ truth[i]))
     return loops
-
-
-def cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def main() -> None:
@@ -87,7 +78,8 @@ def main() -> None:
                 corrected = Path(tmp) / "c.txt"
                 loops_csv = Path(tmp) / "loops.csv"
                 t_correct = run("correct", str(seq), "--odometry", str(seq / "odometry.txt"),
-                                "-o", str(corrected), "--loops-out", str(loops_csv), "-q")  # fmt: skip
+                                "-o", str(corrected), "--loops-out", str(loops_csv),
+                                "-q")  # fmt: skip
                 with open(loops_csv) as fh:
                     rows = list(csv.DictReader(fh))
                 xy = truth[:, :2, 3]
@@ -104,7 +96,7 @@ def main() -> None:
                 print(f"{name} {seed} {len(truth)} {len(rows)} {false} {ate(odo, truth):.2f} "
                       f"{got:.2f} {best:.2f} {got / best:.2f} {t_loops:.1f} {t_correct:.1f}",
                       flush=True)  # fmt: skip
-    print(f"# {cpu()}, {platform.python_version()}")
+    print(f"# {cpu_model()}, {platform.python_version()}")
 
 
 if __name__ == "__main__":

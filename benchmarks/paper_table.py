@@ -54,12 +54,13 @@ import functools
 import hashlib
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
+
+from _common import cpu_model
 
 from disco_cli.evaluation.loop_sequences import loop_rows, loop_summary
 from disco_cli.evaluation.paper_families import (
@@ -308,16 +309,6 @@ def write_between(doc: Path, mark: str, text: str) -> None:
     doc.write_text(page[:a] + "\n" + text + "\n" + page[b:])
 
 
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def clean_tree() -> bool:
     """Whether the package, benchmarks and docs are as committed (what `--update-docs`
     publishes must be reproducible from a commit)."""
@@ -397,7 +388,7 @@ def main() -> None:
             rows += cached_rows(args.out, families[fam], seed, "default", policy, "loops")
         loops[fam] = loop_summary(rows)
     mode = "quick" if args.quick else "full"
-    head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_name()}"
+    head = f"{args.seeds} seeds {', '.join(map(str, seeds))} ({mode}); CPU: {cpu_model()}"
     head += f"; commit {commit or 'unknown'}"
     parts = [head, "", *table(results, args.families, args.models), ""]
     parts += [*precision_table(results, args.families, args.models)]
