@@ -367,8 +367,8 @@ def loops(args: argparse.Namespace) -> None:
     """Every candidate of the default detector on the joined selection sequences, and
     the precision and recall each confidence bar gives."""
     from disco_cli.evaluation.loop_sequences import (
-        EXCLUDE_FRAMES,
         joined_scans,
+        label_rows,
         loop_radius,
         loop_rows,
         precision_at,
@@ -390,13 +390,7 @@ def loops(args: argparse.Namespace) -> None:
             # Labelled again from the poses: rows kept from before a change of radius
             # are judged as new ones would be.
             _, xy = joined_scans(FAMILIES[fam], world(seed, fam), OUT / "joined")
-            radius = loop_radius(FAMILIES[fam])
-            for r in rows:
-                back = xy[: max(r["scan"] - EXCLUDE_FRAMES + 1, 0)] - xy[r["scan"]]
-                r["has"] = bool(len(back) and np.hypot(*back.T).min() <= radius)
-                if "match" in r:
-                    r["true"] = bool(np.hypot(*(xy[r["match"]] - xy[r["scan"]])) <= radius)
-            all_rows[f"{fam}-{seed}"] = rows
+            all_rows[f"{fam}-{seed}"] = label_rows(rows, xy, loop_radius(FAMILIES[fam]))
     bars = np.round(np.arange(0.5, 1.0, 0.01), 2)
     print("| bar | " + " | ".join(all_rows) + " |")
     print("| ---: |" + " ---: |" * len(all_rows))

@@ -25,7 +25,7 @@ from disco_cli.evaluation.paper_families import Family, load_run, scan_points
 from disco_cli.io.poses import xy_yaw
 from disco_cli.query.loop_detector import LoopDetector
 
-__all__ = ["joined_scans", "loop_rows", "loop_summary", "precision_at"]
+__all__ = ["joined_scans", "label_rows", "loop_rows", "loop_summary", "precision_at"]
 
 EXCLUDE_FRAMES = 50  # disco loops' default window
 LOOP_TRUE_M = 3.0  # disco gt-loops' and eval-loops' radius
@@ -71,25 +71,27 @@ def loop_rows(
     if min_confidence != "default":
         options["min_confidence"] = min_confidence
     det = LoopDetector("default", **options)
-    radius = loop_radius(fam)
     rows = []
     t0 = time.perf_counter()
     for i, loops in enumerate(det.add_files(paths)):
-        t1 = time.perf_counter()
-        limit = i - EXCLUDE_FRAMES + 1
-        near = np.hypot(*(xy[: max(limit, 0)] - xy[i]).T) if limit > 0 else np.empty(0)
-        row: dict[str, Any] = {
-            "scan": i,
-            "has": bool(near.size and near.min() <= radius),
-            "ms": round(1000 * (t1 - t0), 2),
-        }
+        row: dict[str, Any] = {"scan": i, "ms": round(1000 * (time.perf_counter() - t0), 2)}
         if loops:
-            lp = loops[0]
-            d = float(np.hypot(*(xy[lp.match_index] - xy[i])))
-            row.update(match=lp.match_index, confidence=lp.confidence, metres=round(d, 2))
-            row["true"] = d <= radius
+            row.update(match=loops[0].match_index, confidence=loops[0].confidence)
         rows.append(row)
         t0 = time.perf_counter()
+    return label_rows(rows, xy, loop_radius(fam))
+
+
+def label_rows(rows: list[dict], xy: np.ndarray, radius: float) -> list[dict]:
+    """`rows` (scan, and match where one was reported) judged against the sequence's
+    positions `xy`: `has` (a scan at least EXCLUDE_FRAMES back within `radius`), and for
+    a loop its `metres` and whether it is `true` (within `radius`). In place; returned."""
+    for r in rows:
+        back = xy[: max(r["scan"] - EXCLUDE_FRAMES + 1, 0)] - xy[r["scan"]]
+        r["has"] = bool(len(back) and np.hypot(*back.T).min() <= radius)
+        if "match" in r:
+            d = float(np.hypot(*(xy[r["match"]] - xy[r["scan"]])))
+            r.update(metres=round(d, 2), true=d <= radius)
     return rows
 
 
