@@ -499,17 +499,19 @@ ReuseDbOpt = Annotated[
     ),
 ]
 
+
 # One confidence per answer (query/confidence.py): the estimated probability that a row
 # is a true revisit, and the geometric check of the best few candidates behind it.
+def min_confidence_option(help: str) -> Any:
+    """`--min-confidence P` (a probability)."""
+    return opt("--min-confidence", min=0.0, max=1.0, panel=PANEL_FILTER, help=help)
+
+
 MinConfidenceOpt = Annotated[
     Optional[float],
-    opt(
-        "--min-confidence",
-        min=0.0,
-        max=1.0,
-        panel=PANEL_FILTER,
-        help="Keep only matches whose confidence (the estimated probability of a true "
-        "revisit) is at least this; default: all.",
+    min_confidence_option(
+        "Keep only matches whose confidence (the estimated probability of a true revisit) "
+        "is at least this; default: all."
     ),
 ]
 NoCheckOpt = Annotated[
@@ -528,15 +530,11 @@ NoCheckOpt = Annotated[
 DEFAULT_MIN_CONFIDENCE = 0.85
 LoopMinConfidenceOpt = Annotated[
     Optional[float],
-    opt(
-        "--min-confidence",
-        min=0.0,
-        max=1.0,
-        panel=PANEL_FILTER,
-        help="Report only loops whose confidence (the estimated probability that the loop "
-        f"is true) is at least this; default {DEFAULT_MIN_CONFIDENCE}, chosen on the "
-        "selection worlds: no false loop on any of them, precision 99.5 % or more asked "
-        "(docs/confidence.md).",
+    min_confidence_option(
+        "Report only loops whose confidence (the estimated probability that the loop is "
+        f"true) is at least this; default {DEFAULT_MIN_CONFIDENCE}, chosen on the selection "
+        "worlds: no false loop on any of them, precision 99.5 % or more asked "
+        "(docs/confidence.md)."
     ),
 ]
 AllLoopsOpt = Annotated[
