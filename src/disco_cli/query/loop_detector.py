@@ -474,7 +474,16 @@ class LoopDetector:
     def _row_points(self, row: Match) -> np.ndarray:
         return self._points.get(row.match_id)
 
+    def _confident(self, m: Match) -> bool:
+        return self.min_confidence is None or (
+            m.confidence is not None and m.confidence >= self.min_confidence
+        )
+
     def _loop(self, i: int, label: str, t: float, m: Match) -> Loop | None:
+        # A checked row's confidence is final (the ICP adds none): the bar comes first,
+        # so that only the loops kept pay for their ICP (tens of ms each).
+        if m.verified and not self._confident(m):
+            return None
         if m.T is None and self._pose:
             try:
                 query_points = self._points.get(i)
@@ -488,9 +497,7 @@ class LoopDetector:
                 return None
         if self.verify and not m.accepted:
             return None
-        if self.min_confidence is not None and not (
-            m.confidence is not None and m.confidence >= self.min_confidence
-        ):
+        if not self._confident(m):
             return None
         base = {
             "query_index": i,
