@@ -9,6 +9,7 @@ ones off before any of them loads, then runs the script in this process:
 - NumPy's dispatched loops: `NPY_DISABLE_CPU_FEATURES` (its AVX-512 feature groups);
 - OpenBLAS: `OPENBLAS_CORETYPE=Haswell` (its AVX2 kernels);
 - torch: `ATEN_CPU_CAPABILITY=avx2`;
+- faiss (the approximate index's sidecar), where installed: `SIMDConfig.set_level(AVX2)`;
 - disco's C++ core: its kernel level capped at 2 (AVX2 + FMA), as tests force it.
 
 What it cannot change: the core's clock, caches and memory, and the width of its FMA
@@ -44,11 +45,17 @@ def main() -> None:
     from disco_cli import _core
 
     _core._set_bev_kernel_level(AVX2_KERNEL_LEVEL)
+    try:
+        import faiss  # deferred: optional (the `ann` extra); its level is set per process
+    except ImportError:
+        pass
+    else:
+        faiss.SIMDConfig.set_level(faiss.SIMDLevel_AVX2)
     script = sys.argv[1]
     sys.argv = sys.argv[1:]
     sys.path.insert(0, os.path.dirname(os.path.abspath(script)))
     print(
-        f"# as_avx2: AVX-512 off in NumPy, OpenBLAS and torch; C++ kernels capped at "
+        f"# as_avx2: AVX-512 off in NumPy, OpenBLAS, torch and faiss; C++ kernels capped at "
         f"{_core._bev_kernel_name()}",
         flush=True,
     )
