@@ -56,13 +56,13 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from disco_cli.errors import DatabaseError
 
-# The codec: what this module uses, and what others (the Milvus store, tests) import
-# from here.
+# The codec: what this module uses, and what others (tests) import from here.
 from disco_cli.maps.database_codec import (  # noqa: F401
     _FEAT_DTYPE,
     _SCAN_ROW,
@@ -94,7 +94,7 @@ from disco_cli.maps.database_migration import _migrate, backup_path
 from disco_cli.maps.database_paths import _locate, stored_paths
 from disco_cli.maps.database_rows import RowReader
 from disco_cli.maps.database_types import DamagedRows, MatchRows, ModelInfo, ScanBatch, damaged_line
-from disco_cli.maps.map_side_views import side_views_m
+from disco_cli.maps.index import index_for_database
 
 __all__ = [
     "FORMAT_VERSION",
@@ -111,26 +111,13 @@ __all__ = [
 
 
 class Database(RowReader):
-    """An open map database. Use `Database.open(path)` or `Database.create(path, ...)`.
+    """An open map database, one SQLite file: a `store.MapStore` whose every write is one
+    SQLite transaction (`_write_transaction`). Use `Database.open(path)` or
+    `Database.create(path, ...)` (`store.open_store` picks the store an address names).
 
     `damaged` maps the id of every scan whose row (or one of its rows: features, a side
     view) was found damaged by a read so far to what names it (its stored path); `check()`
     fills it for the whole file."""
-
-    def _take_meta(self, meta: dict[str, str]) -> None:
-        """What every store reads from its meta (checked before it is opened): the
-        format, the model, the signature and feature sizes; no row damaged yet."""
-        self.meta = meta
-        self.format_version = int(meta["format_version"])
-        self.model = ModelInfo(
-            name=meta["model_name"],
-            fingerprint=meta["fingerprint"],
-            model_config=json.loads(meta["model_config"]),
-            bev_config=json.loads(meta["bev_config"]),
-        )
-        self.signature_dim = int(meta["signature_dim"])
-        self.feature_shape = tuple(int(v) for v in json.loads(meta["feature_shape"]))
-        self.damaged: dict[int, str] = {}
 
     def __init__(self, path: Path, conn: sqlite3.Connection, meta: dict[str, str]):
         self.path = path
@@ -140,10 +127,9 @@ class Database(RowReader):
         # the file's generation is the one they were read at.
         self._cache: OrderedDict[int, tuple] = OrderedDict()
         self._cache_generation: int | None = None
-        # Stored sizes of one signature and one (decompressed) feature block.
+        # Stored size of one signature (of features: `StoreBase._take_meta`).
         sig_dtype = _SIG_DTYPE if self.format_version >= 2 else _SIG_DTYPE_V1
         self._nsig = self.signature_dim * sig_dtype.itemsize
-        self._nfeat = int(np.prod(self.feature_shape)) * _FEAT_DTYPE.itemsize
         # (bytes before, bytes after) when opening for writing migrated a format-1 file,
         # and where the original was kept.
         self.migrated: tuple[int, int] | None = None
@@ -158,11 +144,6 @@ class Database(RowReader):
         # Databases written before relative paths were stored lack the column.
         self._has_rel = "rel_path" in columns
         try:
-            offsets = json.loads(meta.get("side_views_m", "[]"))
-            self.side_offsets: tuple[float, ...] = tuple(float(o) for o in offsets)
-        except (ValueError, TypeError):
-            raise DatabaseError(path, "corrupt database: unreadable side_views_m") from None
-        try:
             tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
         except sqlite3.DatabaseError as exc:
             raise _sqlite_error(path, exc, "corrupt or unreadable database") from None
@@ -170,11 +151,6 @@ class Database(RowReader):
             raise DatabaseError(path, "corrupt database: side views named but not stored")
         if self.checksummed and "features" not in tables:
             raise DatabaseError(path, "corrupt database: no features table")
-
-    @property
-    def checksummed(self) -> bool:
-        """Whether rows carry checksums (format 2); a format-1 map's rows are unverified."""
-        return self.format_version >= 2
 
     # -- opening --------------------------------------------------------------
 
@@ -250,13 +226,18 @@ class Database(RowReader):
         first: ScanBatch,
         disco_version: str = "",
         extra_meta: dict[str, str] | None = None,
+        overwrite: bool = False,
     ) -> Database:
-        """Create a new database holding `first` (which must not be empty).
+        """Create a new database holding `first` (which must not be empty); an existing
+        file is refused unless `overwrite` (it and its -wal and -shm are removed first).
 
         The file appears at `path` only once its first batch is committed: it is built
         under a temporary name and renamed into place.
         """
         path = Path(path)
+        if overwrite:
+            for suffix in ("", "-wal", "-shm"):
+                Path(str(path) + suffix).unlink(missing_ok=True)
         if path.exists():
             raise DatabaseError(path, "already exists")
         if not first.paths:
@@ -305,73 +286,8 @@ class Database(RowReader):
             raise
         return cls.open(path, writable=True)
 
-    def migrated_line(self) -> str:
-        """What opening this map migrated, as one line ('' if nothing)."""
-        if self.migrated is None:
-            return ""
-        before, after = self.migrated
-        return (
-            f"{self.path}: migrated from format 1 to format 2 (checksummed rows; signatures "
-            f"rounded to float16): {before} -> {after} bytes; the format-1 file is kept as "
-            f"{self.migration_backup}"
-        )
-
     def close(self) -> None:
         self._conn.close()
-
-    def __enter__(self) -> Database:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    # -- checks -----------------------------------------------------------------
-
-    def check_model(self, model: ModelInfo) -> None:
-        """Refuse a model or BEV configuration other than the one that built this database."""
-        mine = self.model
-        # The fingerprint decides (weights and configs); the same weights loaded by
-        # another name (`default` or its checkpoint path) are the same model.
-        if model.fingerprint != mine.fingerprint:
-            raise DatabaseError(
-                self.path,
-                f"built with model '{mine.name}' (fingerprint {mine.fingerprint[:12]}), "
-                f"not '{model.name}' (fingerprint {model.fingerprint[:12]}); "
-                f"pass --model {self.meta.get('model_source') or mine.name} (or no --model: "
-                "a map's own model is the default), or build a new database",
-            )
-        if model.bev_config != mine.bev_config:
-            diff = sorted(
-                k
-                for k in set(model.bev_config) | set(mine.bev_config)
-                if model.bev_config.get(k) != mine.bev_config.get(k)
-            )
-            raise DatabaseError(
-                self.path, f"built with another BEV configuration (differs in {', '.join(diff)})"
-            )
-
-    def check_batch_shapes(self, batch: ScanBatch) -> None:
-        if batch.signatures.shape[1] != self.signature_dim:
-            raise DatabaseError(
-                self.path,
-                f"holds {self.signature_dim}-dim signatures, got {batch.signatures.shape[1]}",
-            )
-        if tuple(batch.features.shape[1:]) != self.feature_shape:
-            raise DatabaseError(
-                self.path, f"holds features {self.feature_shape}, got {batch.features.shape[1:]}"
-            )
-        if batch.side_offsets != self.side_offsets:
-
-            def said(offsets: tuple[float, ...]) -> str:
-                return f"side views at {side_views_m(offsets):g} m" if offsets else "no side views"
-
-            raise DatabaseError(
-                self.path,
-                f"holds {said(self.side_offsets)}, got scans with {said(batch.side_offsets)}; "
-                "add them with the map's --side-views setting or build a new map",
-            )
-        if batch.side_offsets and batch.side_signatures.shape[2] != self.signature_dim:  # type: ignore[union-attr]
-            raise DatabaseError(self.path, "side view signatures have another dimension")
 
     # -- writing ----------------------------------------------------------------
 
@@ -535,9 +451,14 @@ class Database(RowReader):
         return {p for p in paths if p in stored}
 
     def size_bytes(self) -> int:
+        """The file's size with its -wal and -shm."""
         total = 0
         for suffix in ("", "-wal", "-shm"):
             p = Path(str(self.path) + suffix)
             if p.exists():
                 total += p.stat().st_size
         return total
+
+    def index_for(self, kind: str = "auto", note: Any = None) -> tuple[np.ndarray, Any]:
+        """`(ids, index)` to search this map with (`maps.index.index_for_database`)."""
+        return index_for_database(self, kind, note)

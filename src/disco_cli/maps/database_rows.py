@@ -6,11 +6,9 @@ check (`disco info --check`). Imported through `disco_cli.maps.database`."""
 from __future__ import annotations
 
 import sqlite3
-import zlib
 from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -21,20 +19,20 @@ from disco_cli.maps.database_codec import (
     _SIG_DTYPE,
     _SIG_DTYPE_V1,
     _bad_signatures,
-    _feature_crc,
     _scan_crc,
     _view_crc,
 )
 from disco_cli.maps.database_file import _sql_errors
 from disco_cli.maps.database_types import DamagedRows, MatchRows, damaged_line
+from disco_cli.maps.store import _NOT_FINITE, StoreBase
 
-_NOT_FINITE = "features are not finite"
 # Decoded feature rows `Database.rows` keeps (about 38 KB each for the default model).
 _CACHED_ROWS = 256
 
 
-class RowReader:
-    """What `Database` reads and verifies. Its attributes are `Database`'s (set there)."""
+class RowReader(StoreBase):
+    """What `Database` reads and verifies (on `StoreBase`'s checks). Its attributes are
+    `Database`'s (set there)."""
 
     path: Path
     _conn: sqlite3.Connection
@@ -48,7 +46,6 @@ class RowReader:
     _cache: OrderedDict[int, tuple]
     _cache_generation: int | None
 
-    checksummed: bool
     generation: int
 
     def _scan_query(self) -> str:
@@ -100,10 +97,6 @@ class RowReader:
         if not (sig_scale is not None and np.isfinite(sig_scale) and sig_scale > 0):
             return f"bad signature scale {sig_scale!r}"
         return None
-
-    def _note_damaged(self, bad: dict[int, str], names: dict[int, str]) -> None:
-        for rid in bad:
-            self.damaged[int(rid)] = names.get(rid, "?")
 
     @_sql_errors
     def signatures(self) -> tuple[np.ndarray, np.ndarray]:
@@ -272,43 +265,6 @@ class RowReader:
             row = found[rid]
             pose = tuple(np.nan if v is None else float(v) for v in row[4:8])
             self._cache[rid] = (row[1], pose, decoded[k])
-
-    def _decoded_features(
-        self, rid: int, scale: Any, data: Any, crc: Any
-    ) -> tuple[np.ndarray | None, str | None]:
-        """One scan's features `[...]` float32, or the problem that makes them unusable:
-        `_feature_bytes`, then finite values (what `rows()` checks, there batched)."""
-        raw, problem = self._feature_bytes(rid, scale, data, crc)
-        if raw is None:
-            return None, problem
-        stored = np.frombuffer(raw, dtype=_FEAT_DTYPE).reshape(self.feature_shape)
-        with np.errstate(over="ignore", invalid="ignore"):
-            feats = stored.astype(np.float32) * np.float32(scale)
-        if not np.isfinite(feats).all():
-            return None, _NOT_FINITE
-        return feats, None
-
-    def _feature_bytes(
-        self, rid: int, scale: Any, data: Any, crc: Any
-    ) -> tuple[bytes | None, str | None]:
-        """One scan's stored float16 feature bytes (checksum verified, inflated, sized,
-        with a usable scale), or the problem."""
-        if data is None:
-            return None, "features are missing"
-        if not isinstance(data, bytes):
-            return None, "features are not a blob"
-        if self.checksummed:
-            if crc != _feature_crc(rid, scale, data):
-                return None, "features fail their checksum"
-            try:
-                data = zlib.decompress(data, -15, self._nfeat)
-            except zlib.error:
-                return None, "features do not decompress"
-        if len(data) != self._nfeat:
-            return None, f"features are not {self._nfeat} bytes"
-        if not (isinstance(scale, float) and np.isfinite(scale) and scale > 0):
-            return None, f"bad feature scale {scale!r}"
-        return data, None
 
     @_sql_errors
     def check(self) -> list[str]:

@@ -9,15 +9,15 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DatabaseError, DiscoError
-from disco_cli.maps.database import (
-    FORMAT_VERSION,
-    ScanBatch,
+from disco_cli.maps.database_codec import (
     _encode_features,
     _feature_crc,
     _scaled,
     _scan_crc,
     _view_crc,
 )
+from disco_cli.maps.database_file import FORMAT_VERSION
+from disco_cli.maps.database_types import ScanBatch
 from disco_cli.maps.milvus_address import MilvusAddress, reason_of
 from disco_cli.maps.milvus_lock import fold_state, is_protocol_key
 

@@ -1,7 +1,8 @@
 """A map kept in Milvus: Milvus Lite (`milvus:PATH`) or a server (`milvus://HOST:PORT/NAME`).
 
-`MilvusDatabase` answers what `Map` asks of `database.Database` (open, create, append,
-rewrite, signatures, rows, poses, check, ...), so that every command works on either.
+`MilvusDatabase` is a `store.MapStore`, as the SQLite `database.Database` is (open,
+create, append, rewrite, signatures, rows, poses, check, ...), so that every command
+works on either; it shares no code with it that touches SQLite.
 The optional extra is `pip install 'disco-cli[milvus]'` (pymilvus and milvus-lite).
 
 Three collections, named `<NAME>_scans`, `<NAME>_views` and `<NAME>_meta` (NAME is
@@ -37,19 +38,10 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DatabaseError, DiscoError
-from disco_cli.maps.database import (
-    FORMAT_VERSION,
-    DamagedRows,
-    Database,
-    MatchRows,
-    ModelInfo,
-    ScanBatch,
-    _bad_signatures,
-    _locate,
-    _note_on_stderr,
-    _view_crc,
-    damaged_line,
-)
+from disco_cli.maps.database_codec import _bad_signatures, _view_crc
+from disco_cli.maps.database_file import FORMAT_VERSION, _note_on_stderr
+from disco_cli.maps.database_paths import _locate
+from disco_cli.maps.database_types import DamagedRows, MatchRows, ModelInfo, ScanBatch, damaged_line
 from disco_cli.maps.index import AUTO_ANN_MIN_ROWS, check_index_kind
 from disco_cli.maps.map_side_views import index_for
 from disco_cli.maps.milvus_address import (
@@ -79,6 +71,7 @@ from disco_cli.maps.milvus_schema import (
     row_crc,
     vector_bytes,
 )
+from disco_cli.maps.store import StoreBase
 
 __all__ = ["MilvusDatabase", "parse_address", "HNSW_MIN_ROWS"]
 
@@ -97,24 +90,22 @@ def _nan(v: Any) -> float:
     return np.nan if v is None else float(v)
 
 
-class MilvusDatabase(Database):
-    """A map in Milvus, with `Database`'s interface (the checks on models, batches and
-    feature blobs are `Database`'s own). Use `open` or `create`."""
+class MilvusDatabase(StoreBase):
+    """A map in Milvus: a `store.MapStore`, as `Database` is (the checks on models,
+    batches and feature blobs are `StoreBase`'s, shared with it). Its writes hold the
+    writers' lock and check its fence (`milvus_lock.py`); an append leaves an intent
+    until its counters move. Use `open` or `create`."""
 
     def __init__(self, address: MilvusAddress, client: Any, meta: dict[str, str]):
-        # Not Database.__init__: there is no SQLite connection.
-        self.path = address  # type: ignore[assignment]
+        self.path = address
         self.address = address
         self._client = client
-        self._conn = None  # type: ignore[assignment]
         self._take_meta(meta)
-        self.side_offsets = tuple(float(o) for o in json.loads(meta.get("side_views_m", "[]")))
-        self._nsig = self.signature_dim * 4
-        self._nfeat = int(np.prod(self.feature_shape)) * 2
+        # Never migrated, never opened read-only: a Milvus map has one format, and
+        # Milvus, not the file system, says who may write.
         self.migrated = None
         self.migration_backup = None
         self.read_only = None
-        self._has_rel = True
         self._scans = f"{address.name}_scans"
         self._views_c = f"{address.name}_views"
         self._meta_c = f"{address.name}_meta"
@@ -124,13 +115,16 @@ class MilvusDatabase(Database):
     # -- opening --------------------------------------------------------------
 
     @classmethod
-    def open(  # type: ignore[override]
+    def open(
         cls,
         path: Any,
         writable: bool = False,
         verify: bool = False,
         on_note: Callable[[str], None] | None = None,
     ) -> MilvusDatabase:
+        """The map at the `milvus:` address `path`; `writable` settles the appends of
+        writers that died (`_open_for_writing`). `verify` is the SQLite map's: every
+        Milvus row is verified as it is read."""
         address = parse_address(path)
         if address is None:
             raise DiscoError(f"{path}: not a milvus: address")
@@ -154,7 +148,7 @@ class MilvusDatabase(Database):
             raise
 
     @classmethod
-    def create(  # type: ignore[override]
+    def create(
         cls,
         path: Any,
         model: ModelInfo,
