@@ -119,7 +119,7 @@ _FRESH_QUERY = """
 import sys, time; t0 = time.perf_counter()
 from disco_cli.maps.database import Database; from disco_cli.model import load_model
 from disco_cli.query.search import SignatureIndex, match_queries
-from disco_cli.io.pipeline import load_bev
+from disco_cli.embedding.load import load_bev
 t1 = time.perf_counter()
 db = Database.open(sys.argv[1], verify=sys.argv[4] == "1"); t2 = time.perf_counter()
 m = load_model(sys.argv[2]); ids, s = db.signatures(); ix = SignatureIndex(s)
@@ -380,7 +380,7 @@ import time; t0 = time.perf_counter()
 import disco_cli.cli; t1 = time.perf_counter()
 import numpy; from disco_cli.model import load_model; from disco_cli.maps.database import Database
 from disco_cli.query.search import SignatureIndex, match_queries
-from disco_cli.io.pipeline import load_bev
+from disco_cli.embedding.load import load_bev
 t2 = time.perf_counter()
 db = Database.open({db!r}); m = load_model({model!r}); t3 = time.perf_counter()
 ids, s = db.signatures(); ix = SignatureIndex(s); t4 = time.perf_counter()

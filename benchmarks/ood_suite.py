@@ -423,11 +423,12 @@ def evaluate(
     `refine_yaw` matches get the parallax-free yaw (`disco query --refine-yaw`); the
     query stage runs under `policy` (a `QueryPolicy`; None: the model's), so that an
     ablation is `dataclasses.replace(model.query_policy, rule=0)`."""
+    from disco_cli.embedding.load import seen_from
     from disco_cli.evaluation.metrics import one_percent_n, wrap_deg
     from disco_cli.io.poses import xy_yaw
     from disco_cli.io.readers import read_scan
     from disco_cli.maps.database import Database, ModelInfo, ScanBatch
-    from disco_cli.maps.map_side_views import index_for, seen_from, side_offsets
+    from disco_cli.maps.map_side_views import index_for, side_offsets
     from disco_cli.query.query_policy import policy_for
     from disco_cli.query.search import match_queries
 

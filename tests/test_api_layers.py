@@ -1,9 +1,10 @@
 """The import graph: library modules below the commands, and no import cycle.
 
 Every `import` in src/disco_cli is read with `ast` (those inside functions too):
-no module outside `commands/` and `cli.py` may import either, the graph of
-module-level imports between library modules must have no cycle, and an import
-inside a function says why it is not at the top (`# deferred: ...`).
+no module outside `commands/` and `cli.py` may import either, a package imports
+nothing of a higher layer (`LAYERS`), the graph of module-level imports between
+library modules must have no cycle, and an import inside a function says why it is
+not at the top (`# deferred: ...`).
 """
 
 from __future__ import annotations
@@ -105,7 +106,17 @@ def test_layout_by_stage() -> None:
     # entry points, and no module grows past 700 lines.
     top = sorted(p.name for p in PKG.glob("*.py"))
     assert top == ["__init__.py", "cli.py", "errors.py"], top
-    stages = {"io", "maps", "query", "model", "training", "evaluation", "commands", "service"}
+    stages = {
+        "io",
+        "embedding",
+        "maps",
+        "query",
+        "model",
+        "training",
+        "evaluation",
+        "commands",
+        "service",
+    }
     assert stages <= {p.name for p in PKG.iterdir() if (p / "__init__.py").is_file()}
     long = {
         str(p.relative_to(PKG)): n
@@ -113,6 +124,86 @@ def test_layout_by_stage() -> None:
         if (n := p.read_text().count("\n")) > 700
     }
     assert not long, long
+
+
+# The packages in layers, lowest first: a module imports only from its own layer and the
+# layers below it (at module level or deferred). Issue 41: the embedding stage (scans to
+# signatures) sits above `model` and below `maps` and `query`, which hand it their scans.
+LAYERS = [
+    {"errors", "runtime"},
+    {"io"},
+    {"model"},
+    {"embedding"},
+    {"maps", "query"},
+    {"graph", "simulator", "training"},
+    {"evaluation", "service"},
+    {"commands", "cli"},
+]
+
+# The imports that go up a layer today, each by name, so that no new one slips in.
+UPWARD = {
+    ("disco_cli.io.loop_export", "disco_cli.query.loop_detector"),
+    ("disco_cli.io.loop_export", "disco_cli.query.relative_pose"),
+    ("disco_cli.io.output_paths", "disco_cli.maps.milvus_address"),
+    ("disco_cli.model.disco", "disco_cli.query.query_policy"),
+    ("disco_cli.model.interface", "disco_cli.query.query_policy"),
+    ("disco_cli.model.scancontext", "disco_cli.query.query_policy"),
+    ("disco_cli.model.spectral", "disco_cli.query.query_policy"),
+}
+
+
+def upward_imports(imports: dict[str, set[str]], layers: list[set[str]]) -> list[tuple[str, str]]:
+    """The (module, imported) pairs whose imported module's package is in a higher
+    layer than the module's own; a package in no layer is a `KeyError`."""
+    rank = {package: i for i, layer in enumerate(layers) for package in layer}
+
+    def package(module: str) -> str:
+        return module.split(".")[1]
+
+    return sorted(
+        (name, m)
+        for name, found in imports.items()
+        for m in found
+        if rank[package(m)] > rank[package(name)]
+    )
+
+
+def test_upward_imports_are_found() -> None:
+    layers = [{"io"}, {"model"}, {"embedding"}, {"maps", "query"}]
+    imports = {
+        "disco_cli.embedding.load": {"disco_cli.model.bev", "disco_cli.io.readers"},
+        "disco_cli.embedding.batches": {"disco_cli.embedding.load", "disco_cli.maps.x"},
+        "disco_cli.model.bev": {"disco_cli.embedding.load"},
+        "disco_cli.maps.x": {"disco_cli.query.y"},
+        "disco_cli.query.y": {"disco_cli.maps.x", "disco_cli.embedding.batches"},
+    }
+    assert upward_imports(imports, layers) == [
+        ("disco_cli.embedding.batches", "disco_cli.maps.x"),
+        ("disco_cli.model.bev", "disco_cli.embedding.load"),
+    ]
+
+
+def test_packages_import_only_their_layer_and_those_below() -> None:
+    mods = modules()
+    library = {name: path for name, path in mods.items() if name != "disco_cli"}
+    packages = {name.split(".")[1] for name in library}
+    placed = set().union(*LAYERS)
+    assert "embedding" in packages and packages <= placed, packages - placed
+    # The package's top (`disco_cli`) is the entry point and imports lazily; the
+    # compiled core is no Python module.
+    imports = {
+        name: {m for m in _imports(path, False) if m in library} for name, path in library.items()
+    }
+    # The embedding stage really is between model and the map: it voxelizes with model/
+    # and maps/ and query/ reach it.
+    embedding_uses = {m for name, found in imports.items() for m in found if ".embedding." in m}
+    assert any(".model." in m for m in imports["disco_cli.embedding.load"])
+    assert {"maps", "query"} <= {
+        name.split(".")[1] for name, found in imports.items() if found & embedding_uses
+    }
+    up = set(upward_imports(imports, LAYERS))
+    assert not up - UPWARD, f"imports of a higher layer: {sorted(up - UPWARD)}"
+    assert not UPWARD - up, f"gone, strike them from UPWARD: {sorted(UPWARD - up)}"
 
 
 def undeclared_deferred_imports(source: str) -> list[int]:

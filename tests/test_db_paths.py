@@ -147,7 +147,7 @@ def test_loops_db_from_another_directory_reuses_the_signatures(
     def no_embedding(*a, **k):  # noqa: ANN002, ANN003
         raise AssertionError("loops re-embedded scans that the database holds")
 
-    monkeypatch.setattr("disco_cli.io.pipeline.load_stream", no_embedding)
+    monkeypatch.setattr("disco_cli.embedding.batches.load_stream", no_embedding)
     os.chdir(tmp_path)
     code, got, err = run("loops", "site/data/00", "-d", "site/maps/map.db", *args)
     assert code == 0, err

@@ -90,7 +90,7 @@ def test_a_lone_scan_folder_gets_no_line(tmp_path: Path, seq: Path) -> None:
 
 @pytest.fixture
 def no_embedding(monkeypatch: pytest.MonkeyPatch) -> list:
-    import disco_cli.io.pipeline as pipeline
+    from disco_cli.embedding import batches
 
     calls: list = []
 
@@ -98,7 +98,7 @@ def no_embedding(monkeypatch: pytest.MonkeyPatch) -> list:
         calls.append(args)
         raise AssertionError("embedded scans of an evaluation that cannot be scored")
 
-    monkeypatch.setattr(pipeline, "embed_paths", embed_paths)
+    monkeypatch.setattr(batches, "embed_paths", embed_paths)
     return calls
 
 

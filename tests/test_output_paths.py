@@ -56,11 +56,11 @@ class Never:
 @pytest.fixture
 def no_embedding(monkeypatch: pytest.MonkeyPatch) -> Never:
     """Every scan-embedding path of the commands (build-db, query, loops, eval)."""
-    import disco_cli.io.pipeline as pipeline
+    from disco_cli.embedding import batches
 
     never = Never()
-    monkeypatch.setattr(pipeline, "embedded", never)
-    monkeypatch.setattr(pipeline, "embed_paths", never)
+    monkeypatch.setattr(batches, "embedded", never)
+    monkeypatch.setattr(batches, "embed_paths", never)
     return never
 
 

@@ -63,7 +63,7 @@ def test_disco_serve_answers_under_the_policy_it_was_given(sample_map, samples: 
     """`ServeOptions.policy` reaches every request: with re-ranking off the rows are the
     plain signature order (the map's nearest signatures), sorted by what they show."""
     from disco_cli import Map
-    from disco_cli.io.pipeline import load_bev
+    from disco_cli.embedding.load import load_bev
     from disco_cli.service.serve import QueryService, ServeOptions
 
     path, _ = sample_map

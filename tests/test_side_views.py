@@ -10,8 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from disco_cli.cli import app
+from disco_cli.embedding.load import side_view_bevs
 from disco_cli.io.readers import list_scans, read_scan
-from disco_cli.maps.map_side_views import ViewIndex, side_offsets, side_view_bevs
+from disco_cli.maps.map_side_views import ViewIndex, side_offsets
 from disco_cli.query.search import brute_force_topk
 
 

@@ -21,7 +21,7 @@ _LAZY = {
     "read_scan": "disco_cli.io.readers",
     "list_scans": "disco_cli.io.readers",
     "load_model": "disco_cli.model",
-    "signature": "disco_cli.io.pipeline",
+    "signature": "disco_cli.embedding.batches",
     "Map": "disco_cli.maps.facade",
     "Match": "disco_cli.query.localize",
     "LoopDetector": "disco_cli.query.loop_detector",

@@ -41,9 +41,9 @@ SHOWN = {
 
 def evaluate(db_path: str, query_dir: Path, radius: float) -> dict:
     import disco_cli.query.search as search
+    from disco_cli.embedding.batches import embed_paths
     from disco_cli.evaluation.metrics import one_percent_n
     from disco_cli.evaluation.runs import score_retrieval
-    from disco_cli.io.pipeline import embed_paths
     from disco_cli.io.poses import read_kitti_poses
     from disco_cli.io.readers import list_scans
     from disco_cli.maps.facade import Map

@@ -40,9 +40,9 @@ OFFSETS = (2.5, 4.0, 5.0, 6.0)
 def embedded(world: Path, cache: Path, model) -> dict[str, np.ndarray]:
     import ood_suite as suite
 
+    from disco_cli.embedding.load import seen_from
     from disco_cli.io.poses import xy_yaw
     from disco_cli.io.readers import read_scan
-    from disco_cli.maps.map_side_views import seen_from
 
     f = cache / f"{world.name}.npz"
     if f.is_file():

@@ -84,9 +84,10 @@ def build_db(
 
     # deferred: numpy and the map code (~0.2 s) load when the command runs, not for --help
     from disco_cli.io.output_paths import check_map_output
-    from disco_cli.io.pipeline import check_device, collect_scans
+    from disco_cli.io.scan_inputs import collect_scans
     from disco_cli.maps.build import open_for_adding, repair_files
     from disco_cli.maps.writing import Interrupted
+    from disco_cli.model import check_device
 
     check_device(device)
     if copy_from is not None:  # a copy between stores: nothing is embedded

@@ -87,8 +87,8 @@ def correct(
     from disco_cli.graph.sequence import correct_sequence, read_odometry, write_trajectory
     from disco_cli.io.loop_export import check_loop_file, write_loops
     from disco_cli.io.output_paths import check_output_file
-    from disco_cli.io.pipeline import sequence_times
     from disco_cli.io.poses import poses_for_scans
+    from disco_cli.io.scan_inputs import sequence_times
     from disco_cli.query.loop_detector import LoopDetector
     from disco_cli.runtime.console import steps
 

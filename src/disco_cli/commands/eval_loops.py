@@ -113,7 +113,7 @@ def evaluate_loops(
     )
     from disco_cli.io.missed_poses import no_poses_error
     from disco_cli.io.output_paths import check_output_folder
-    from disco_cli.io.pipeline import file_beside, scan_paths
+    from disco_cli.io.scan_inputs import file_beside, scan_paths
     from disco_cli.model import load_model
 
     check_output_folder(report, what="the report")  # before the work it would lose

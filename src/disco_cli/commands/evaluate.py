@@ -101,7 +101,7 @@ def evaluate(
     from disco_cli.evaluation.runs import multi_session, posed_scans
     from disco_cli.io.missed_poses import no_poses_error
     from disco_cli.io.output_paths import check_output_folder
-    from disco_cli.io.pipeline import file_beside, scan_paths
+    from disco_cli.io.scan_inputs import file_beside, scan_paths
     from disco_cli.maps.facade import Map
     from disco_cli.model import load_model
 

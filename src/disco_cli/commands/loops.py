@@ -81,7 +81,7 @@ def loops(
     set_threads(threads)  # first: torch and BLAS read it as they load
     # deferred: numpy and the map code (~0.2 s) load when the command runs, not for --help
     from disco_cli.io.loop_export import check_loop_file, write_loops
-    from disco_cli.io.pipeline import window_times
+    from disco_cli.io.scan_inputs import window_times
     from disco_cli.maps.facade import Map, stored_embeddings
     from disco_cli.query.loop_detector import LoopDetector, loop_columns, loops_found
     from disco_cli.runtime.console import RowWriter, in_blocks, steps  # here: 150-line limit

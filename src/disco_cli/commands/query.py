@@ -104,7 +104,7 @@ def query(
     set_threads(threads)  # first: torch and BLAS read it as they load
 
     # deferred: numpy and the map code (~0.2 s) load when the command runs, not for --help
-    from disco_cli.io.pipeline import QueryPoses, query_paths
+    from disco_cli.io.scan_inputs import QueryPoses, query_paths
     from disco_cli.maps.facade import Map
 
     if exclude_radius is not None and query_poses is None:

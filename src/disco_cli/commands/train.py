@@ -200,8 +200,8 @@ def train(
 
     # deferred: torch and the training code (~2 s) load when the command runs, not for --help
     from disco_cli.io.output_paths import check_output_file
-    from disco_cli.io.pipeline import check_device
     from disco_cli.io.readers import oxford
+    from disco_cli.model import check_device
     from disco_cli.model.bev import BEVConfig
     from disco_cli.training.data import load_training_data
     from disco_cli.training.loop import TrainOptions, resumable_checkpoint

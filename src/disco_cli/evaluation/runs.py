@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.embedding import batches
 from disco_cli.errors import DatabaseError, DiscoError, PoseFileError
 from disco_cli.evaluation.metrics import (
     loop_evaluation,
@@ -25,11 +26,10 @@ from disco_cli.evaluation.metrics import (
     within_radius,
     wrap_deg,
 )
-from disco_cli.io import pipeline
-from disco_cli.io.pipeline import frame_rows
 from disco_cli.io.poses import ScanPoser, read_times, relative_yaw_deg, xy_yaw
 from disco_cli.io.readers import read_scan
 from disco_cli.io.readers.bags import bag_poses, scan_stamps
+from disco_cli.io.scan_inputs import frame_rows
 from disco_cli.maps.database import damaged_line
 from disco_cli.query.loop_detector import LoopDetector
 
@@ -263,7 +263,7 @@ def loop_closure(
     if len(poses) != n:
         raise PoseFileError(f"{source}: {len(poses)} poses for {n} scans")
     check_loop_queries(poses, limit, radius, "shorten the exclusion window")  # before the work
-    sigs, feats = pipeline.embed_paths(paths, model, scan_format, on_progress=on_progress)
+    sigs, feats = batches.embed_paths(paths, model, scan_format, on_progress=on_progress)
     # Every scan through the detector `disco loops` runs (its check and confidence),
     # every candidate kept: the scores are over all of them.
     det = LoopDetector(model, exclude_frames=None, min_confidence=None, policy=policy)

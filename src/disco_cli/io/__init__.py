@@ -1,5 +1,5 @@
 """Inputs and outputs on disk: scan readers (`readers/`), pose files (`poses/`), the
-scans-in signatures-out pipeline, output paths, loop exports and pictures.
+commands' scan inputs (`scan_inputs.py`), output paths, loop exports and pictures.
 
 Kept empty so that importing one reader does not import the others.
 """

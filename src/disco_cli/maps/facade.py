@@ -23,15 +23,16 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.embedding import batches
+from disco_cli.embedding.batches import embed_one
+from disco_cli.embedding.load import array_points
 from disco_cli.errors import DatabaseError, DiscoError, ScanReadError
-from disco_cli.io import pipeline
-from disco_cli.io.pipeline import array_points, check_device, embed_one
 from disco_cli.io.readers import read_scan
 from disco_cli.maps.database import DamagedRows, Database, ModelInfo, damaged_line
 from disco_cli.maps.index import check_index_kind, index_for_database
 from disco_cli.maps.map_side_views import side_offsets, side_views_m
 from disco_cli.maps.writing import MapWriting, map_address, store_class
-from disco_cli.model import MODELS, load_model
+from disco_cli.model import MODELS, check_device, load_model
 from disco_cli.query.localize import Match, PointCache, as_match
 from disco_cli.query.query_policy import policy_for
 from disco_cli.query.search import match_queries
@@ -529,7 +530,7 @@ class Map(MapWriting):
             self._model, policy, rerank=rerank, refine_yaw=refine_yaw, snap_radius=snap_radius
         )
         threads = get_threads() if threads is None else threads
-        with pipeline.embedded(  # looked up at each call: tests replace it
+        with batches.embedded(  # looked up at each call: tests replace it
             paths,
             self._model,
             1,

@@ -11,7 +11,8 @@ stands for its scan, and re-ranking, yaw and relative pose use the scan itself.
 
 The views come from the scan's own points (no other scan, no ground truth), so the
 occlusions are those seen from the real sensor: a view is an approximation that only
-has to bring the right scan into the top candidates.
+has to bring the right scan into the top candidates. Their BEVs are made with the
+scan's own, in the embedding stage (`embedding/load.py`, `side_view_bevs`).
 """
 
 from __future__ import annotations
@@ -22,13 +23,10 @@ from typing import Any
 import numpy as np
 
 from disco_cli.maps.signature_index import SignatureIndex
-from disco_cli.model.bev import polar_bev
 
 __all__ = [
     "side_offsets",
     "side_views_m",
-    "seen_from",
-    "side_view_bevs",
     "ViewIndex",
     "index_for",
 ]
@@ -45,23 +43,6 @@ def side_offsets(metres: float) -> tuple[float, ...]:
 def side_views_m(offsets: Sequence[float]) -> float:
     """The M of `--side-views M` that gave `offsets` (0: none)."""
     return max((abs(float(o)) for o in offsets), default=0.0)
-
-
-def seen_from(points: np.ndarray, offset: float) -> np.ndarray:
-    """A copy of `points` as a sensor moved `offset` m along the scan's y axis sees them."""
-    moved = np.array(points, dtype=np.float32, copy=True)
-    moved[:, 1] -= np.float32(offset)
-    return moved
-
-
-def side_view_bevs(points: np.ndarray, bev_config: Any, offsets: Sequence[float]) -> np.ndarray:
-    """`[V, H, R, S]` BEVs of `points` seen from a sensor moved by each offset along y
-    (at least one offset). A view with no point left in range is an all-zero BEV (it
-    then matches nothing)."""
-    if not offsets:
-        raise ValueError("side views: no offsets")
-    out = [polar_bev(seen_from(points, offset), bev_config) for offset in offsets]
-    return np.stack(out).astype(np.float32, copy=False)
 
 
 class ViewIndex:

@@ -14,11 +14,12 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.embedding import batches
+from disco_cli.embedding.batches import embed_side_views
+from disco_cli.embedding.load import array_points, scan_bev, side_view_bevs
 from disco_cli.errors import DatabaseError, DiscoError
-from disco_cli.io import pipeline
-from disco_cli.io.pipeline import array_points, embed_side_views, pose_rows, scan_bev
+from disco_cli.io.poses import pose_rows
 from disco_cli.maps.database import Database, ModelInfo, ScanBatch, stored_paths
-from disco_cli.maps.map_side_views import side_view_bevs
 from disco_cli.maps.milvus_address import parse_address
 from disco_cli.maps.milvus_store import MilvusDatabase
 
@@ -159,7 +160,7 @@ class MapWriting:
 
         def embed_and_write() -> None:  # reads and writes add_files' own state
             todo_paths = (paths[i] for i in todo)
-            with pipeline.embedded(  # looked up at each call: tests replace it
+            with batches.embedded(  # looked up at each call: tests replace it
                 todo_paths, self._model, batch, threads, scan_format, side_offsets=self.side_offsets
             ) as chunks:
                 for chunk in chunks:
@@ -251,7 +252,7 @@ class MapWriting:
                 placed[rid] = pick
         order = sorted(placed, key=placed.get)  # type: ignore[arg-type]
         repaired: list[int] = []
-        with pipeline.embedded(  # looked up at each call: tests replace it
+        with batches.embedded(  # looked up at each call: tests replace it
             (paths[placed[r]] for r in order),
             self._model,
             batch,

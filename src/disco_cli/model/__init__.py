@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from disco_cli.errors import ModelError
+from disco_cli.errors import DiscoError, ModelError
 from disco_cli.runtime.threads import ensure_threads
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -68,6 +68,17 @@ MODELS: dict[str, Callable[[str], Any]] = {
     "spectral": _spectral,
     "scancontext": _scancontext,
 }
+
+
+def check_device(device: str) -> None:
+    """`DiscoError` unless `device` is cpu, or cuda with a CUDA device that torch sees."""
+    if device not in ("cpu", "cuda"):
+        raise DiscoError(f"--device must be cpu or cuda, not {device!r}")
+    if device == "cuda":
+        import torch  # deferred: torch costs ~1.5 s; only --device cuda asks it
+
+        if not torch.cuda.is_available():
+            raise DiscoError("--device cuda: torch sees no CUDA device here; use --device cpu")
 
 
 def load_model(name_or_path: str | Path = "default", device: str = "cpu") -> Any:
@@ -147,4 +158,11 @@ def model_from_checkpoint(
     return DiscoModel(net, bev_config, model_config, name=name or Path(path).stem, device=device)
 
 
-__all__ = ["MODELS", "DEFAULT_WEIGHTS", "load_model", "load_checkpoint_model", "load_npz_model"]
+__all__ = [
+    "MODELS",
+    "DEFAULT_WEIGHTS",
+    "check_device",
+    "load_model",
+    "load_checkpoint_model",
+    "load_npz_model",
+]

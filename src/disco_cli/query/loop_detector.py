@@ -30,13 +30,14 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.embedding import batches
+from disco_cli.embedding.batches import embed_one, embed_side_views
+from disco_cli.embedding.load import array_points, side_view_bevs
 from disco_cli.errors import DiscoError
-from disco_cli.io import pipeline
-from disco_cli.io.pipeline import array_points, embed_one, embed_side_views
 from disco_cli.io.readers import read_scan
 from disco_cli.maps.database import MatchRows
 from disco_cli.maps.facade import _load_model
-from disco_cli.maps.map_side_views import ViewIndex, side_offsets, side_view_bevs
+from disco_cli.maps.map_side_views import ViewIndex, side_offsets
 from disco_cli.maps.signature_index import SignatureIndex
 from disco_cli.query.confidence import calibrated
 from disco_cli.query.localize import Match, PointCache, as_match, pose_columns
@@ -402,7 +403,7 @@ class LoopDetector:
     ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
         if not paths:
             return
-        with pipeline.embedded(  # looked up at each call: tests replace it
+        with batches.embedded(  # looked up at each call: tests replace it
             iter(paths), self._model, batch, threads, scan_format, side_offsets=self.side_offsets
         ) as chunks:
             for chunk in chunks:

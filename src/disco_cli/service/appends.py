@@ -29,8 +29,9 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.embedding.load import scan_bev
 from disco_cli.errors import DiscoError, ScanReadError
-from disco_cli.io.pipeline import pose_rows, scan_bev
+from disco_cli.io.poses import pose_rows
 from disco_cli.io.readers import read_scan
 from disco_cli.runtime.threads import get_threads
 

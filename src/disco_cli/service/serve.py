@@ -45,8 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from disco_cli.embedding.load import array_points
 from disco_cli.errors import DiscoError
-from disco_cli.io.pipeline import array_points
 from disco_cli.io.readers import is_bag, read_scan
 from disco_cli.maps.facade import QueryResult
 from disco_cli.query.localize import surest_first

@@ -15,6 +15,7 @@ from __future__ import annotations
 from disco_cli.io.poses.geometry import (
     inverse,
     matrix_to_quat,
+    pose_rows,
     quat_to_matrix,
     relative_yaw_deg,
     rpy_to_matrix,
@@ -66,6 +67,7 @@ __all__ = [
     "nearest_distance",
     "pair_distances",
     "revisit_pairs",
+    "pose_rows",
     "poses_for_scans",
     "quat_to_matrix",
     "read_calib_tr",

@@ -23,6 +23,12 @@ def xy_yaw(T: np.ndarray) -> tuple:
     return x, y, yaw
 
 
+def pose_rows(T: np.ndarray) -> np.ndarray:
+    """`[N, 4, 4]` poses as `[N, 4]` rows of x, y, z, yaw (radians)."""
+    x, y, yaw = xy_yaw(np.asarray(T))
+    return np.stack([x, y, np.asarray(T)[:, 2, 3], yaw], axis=1)
+
+
 def wrap_deg(angle: np.ndarray | float) -> np.ndarray | float:
     """Angles in degrees wrapped to (-180, 180]."""
     a = np.asarray(angle, dtype=np.float64)
