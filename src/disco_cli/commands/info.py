@@ -42,9 +42,9 @@ def info(
     """Show a map database's scans, model, configuration and size."""
     # deferred: numpy and the map code (~0.2 s) load when the command runs, not for --help
     from disco_cli.maps.map_side_views import side_views_m
-    from disco_cli.maps.milvus_copy import open_database  # a file, or a milvus: address
+    from disco_cli.maps.store import open_store  # a file, or a milvus: address
 
-    with open_database(db_path) as db:
+    with open_store(db_path) as db:
         rows = [
             ("scans", len(db)),
             ("model", db.model.name),

@@ -17,7 +17,6 @@ import os
 import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +27,10 @@ from disco_cli.embedding.batches import embed_one
 from disco_cli.embedding.load import array_points
 from disco_cli.errors import DatabaseError, DiscoError, ScanReadError
 from disco_cli.io.readers import read_scan
-from disco_cli.maps.database import DamagedRows, Database, ModelInfo, damaged_line
-from disco_cli.maps.index import check_index_kind, index_for_database
+from disco_cli.maps.database import DamagedRows, ModelInfo, damaged_line
+from disco_cli.maps.index import check_index_kind
 from disco_cli.maps.map_side_views import side_offsets, side_views_m
+from disco_cli.maps.store import MapStore
 from disco_cli.maps.writing import MapWriting, map_address, store_class
 from disco_cli.model import MODELS, check_device, load_model
 from disco_cli.query.localize import Match, PointCache, as_match
@@ -42,7 +42,7 @@ from disco_cli.runtime.threads import get_threads
 __all__ = ["Map", "QueryResult", "model_for_database", "stored_embeddings"]
 
 
-def model_for_database(db: Database, model: Any = None, device: str = "cpu") -> tuple[Any, str]:
+def model_for_database(db: MapStore, model: Any = None, device: str = "cpu") -> tuple[Any, str]:
     """The model that built `db` and how it was named: `model` (a name, a checkpoint path
     or a loaded model) when given, which must be the same; else the stored one."""
     if model is not None and not isinstance(model, (str, Path)):
@@ -112,7 +112,7 @@ class Map(MapWriting):
     def __init__(
         self,
         path: Path,
-        db: Database | None,
+        db: MapStore | None,
         model: Any,
         source: str,
         writable: bool,
@@ -235,8 +235,9 @@ class Map(MapWriting):
         return side_views_m(self.side_offsets)
 
     @property
-    def database(self) -> Database | None:
-        """The underlying `Database` (None for a new map before its first scan)."""
+    def database(self) -> MapStore | None:
+        """The underlying store (`store.MapStore`: a `Database`, or a `MilvusDatabase` for
+        a `milvus:` address; None for a new map before its first scan)."""
         return self._db
 
     def __len__(self) -> int:
@@ -335,9 +336,8 @@ class Map(MapWriting):
         if self._db is None:
             raise DatabaseError(self.path, "the database is empty")
         if self._snapshot is None:
-            # A Milvus map searches in Milvus (milvus_store.MilvusDatabase.index_for).
-            find = getattr(self._db, "index_for", None) or partial(index_for_database, self._db)
-            self._snapshot = find(self.index_kind, self.on_index_note)
+            # Each store picks its index: a Milvus map searches in Milvus.
+            self._snapshot = self._db.index_for(self.index_kind, self.on_index_note)
             self._xy = self._real = None
             self._tell_damaged()
         return self._snapshot

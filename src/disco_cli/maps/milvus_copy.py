@@ -15,7 +15,6 @@ from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.io.output_paths import check_output_file
 from disco_cli.maps.database import (
     DamagedRows,
-    Database,
     ModelInfo,
     ScanBatch,
     damaged_line,
@@ -24,15 +23,9 @@ from disco_cli.maps.database import (
 from disco_cli.maps.milvus_address import parse_address
 from disco_cli.maps.milvus_repair import COPY_MARK
 from disco_cli.maps.milvus_store import MilvusDatabase
+from disco_cli.maps.store import MapStore, open_store, store_class
 
-__all__ = ["copy_map", "copy_command", "open_database"]
-
-
-def open_database(path: Any, **kwargs: Any) -> Database:
-    """`Database.open` for a plain path, `MilvusDatabase.open` for a `milvus:` address."""
-    if parse_address(path) is not None:
-        return MilvusDatabase.open(path, **kwargs)
-    return Database.open(path, **kwargs)
+__all__ = ["copy_map", "copy_command"]
 
 
 def copy_map(
@@ -55,7 +48,7 @@ def copy_map(
     replace = _unfinished_copy(target)
     if _exists(target) and not replace:
         raise DatabaseError(target, "already exists; copy into a new map")
-    with open_database(source, on_note=lambda _line: None) as src:
+    with open_store(source, on_note=lambda _line: None) as src:
         ids, sigs = src.signatures()
         side_ids, side_sigs = src.side_signatures()
         all_ids = src.ids()
@@ -78,7 +71,7 @@ def copy_map(
             meta[COPY_MARK] = str(source)
         # An SQLite copy is built under another name, renamed into place at the end.
         into = target if milvus else _partial_name(Path(target))
-        dst: Database | None = None
+        dst: MapStore | None = None
         written = 0
         try:
             for s in range(0, len(keep), batch):
@@ -173,11 +166,11 @@ def _move_into_place(partial: Path, target: Path) -> None:
 
 def _create_database(
     path: Any, model: ModelInfo, first: ScanBatch, version: str, meta: dict, replace: bool
-) -> Database:
-    if parse_address(path) is not None:
-        return MilvusDatabase.create(path, model, first, version, meta, overwrite=replace)
-    Path(path).unlink(missing_ok=True)  # a partial copy an earlier run of this pid left
-    return Database.create(path, model, first, version, meta)
+) -> MapStore:
+    # An SQLite copy's partial file is this process's own: one there is an earlier
+    # run's (of the same pid), replaced.
+    overwrite = replace or parse_address(path) is None
+    return store_class(path).create(path, model, first, version, meta, overwrite=overwrite)
 
 
 def copy_command(source: str, target: Any, inputs: Any, warn: Callable[[str], None]) -> str:

@@ -19,9 +19,9 @@ from disco_cli.embedding.batches import embed_side_views
 from disco_cli.embedding.load import array_points, scan_bev, side_view_bevs
 from disco_cli.errors import DatabaseError, DiscoError
 from disco_cli.io.poses import pose_rows
-from disco_cli.maps.database import Database, ModelInfo, ScanBatch, stored_paths
+from disco_cli.maps.database import ModelInfo, ScanBatch, stored_paths
 from disco_cli.maps.milvus_address import parse_address
-from disco_cli.maps.milvus_store import MilvusDatabase
+from disco_cli.maps.store import store_class
 
 __all__ = ["MapWriting", "AddResult", "Interrupted", "RepairResult", "map_address", "store_class"]
 
@@ -29,11 +29,6 @@ __all__ = ["MapWriting", "AddResult", "Interrupted", "RepairResult", "map_addres
 def map_address(path: Any) -> Any:
     """A map's address: a `milvus:` one (`disco_cli.maps.milvus_store`), else a file path."""
     return parse_address(path) or Path(path)
-
-
-def store_class(path: Any) -> type[Database]:
-    """`Database`, or `MilvusDatabase` for a `milvus:` address."""
-    return MilvusDatabase if parse_address(path) is not None else Database
 
 
 class Interrupted(KeyboardInterrupt):
@@ -331,18 +326,13 @@ class MapWriting:
         from disco_cli import __version__
 
         if self._db is None:
-            store = store_class(self.path)
-            extra = {} if store is Database else {"overwrite": self._overwrite}
-            if self._overwrite and store is Database:
-                for suffix in ("", "-wal", "-shm"):
-                    Path(str(self.path) + suffix).unlink(missing_ok=True)
-            self._db = store.create(
+            self._db = store_class(self.path).create(
                 self.path,
                 ModelInfo.of(self._model),
                 part,
                 disco_version=__version__,
                 extra_meta={"model_source": self._source},
-                **extra,
+                overwrite=self._overwrite,
             )
             ids = list(range(1, len(part.paths) + 1))
         else:

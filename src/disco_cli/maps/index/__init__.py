@@ -81,10 +81,9 @@ def map_key(db: Any) -> dict[str, Any]:
     `generation` (every write raises it: a repair rewrites rows without changing the
     other two) and the model."""
     n = len(db)
-    max_id = db._conn.execute("SELECT MAX(id) FROM scans").fetchone()[0]
     return {
         "rows": int(n),
-        "max_id": -1 if max_id is None else int(max_id),
+        "max_id": int(db.next_id()) - 1,
         "generation": int(db.generation),
         "fingerprint": db.model.fingerprint,
         "side_views_m": list(db.side_offsets),
