@@ -7,9 +7,11 @@ here is for identical arrays, with no tolerance and no excluded points.
 
 from __future__ import annotations
 
+import ast
 import math
 import platform
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,6 +113,30 @@ def test_every_level_below_the_best_can_be_forced_and_says_which_kernel_ran():
         _core._set_bev_kernel_level(previous)
 
 
+def machine_levels() -> list[int]:
+    """The kernel levels this CPU and build have, best first (what `kernel` runs)."""
+    previous = _core._set_bev_kernel_level(3)
+    try:
+        return list(range(_core._bev_kernel_level(), -1, -1))
+    finally:
+        _core._set_bev_kernel_level(previous)
+
+
+def test_every_reference_check_runs_on_every_kernel_level():
+    """A test that compares the core with the NumPy reference takes the `kernel`
+    fixture, so that every level this CPU has is checked, not only its best."""
+    tree = ast.parse(Path(__file__).read_text())
+    tests = [n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name.startswith("test_")]
+    uses = {
+        t.name
+        for t in tests
+        if any(isinstance(n, ast.Name) and n.id == "reference_bev" for n in ast.walk(t))
+    }
+    assert len(uses) >= 8  # the file was read
+    missing = [t.name for t in tests if t.name in uses and "kernel" not in ast.unparse(t.args)]
+    assert not missing, missing
+
+
 def random_scan(rng: np.random.Generator, n: int, dtype=np.float32, cols: int = 4) -> np.ndarray:
     """Points around and beyond the default grid, plus intensity-like extra columns."""
     p = np.empty((n, cols))
@@ -156,9 +182,9 @@ def test_other_grids_equal_reference(mode, kernel):
         assert_same(polar_bev(points, config), reference_bev(points, config))
 
 
-def test_grid_too_big_for_the_simd_kernels_equals_reference():
+def test_grid_too_big_for_the_simd_kernels_equals_reference(kernel):
     """Above 2^24 cells the SIMD kernels' float cell index is not exact, so the plain
-    path takes over."""
+    path takes over (whichever kernel would have run)."""
     config = BEVConfig(rings=4096, sectors=4097, heights=1, mode="density")
     assert config.rings * config.sectors >= 2**24
     points = random_scan(np.random.default_rng(8), 5000)
@@ -279,16 +305,17 @@ def test_max_height_is_top_point_above_z_min():
     assert np.count_nonzero(bev) == 1
 
 
-def test_nan_and_inf_are_dropped_and_empty_is_zero():
+def test_nan_and_inf_are_dropped_and_empty_is_zero(kernel):
     good = np.array([[10.0, 10.0, 0.5]], np.float32)
     bad = np.array([[np.nan, 1, 1], [1, np.inf, 1], [10, 10, -np.inf], [np.inf, -np.inf, np.nan]])
     expected = polar_bev(good)
     for mode in MODES:
         cfg = BEVConfig(mode=mode)
-        assert_same(
-            polar_bev(np.vstack([bad, good, bad]).astype(np.float32), cfg), polar_bev(good, cfg)
-        )
-        assert not polar_bev(bad, cfg).any()
+        # Enough rows for the SIMD kernels' full groups, not only their scalar tails.
+        mixed = np.vstack([bad, good, bad] * 5)
+        for dtype in (np.float32, np.float64):
+            assert_same(polar_bev(mixed.astype(dtype), cfg), reference_bev(good, cfg))
+        assert not polar_bev(np.vstack([bad] * 5), cfg).any()
         assert not polar_bev(np.zeros((0, 4), np.float32), cfg).any()
     assert expected.sum() == 1
 
@@ -316,11 +343,13 @@ def test_rotation_by_k_sectors_rolls_the_bev(k, kernel):
 # -- input handling --------------------------------------------------------------
 
 
-def test_non_contiguous_and_wide_inputs_match_contiguous():
+def test_non_contiguous_and_wide_inputs_match_contiguous(kernel):
     rng = np.random.default_rng(11)
     base = random_scan(rng, 5000, np.float64, 8)
     expected = polar_bev(np.ascontiguousarray(base[:, :3], dtype=np.float32))
     expected64 = polar_bev(np.ascontiguousarray(base[:, :3]))
+    assert_same(expected, reference_bev(base.astype(np.float32), BEVConfig()))
+    assert_same(expected64, reference_bev(base, BEVConfig()))
     assert_same(polar_bev(base), expected64)  # N x 8 float64
     assert_same(polar_bev(base.astype(np.float32)[:, :3]), expected)  # column slice
     assert_same(polar_bev(np.asfortranarray(base)), expected64)  # column-major
@@ -396,7 +425,7 @@ def test_core_rejects_what_the_wrapper_would_convert():
 
 
 @pytest.mark.parametrize("mode", MODES)
-def test_batch_equals_single_calls(mode):
+def test_batch_equals_single_calls(mode, kernel):
     rng = np.random.default_rng(21)
     cfg = BEVConfig(mode=mode)
     scans = [
@@ -405,6 +434,7 @@ def test_batch_equals_single_calls(mode):
     ]
     scans += [random_scan(rng, 4000, np.float64, 6)[::2], random_scan(rng, 2000)[:, :3]]
     expected = np.stack([polar_bev(s, cfg) for s in scans])
+    assert_same(expected, np.stack([reference_bev(s, cfg) for s in scans]))
     for threads in (0, 1, 2, 5):
         out = polar_bev_batch(scans, cfg, threads=threads)
         assert out.shape == (len(scans), *cfg.shape)
