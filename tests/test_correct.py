@@ -114,6 +114,27 @@ def test_a_false_loop_is_down_weighted_and_its_residual_reported(kernel):
     assert ate(plain.poses, truth) > 3 * ate(clean.poses, truth)
 
 
+def test_loops_on_one_side_take_the_heading_drift_out_of_the_whole_drive():
+    # Three laps, loops only along lap 2's first side: the graph alone bends the drive
+    # there and leaves lap 3 to drift; fitted to those loops, the heading drift
+    # (0.2 degrees a step of 1 m: 0.2 degrees a metre) comes out everywhere.
+    truth = square_drive(laps=3)
+    odo = drift_odometry(truth, DRIFT)
+    lap = 4 * SIDE
+    few = [lp for lp in true_loops(truth, lap) if lap <= lp[1] < lap + SIDE]
+    plain = PoseGraph(odo, drift=False)
+    fitted = PoseGraph(odo)
+    for j, i, T in few:
+        plain.add_loop(j, i, T, fitness=0.7, rmse=0.05)
+        fitted.add_loop(j, i, T, fitness=0.7, rmse=0.05)
+    a, b = plain.optimize(), fitted.optimize()
+    assert a.yaw_drift_deg_per_m == 0.0
+    assert b.yaw_drift_deg_per_m == pytest.approx(DRIFT.yaw_bias_deg, abs=0.02)
+    assert ate(a.poses, truth) > 1.5  # lap 3 out by metres (2.1 m)
+    assert ate(b.poses, truth) < 0.3 * ate(a.poses, truth)
+    assert not b.down_weighted
+
+
 def test_without_loops_no_pose_moves():
     truth = square_drive(laps=1)
     odo = drift_odometry(truth, DRIFT)

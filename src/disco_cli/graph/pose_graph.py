@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError
+from disco_cli.graph.odometry_bias import fit_yaw_rate, turn_steps
 
 __all__ = [
     "Correction",
@@ -163,6 +164,9 @@ class Correction:
     iterations: int
     error_before: float
     error_after: float
+    # The odometry's heading drift the loops showed, taken out before the graph
+    # (degrees per metre driven; odometry_bias.py); 0 without loops or with drift=False.
+    yaw_drift_deg_per_m: float = 0.0
 
     @property
     def down_weighted(self) -> list[LoopResidual]:
@@ -190,7 +194,9 @@ def _rigid(T: np.ndarray) -> np.ndarray:
 class PoseGraph:
     """Odometry edges along `odometry` `[N, 4, 4]`, loop edges added one by one; see the
     module docstring. `kernel`: `cauchy` (default), `huber`, `gnc` or `none`;
-    `kernel_width`: in sigmas. `noise`: the odometry's `OdometryNoise`."""
+    `kernel_width`: in sigmas. `noise`: the odometry's `OdometryNoise`. `drift`: first
+    fit the odometry's heading drift (yaw per metre) to the loops and take it out
+    (`odometry_bias.py`)."""
 
     def __init__(
         self,
@@ -199,6 +205,7 @@ class PoseGraph:
         kernel: str = "cauchy",
         kernel_width: float = KERNEL_WIDTH,
         noise: OdometryNoise | None = None,
+        drift: bool = True,
     ):
         self.odometry = _check_poses(odometry, "odometry")
         if len(self.odometry) == 0:
@@ -210,6 +217,7 @@ class PoseGraph:
         self.kernel = kernel
         self.kernel_width = float(kernel_width)
         self.noise = noise or OdometryNoise()
+        self.drift = bool(drift)
         self.loops: list[LoopEdge] = []
 
     def __len__(self) -> int:
@@ -284,7 +292,13 @@ class PoseGraph:
         n = len(self)
         graph = gtsam.NonlinearFactorGraph()
         initial = gtsam.Values()
-        odo = [_rigid(T) for T in self.odometry]
+        rate = 0.0
+        if self.drift and self.loops:
+            edges = [(lp.match, lp.query, lp.T, lp.information) for lp in self.loops]
+            rate = fit_yaw_rate(
+                self.odometry, edges, width=self.kernel_width, robust=self.kernel != "none"
+            )
+        odo = [_rigid(T) for T in turn_steps(self.odometry, rate)]
         for i, T in enumerate(odo):
             initial.insert(i, gtsam.Pose3(T))
         anchor = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 1e-6))
@@ -336,7 +350,14 @@ class PoseGraph:
                 )
             )
         return Correction(
-            poses, moved, tuple(residuals), self.kernel, iterations, before, graph.error(result)
+            poses,
+            moved,
+            tuple(residuals),
+            self.kernel,
+            iterations,
+            before,
+            graph.error(result),
+            math.degrees(rate),
         )
 
 
@@ -355,7 +376,7 @@ def _rotvec(R: np.ndarray) -> np.ndarray:
 
 def correct(odometry: Any, loops: Iterable[Any], **options: Any) -> Correction:
     """One call: a `PoseGraph` of `odometry` `[N, 4, 4]` and `loops` (`LoopDetector`'s
-    `Loop`s), optimized. `options`: `PoseGraph`'s (kernel, kernel_width, noise)."""
+    `Loop`s), optimized. `options`: `PoseGraph`'s (kernel, kernel_width, noise, drift)."""
     graph = PoseGraph(odometry, **options)
     graph.add_loops(loops)
     return graph.optimize()
