@@ -20,7 +20,7 @@ import json
 import zlib
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -35,6 +35,7 @@ __all__ = ["MapStore", "StoreBase", "open_store", "store_class"]
 _NOT_FINITE = "features are not finite"
 
 
+@runtime_checkable
 class MapStore(Protocol):
     """An open map: its record, its rows (read and verified), its writes. A damaged row
     is never used silently: reads leave it out and record it in `damaged`, or raise
