@@ -106,22 +106,21 @@ def correct(
         truth, _ = poses_for_scans(paths, gt, times=stamps)
         if not np.isfinite(truth).all():
             raise fail(f"{gt}: not every scan has a true pose; --gt needs one for each")
-    # The trusted defaults of disco loops (confident loops only), each with its ICP pose:
-    # not its acceptance, whose fitness bar refuses true loops on a changed campus; the
-    # graph's robust kernel holds back a pose gone wrong.
-    detector = LoopDetector(
-        "default", exclude_frames=exclude_frames or 50, threshold=max_distance, pose=True
-    )
+    # disco loops' own detector and defaults (confident loops, no pose); the loops that
+    # go into the graph get their ICP pose after (graph/sequence.py), not its acceptance,
+    # whose fitness bar refuses true loops on a changed campus: the kernel guards.
+    detector = LoopDetector("default", exclude_frames=exclude_frames or 50, threshold=max_distance)
     with steps("loops", len(paths)) as advance:
         result = correct_sequence(
             paths, odo.poses, detector, times=stamps, scan_format=scan_format,
-            threads=threads, on_progress=advance, kernel=kernel,
+            threads=threads, on_progress=advance, kernel=kernel, on_pose_error=say,
         )  # fmt: skip
     c = result.correction
     written = write_trajectory(output, odo, c.poses)
     say(
-        f"{sequence}: {plural(len(c.loops), 'loop')} among {plural(len(paths), 'scan')}, "
-        f"{len(c.down_weighted)} down-weighted ({kernel} kernel)"
+        f"{sequence}: {plural(len(c.loops), 'loop')} in the graph ({result.found} found "
+        f"among {plural(len(paths), 'scan')}), {len(c.down_weighted)} down-weighted "
+        f"({kernel} kernel), heading drift {c.yaw_drift_deg_per_m:.4f} deg/m taken out"
     )
     for lp in c.down_weighted:
         say(
