@@ -6,6 +6,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include "disco/conv3x3.hpp"      // U-Net convolutions
 #include "disco/icp.hpp"          // relative pose
 #include "disco/int8_search.hpp"  // signature search
 #include "disco/polar_bev.hpp"    // polar BEV voxelizer
@@ -429,5 +430,110 @@ PYBIND11_MODULE(_core, m) {
             },
             py::arg("padded"), py::arg("width"), py::arg("places"), py::arg("cells"),
             "Bilinear reads [views, cells] of a padded polar image at precomputed places");
+    }
+
+    // --- the U-Net's 3 x 3 convolution (src/cpp/disco/conv3x3.*) ---
+    {
+        // Weights are converted to float32 once; inputs must already be float32
+        // C-contiguous [C_i, B, R, S] (unet_numpy.py makes them so): a copy here would
+        // cost as much as the arithmetic of the small levels.
+        using F32In = py::array_t<float, py::array::c_style | py::array::forcecast>;
+        py::class_<disco::Conv3x3>(m, "Conv3x3")
+            .def(py::init([](const F32In& weight, const F32In& bias) {
+                     if (weight.ndim() != 4 || weight.shape(2) != 3 || weight.shape(3) != 3 ||
+                         weight.shape(0) < 1 || weight.shape(1) < 1)
+                         throw py::value_error("weight must be [cout, cin, 3, 3], cout, cin >= 1");
+                     if (bias.ndim() != 1 || bias.shape(0) != weight.shape(0))
+                         throw py::value_error("bias must be [cout]");
+                     return new disco::Conv3x3(weight.data(), bias.data(), weight.shape(0),
+                                               weight.shape(1));
+                 }),
+                 py::arg("weight"), py::arg("bias"),
+                 "A 3 x 3 convolution from weight [cout, cin, 3, 3] and bias [cout]")
+            .def_property_readonly("cout", &disco::Conv3x3::cout)
+            .def_property_readonly("cin", &disco::Conv3x3::cin)
+            .def(
+                "__call__",
+                [](const disco::Conv3x3& conv, const py::sequence& inputs, bool circular,
+                   bool relu) {
+                    if (py::len(inputs) == 0) throw py::value_error("need at least one input");
+                    std::vector<py::array> keep;  // holds the arrays while the GIL is released
+                    std::vector<disco::ConvPart> parts;
+                    py::ssize_t b = 0, r = 0, s = 0, channels = 0;
+                    for (const auto& item : inputs) {
+                        if (!py::isinstance<py::array_t<float>>(item))
+                            throw py::value_error("inputs must be float32 numpy arrays");
+                        auto a = py::reinterpret_borrow<py::array>(item);
+                        if (a.ndim() != 4)
+                            throw py::value_error("each input must be [C, B, R, S]");
+                        if (!(a.flags() & py::array::c_style))
+                            throw py::value_error("inputs must be C-contiguous");
+                        if (keep.empty()) b = a.shape(1), r = a.shape(2), s = a.shape(3);
+                        if (a.shape(1) != b || a.shape(2) != r || a.shape(3) != s)
+                            throw py::value_error("inputs must share B, R and S");
+                        channels += a.shape(0);
+                        parts.push_back({static_cast<const float*>(a.data()), a.shape(0)});
+                        keep.push_back(a);
+                    }
+                    if (channels != conv.cin())
+                        throw py::value_error("inputs have " + std::to_string(channels) +
+                                              " channels, the convolution takes " +
+                                              std::to_string(conv.cin()));
+                    py::array_t<float> out({static_cast<py::ssize_t>(conv.cout()), b, r, s});
+                    float* dst = out.mutable_data();
+                    {
+                        py::gil_scoped_release release;
+                        conv.run(parts, b, r, s, circular, relu, dst);
+                    }
+                    return out;
+                },
+                py::arg("inputs"), py::arg("circular"), py::arg("relu"),
+                "[cout, B, R, S] of inputs [C_i, B, R, S] joined along channels; sectors "
+                "padded circularly or with zeros, rings with zeros; max(0, .) with relu");
+        using F32C = py::array_t<float, py::array::c_style>;
+        m.def(
+            "max_pool2",
+            [](const F32C& x) {
+                if (x.ndim() < 2) throw py::value_error("x must have 2 or more dimensions");
+                std::vector<py::ssize_t> shape(x.shape(), x.shape() + x.ndim());
+                const py::ssize_t rows = shape[shape.size() - 2], cols = shape.back();
+                shape[shape.size() - 2] = rows / 2, shape.back() = cols / 2;
+                const py::ssize_t images = rows > 0 && cols > 0 ? x.size() / (rows * cols) : 0;
+                py::array_t<float> out(shape);
+                const float* src = x.data();
+                float* dst = out.mutable_data();
+                {
+                    py::gil_scoped_release release;
+                    disco::max_pool2(src, images, rows, cols, dst);
+                }
+                return out;
+            },
+            py::arg("x"), "2 x 2 max-pooling over the last two axes (float32)");
+        m.def(
+            "resize_separable",
+            [](const F32C& x, const F32C& row_w, const F32C& col_w) {
+                if (x.ndim() < 2) throw py::value_error("x must have 2 or more dimensions");
+                std::vector<py::ssize_t> shape(x.shape(), x.shape() + x.ndim());
+                const py::ssize_t rows = shape[shape.size() - 2], cols = shape.back();
+                if (row_w.ndim() != 2 || row_w.shape(1) != rows)
+                    throw py::value_error("row weights must be [out_rows, rows of x]");
+                if (col_w.ndim() != 2 || col_w.shape(0) != cols)
+                    throw py::value_error("column weights must be [columns of x, out_cols]");
+                shape[shape.size() - 2] = row_w.shape(0), shape.back() = col_w.shape(1);
+                const py::ssize_t images = rows > 0 && cols > 0 ? x.size() / (rows * cols) : 0;
+                py::array_t<float> out(shape);
+                float* dst = out.mutable_data();
+                {
+                    py::gil_scoped_release release;
+                    disco::resize_separable(x.data(), images, rows, cols, row_w.data(),
+                                            row_w.shape(0), col_w.data(), col_w.shape(1), dst);
+                }
+                return out;
+            },
+            py::arg("x"), py::arg("row_w"), py::arg("col_w"),
+            "row_w @ x @ col_w over the last two axes of x (float32), skipping zero weights");
+        m.def("_conv3x3_kernel_name", &disco::conv3x3_kernel_name, py::arg("level") = -1,
+              "the convolution kernel at `level` of the BEV kernel cap (-1: the one in use): "
+              "avx512, avx2, plain; '' where this CPU has no such level");
     }
 }

@@ -1,11 +1,15 @@
-"""The U-Net's forward pass in NumPy, for inference without torch.
+"""The U-Net's forward pass without torch: C++ convolutions, or NumPy alone.
 
 `FrozenUNet` computes what `unet.UNet` computes in eval mode, from the same state dict
 (as NumPy arrays), with BatchNorm folded into the convolutions. Importing torch costs
 about a second, more than the whole query, and torch's small convolutions and padding
-copies cost more than their arithmetic; here each 3 x 3 convolution is one or a few
-BLAS products on a padded copy of its input, made once per convolution with the
-concatenated skip connection written straight into it.
+copies cost more than their arithmetic. By default each 3 x 3 convolution runs in the
+compiled core (`_core.Conv3x3`, src/cpp/disco/conv3x3.cpp: direct and register-blocked,
+AVX-512, AVX2 or plain C++ as the CPU allows), about twice as fast as BLAS on these
+small images; without the core, or with `backend="numpy"` (the reference the tests
+and benchmarks hold it to), each is one or a few BLAS products on a padded copy of
+its input, made once per convolution with the concatenated skip connection written
+straight into it.
 
 Activations are kept as [C, B, R, S]. A padded image [C, B, R + 2, S + 2] flattened to
 [C, B * (R + 2) * (S + 2)] turns a kernel tap (dy, dx) into a shift of dy * (S + 2) + dx
@@ -98,12 +102,24 @@ def _upsample_matrix(n: int, circular: bool, align_corners: bool) -> np.ndarray:
     return m
 
 
-class _Conv3x3:
-    """A 3 x 3 convolution (BatchNorm folded in) with an optional ReLU."""
+def compiled_core() -> Any:
+    """`disco_cli._core` where it is built with the convolution, else None."""
+    try:
+        # deferred: the package imports without the compiled core (a GPU training box)
+        from disco_cli import _core
+    except ImportError:
+        return None
+    return _core if hasattr(_core, "Conv3x3") else None
 
-    def __init__(self, weight: np.ndarray, bias: np.ndarray):
+
+class _Conv3x3:
+    """A 3 x 3 convolution (BatchNorm folded in) with an optional ReLU; in C++ when
+    given the compiled core, else in NumPy."""
+
+    def __init__(self, weight: np.ndarray, bias: np.ndarray, core: Any = None):
         cout, cin = weight.shape[:2]
         self.cout, self.cin = cout, cin
+        self.fast = None if core is None else core.Conv3x3(weight, bias)
         # Taps stacked on the output axis: one product of [9 * cout, cin] with the input,
         # then nine shifted sums; cheaper than unrolling the input when cin > cout.
         self.by_tap = np.ascontiguousarray(
@@ -117,6 +133,8 @@ class _Conv3x3:
 
     def __call__(self, inputs: list[np.ndarray], circular: bool, relu: bool) -> np.ndarray:
         """Inputs [C_i, B, R, S] (concatenated along channels) -> [cout, B, R, S]."""
+        if self.fast is not None:
+            return self.fast(inputs, circular, relu)
         _, b, r, s = inputs[0].shape
         padded = np.zeros((self.cin, b, r + 2, s + 2), np.float32)
         c0 = 0
@@ -158,17 +176,32 @@ MODEL_CONFIG_KEYS = frozenset(
 
 
 class FrozenUNet:
-    """`unet.UNet.correction` in eval mode, in NumPy: [B, H, R, S] -> [B, R, S].
+    """`unet.UNet.correction` in eval mode, without torch: [B, H, R, S] -> [B, R, S].
 
     `state` is a DiscoNet state dict as NumPy arrays (keys `unet.*`); `model_config`
-    the checkpoint's (`norm`, `circular`, `sigmoid`). KeyError or ValueError when the
-    state does not fit or the configuration holds a key it does not know."""
+    the checkpoint's (`norm`, `circular`, `sigmoid`). `backend`: "cpp" (the
+    convolutions in the compiled core), "numpy" (BLAS products), or None for "cpp"
+    where the core is built, else "numpy". KeyError or ValueError when the state does
+    not fit, the configuration holds a key it does not know, or "cpp" is asked for
+    without the core."""
 
-    def __init__(self, state: Mapping[str, np.ndarray], model_config: Mapping[str, Any]):
+    def __init__(
+        self,
+        state: Mapping[str, np.ndarray],
+        model_config: Mapping[str, Any],
+        backend: str | None = None,
+    ):
         unknown = sorted(set(model_config) - MODEL_CONFIG_KEYS)
         if unknown:
             known = ", ".join(sorted(MODEL_CONFIG_KEYS))
             raise ValueError(f"model_config has unknown keys {', '.join(unknown)} (known: {known})")
+        if backend not in (None, "cpp", "numpy"):
+            raise ValueError(f"backend must be 'cpp' or 'numpy', not {backend!r}")
+        core = None if backend == "numpy" else compiled_core()
+        if backend == "cpp" and core is None:
+            raise ValueError("backend 'cpp' needs disco_cli._core, which is not built")
+        self._core = core
+        self.backend = "numpy" if core is None else "cpp"
         self.norm = bool(model_config.get("norm", True))
         self.circular = bool(model_config.get("circular", True))
         self.sigmoid = bool(model_config.get("sigmoid", False))
@@ -196,7 +229,7 @@ class FrozenUNet:
                 b = (b - np.asarray(state[f"{bn}.running_mean"], np.float64)) * scale + (
                     np.asarray(state[f"{bn}.bias"], np.float64)
                 )
-            convs.append(_Conv3x3(w, b))
+            convs.append(_Conv3x3(w, b, self._core))
         return convs
 
     def _double(self, name: str, inputs: list[np.ndarray]) -> np.ndarray:
@@ -214,13 +247,16 @@ class FrozenUNet:
             )
             # Along rings the padding is zero and the ends clamp, as in F.interpolate.
         rows, cols = self._up[(r, s)]
+        if self._core is not None:
+            return self._core.resize_separable(x, rows, cols)
         y = (x.reshape(-1, s) @ cols).reshape(c * b, r, 2 * s)
         return np.matmul(rows, y).reshape(c, b, 2 * r, 2 * s)
 
-    @staticmethod
-    def _pool(x: np.ndarray) -> np.ndarray:
-        """2 x 2 max-pooling: the maximum of four strided views (a reduction over the
-        reshaped pairs' axes was a third of the network's time)."""
+    def _pool(self, x: np.ndarray) -> np.ndarray:
+        """2 x 2 max-pooling: in C++, or the maximum of four strided views (a reduction
+        over the reshaped pairs' axes was a third of the network's time)."""
+        if self._core is not None:
+            return self._core.max_pool2(x)
         out = np.maximum(x[..., 0::2, 0::2], x[..., 0::2, 1::2])
         np.maximum(out, x[..., 1::2, 0::2], out=out)
         return np.maximum(out, x[..., 1::2, 1::2], out=out)
