@@ -14,9 +14,11 @@
    (`query_views.py`) cost, each timed against a search without it; median of each
    stage.
 3. Time to the first result of `disco query` as a fresh process, by stage.
-4. With a learned model: its embedding with the NumPy U-Net the CPU models use
-   (`unet_numpy.py`) against torch's U-Net on the same weights (one torch thread, as
-   queries run), interleaved in this process, and the ratio.
+4. With a learned model: its embedding with the U-Net the CPU models use
+   (`unet_numpy.py`, its convolutions in C++: `src/cpp/disco/conv3x3.cpp`), with the
+   same weights in the NumPy U-Net (the BLAS path) and in torch's U-Net (one torch
+   thread, as queries run), interleaved in this process, and the ratios; then the C++
+   U-Net at each kernel level the CPU has (AVX-512, AVX2, plain; forced).
 
 Like the `disco` command, the process first asks OpenBLAS to use one thread
 (`blas_threads.py`); `--process-defaults` leaves it as it is, for the ratio.
@@ -314,11 +316,15 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
 
 
 def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
-    """Embedding one scan with the model as loaded (NumPy U-Net) vs the same weights in
-    torch's U-Net on one thread, interleaved; None for a model without a U-Net."""
+    """Embedding one scan with the model as loaded (the U-Net's convolutions in C++),
+    with the same weights in the NumPy U-Net (`backend="numpy"`) and in torch's U-Net
+    on one thread, interleaved; then the C++ U-Net at each kernel level the CPU has
+    (forced through the level cap). None for a model without a U-Net."""
+    from disco_cli import _core
     from disco_cli.model import load_model
     from disco_cli.model.checkpoint import read_checkpoint
-    from disco_cli.model.disco import DiscoModel, build_net
+    from disco_cli.model.disco import DiscoModel, build_net, to_numpy
+    from disco_cli.model.unet_numpy import FrozenUNet
 
     model = load_model(model_name)
     if not getattr(model, "frozen", False):
@@ -334,34 +340,48 @@ def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
     net = build_net(ckpt["model_config"])
     net.load_state_dict(ckpt["state_dict"])
     ref = DiscoModel(net, model.bev_config, model.model_config)
+    state = {k: to_numpy(v) for k, v in ckpt["state_dict"].items()}
+    numpy_net = FrozenUNet(state, model.model_config, backend="numpy")
+    plain = DiscoModel(numpy_net, model.bev_config, model.model_config, state=state)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     bevs = [polar_bev_of(model, synthetic_scan(200 + i))[None] for i in range(4)]
     it = iter(range(10**9))
+    levels = {n: lv for lv in (3, 2, 0) if (n := _core._conv3x3_kernel_name(lv))}
+    cap = _core._set_bev_kernel_level(3)  # the best kernel for the comparison; put back after
 
-    def numpy_embed():
-        model.embed(bevs[next(it) % 4])
+    def at_level(level: int):
+        def run():
+            _core._set_bev_kernel_level(level)
+            model.features(bevs[next(it) % 4])
 
-    def torch_embed():
-        ref.embed(bevs[next(it) % 4])
+        return run
 
-    def numpy_unet():
-        model.features(bevs[next(it) % 4])
-
-    def torch_unet():
-        ref.features(bevs[next(it) % 4])
-
+    fns = {
+        "cpp": lambda: model.embed(bevs[next(it) % 4]),
+        "numpy": lambda: plain.embed(bevs[next(it) % 4]),
+        "torch": lambda: ref.embed(bevs[next(it) % 4]),
+        "cu": lambda: model.features(bevs[next(it) % 4]),
+        "nu": lambda: plain.features(bevs[next(it) % 4]),
+        "tu": lambda: ref.features(bevs[next(it) % 4]),
+    }
     try:
-        t = interleaved_medians_ms(
-            {"numpy": numpy_embed, "torch": torch_embed, "nu": numpy_unet, "tu": torch_unet},
-            rounds,
-            block=5,
+        t = interleaved_medians_ms(fns, rounds, block=5)
+        by_level = interleaved_medians_ms(
+            {name: at_level(lv) for name, lv in levels.items()}, rounds, block=5
         )
     finally:
+        _core._set_bev_kernel_level(cap)
         torch.set_num_threads(threads)
-    sig0, _ = ref.embed(bevs[0])
-    sig1, _ = model.embed(bevs[0])
-    return t | {"sig_diff": float(np.abs(sig0 - sig1).max())}
+    sig_t, _ = ref.embed(bevs[0])
+    sig_c, _ = model.embed(bevs[0])
+    sig_n, _ = plain.embed(bevs[0])
+    return t | {
+        "kernel": _core._conv3x3_kernel_name(),
+        "levels": by_level,
+        "sig_diff": float(np.abs(sig_c - sig_t).max()),
+        "sig_diff_numpy": float(np.abs(sig_n - sig_t).max()),
+    }
 
 
 def bench_first_result(db: str, scan: str, model: str) -> dict:
@@ -612,11 +632,17 @@ def main() -> None:
         e = bench_embed(model)
         if e is not None:
             print(
-                f"embed one scan ({what}), interleaved medians: {e['numpy']:.2f} ms with "
-                f"the NumPy U-Net vs {e['torch']:.2f} ms with torch's on one thread "
-                f"({e['torch'] / e['numpy']:.2f}x); the U-Net alone {e['nu']:.2f} vs "
-                f"{e['tu']:.2f} ms ({e['tu'] / e['nu']:.2f}x); signatures differ by at most "
-                f"{e['sig_diff']:.1e}"
+                f"embed one scan ({what}), interleaved medians: {e['cpp']:.2f} ms with the "
+                f"C++ U-Net ({e['kernel']} kernel) vs {e['numpy']:.2f} ms with the NumPy "
+                f"U-Net ({e['numpy'] / e['cpp']:.2f}x) vs {e['torch']:.2f} ms with torch's on "
+                f"one thread ({e['torch'] / e['cpp']:.2f}x); the U-Net alone {e['cu']:.2f} vs "
+                f"{e['nu']:.2f} vs {e['tu']:.2f} ms ({e['nu'] / e['cu']:.2f}x, "
+                f"{e['tu'] / e['cu']:.2f}x); signatures differ from torch's by at most "
+                f"{e['sig_diff']:.1e} (C++) and {e['sig_diff_numpy']:.1e} (NumPy)"
+            )
+            print(
+                "the C++ U-Net by kernel level (forced), interleaved medians: "
+                + ", ".join(f"{name} {ms:.2f} ms" for name, ms in e["levels"].items())
             )
         f = bench_first_result(s["db"], s["scan"], model)
         print(
