@@ -246,3 +246,33 @@ def test_without_gtsam_one_line_naming_the_extra(
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and "disco-cli[graph]" in lines[0], res.output
     assert not (tmp_path / "o.txt").exists()
+
+
+def test_real_kitti_frames_without_a_revisit_come_back_unmoved(realdata: Path, tmp_path: Path):
+    # KITTI 00's 12 frames (0-10 and 15): a drive with no revisit. There is no KISS-ICP
+    # run beside them, so the odometry is the ground truth itself, put in the LiDAR's
+    # frame by the README's formula T_velo = inv(Tr) @ P @ Tr (written out here, not
+    # disco's own calibration code). Twelve scans lie within disco loops' default
+    # 50-scan window, so no pair is a candidate: what is checked is the real folder read
+    # end to end (frame 15 after 10), KITTI in and out, and a graph without loops.
+    seq = realdata / "kitti00"
+    calib = {
+        ln.split(":")[0]: np.array(ln.split(":")[1].split(), dtype=np.float64)
+        for ln in (seq / "calib.txt").read_text().splitlines()
+        if ":" in ln
+    }
+    Tr = np.vstack([calib["Tr"].reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+    rows = np.loadtxt(seq / "poses_present_frames.txt")
+    P = np.tile(np.eye(4), (len(rows), 1, 1))
+    P[:, :3, :] = rows[:, 1:].reshape(-1, 3, 4)
+    lidar = np.linalg.inv(Tr) @ P @ Tr
+    odo = tmp_path / "odometry.txt"
+    np.savetxt(odo, lidar[:, :3, :].reshape(len(lidar), 12), fmt="%.9f")
+    out = tmp_path / "corrected.txt"
+    res = _correct(seq, "--odometry", odo, "-o", out, "--loops-out", tmp_path / "loops.csv")
+    assert res.exit_code == 0, res.output
+    got = read_kitti_poses(out)
+    assert got.shape == (12, 4, 4)
+    assert np.linalg.norm(got[:, :3, 3] - lidar[:, :3, 3], axis=1).max() < 0.01
+    assert "0 loops in the graph (0 found among 12 scans)" in res.output
+    assert f"{out}: 12 poses written (kitti)" in res.output
