@@ -19,10 +19,44 @@ _typer_coercion = pytest.importorskip("typer._coercion")
 if coercion.RuntimeParam is None:  # pragma: no cover - another Typer
     pytest.skip("this Typer has no typer._coercion.RuntimeParam", allow_module_level=True)
 
-NUMBERS = ["0", "7", "-3", "007", "+5", " 5", "5 ", "5.0", "1e3", "1_000", "abc", "", "-0",
-           "99999999999999999999", "0.5", "-2.5", ".5", "5.", "1e-3", "1E3", "2.5e+2",
-           "inf", "nan", "-inf", "1e400", "0x10", "1,5", "4096", "4097", "10000", "10001",
-           "256", "257", "0.001", "20.0", "20.5"]
+NUMBERS = [
+    "0",
+    "7",
+    "-3",
+    "007",
+    "+5",
+    " 5",
+    "5 ",
+    "5.0",
+    "1e3",
+    "1_000",
+    "abc",
+    "",
+    "-0",
+    "99999999999999999999",
+    "0.5",
+    "-2.5",
+    ".5",
+    "5.",
+    "1e-3",
+    "1E3",
+    "2.5e+2",
+    "inf",
+    "nan",
+    "-inf",
+    "1e400",
+    "0x10",
+    "1,5",
+    "4096",
+    "4097",
+    "10000",
+    "10001",
+    "256",
+    "257",
+    "0.001",
+    "20.0",
+    "20.5",
+]
 
 
 def _samples(annotation: object, tmp: Path) -> list[object]:
@@ -35,8 +69,17 @@ def _samples(annotation: object, tmp: Path) -> list[object]:
     if annotation is Path:
         (tmp / "file.bin").write_bytes(b"")
         (tmp / "dir").mkdir(exist_ok=True)
-        return [str(tmp / "file.bin"), str(tmp / "dir"), str(tmp / "missing.db"),
-                str(tmp) + "//dir/", "./rel.db", "-", "", Path("map.db"), tmp / "file.bin"]
+        return [
+            str(tmp / "file.bin"),
+            str(tmp / "dir"),
+            str(tmp / "missing.db"),
+            str(tmp) + "//dir/",
+            "./rel.db",
+            "-",
+            "",
+            Path("map.db"),
+            tmp / "file.bin",
+        ]
     if isinstance(annotation, type) and issubclass(annotation, Enum):
         values = [str(m.value) for m in annotation]
         return [*values, *(v.upper() for v in values), "bogus", "", *annotation]
@@ -74,14 +117,16 @@ def test_fast_values_equal_typers_own(tmp_path: Path) -> None:
                 if value is None:
                     continue
                 fast = _outcome(
-                    lambda v=value: coercion.fast_value(
-                        desc.annotation, desc.parameter_info, v, param, ctx
+                    lambda v=value, d=desc, p=param, c=ctx: coercion.fast_value(
+                        d.annotation, d.parameter_info, v, p, c
                     )
                 )
                 if fast[0] == "value" and fast[2] is coercion._DECLINE:
                     declined += 1
                     continue
-                slow = _outcome(lambda v=value: typer_rp._coerce_value(v, param=param, ctx=ctx))
+                slow = _outcome(
+                    lambda v=value, t=typer_rp, p=param, c=ctx: t._coerce_value(v, param=p, ctx=c)
+                )
                 assert fast == slow, (name, param.name, value)
                 checked += 1
     assert checked > 200 and declined > 50, (checked, declined)

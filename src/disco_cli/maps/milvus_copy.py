@@ -101,7 +101,11 @@ def copy_map(
                 )
                 if dst is None:
                     dst = _create_database(
-                        into, src.model, scan_batch, src.meta.get("disco_version", ""), meta,
+                        into,
+                        src.model,
+                        scan_batch,
+                        src.meta.get("disco_version", ""),
+                        meta,
                         replace,
                     )
                 else:

@@ -204,9 +204,7 @@ def advance_counters(
     """Raise `next_id` and `generation` to at least these values: new rows, then the
     smaller rows deleted (the plain keys, for older readers, follow)."""
     next_id, generation = max(next_id, state.next_id), max(generation, state.generation)
-    insert_keys(
-        client, collection, {_NEXT + _padded(next_id): "", _GEN + _padded(generation): ""}
-    )
+    insert_keys(client, collection, {_NEXT + _padded(next_id): "", _GEN + _padded(generation): ""})
     client.upsert(
         collection,
         [
@@ -243,7 +241,9 @@ class WriteLock:
     """`with WriteLock(client, meta_collection) as lock:` holds the map's writers' lock;
     `lock.check()` before each step of a write, `lock.epoch` its fencing epoch."""
 
-    def __init__(self, client: Any, collection: str, where: Any = "map", lease: float | None = None):
+    def __init__(
+        self, client: Any, collection: str, where: Any = "map", lease: float | None = None
+    ):
         self._client = client
         self._collection = collection
         self._where = where
@@ -278,14 +278,22 @@ class WriteLock:
             now = time.monotonic()
             state = read_state(self._client, self._collection)
             others = {t: k for t, k in state.claims.items() if t != self.token}
-            dead = [t for t, k in others.items() if now - seen.setdefault((t, max(k)), now) >= self.lease]
+            dead = [
+                t
+                for t, k in others.items()
+                if now - seen.setdefault((t, max(k)), now) >= self.lease
+            ]
             delete_keys(self._client, self._collection, [k for t in dead for k in others[t]])
             if not set(others) - set(dead):
                 self.epoch = state.fence + 1
-                insert_keys(self._client, self._collection, {_FENCE + _padded(self.epoch): self.token})
+                insert_keys(
+                    self._client, self._collection, {_FENCE + _padded(self.epoch): self.token}
+                )
                 after = read_state(self._client, self._collection)
                 if self.token in after.claims and after.fence == self.epoch:
-                    old = [k for k in after.keys if k.startswith(_FENCE) and _number(k) < self.epoch]
+                    old = [
+                        k for k in after.keys if k.startswith(_FENCE) and _number(k) < self.epoch
+                    ]
                     delete_keys(self._client, self._collection, old)
                     self._start_heartbeat()
                     return self
@@ -313,7 +321,9 @@ class WriteLock:
         self._lost = False
         self._renewed = time.monotonic()
         self._stop.clear()
-        self._thread = threading.Thread(target=self._heartbeat, name="disco-milvus-lease", daemon=True)
+        self._thread = threading.Thread(
+            target=self._heartbeat, name="disco-milvus-lease", daemon=True
+        )
         self._thread.start()
 
     def _heartbeat(self) -> None:
@@ -347,4 +357,6 @@ class WriteLock:
         if self.token:
             token, self.token = self.token, ""
             mine = self.claims()
-            delete_keys(self._client, self._collection, [k for k in mine if k.split(":")[1] == token])
+            delete_keys(
+                self._client, self._collection, [k for k in mine if k.split(":")[1] == token]
+            )

@@ -86,8 +86,10 @@ def settle(db: Any) -> list[str]:
                 bool(ids)
                 and own == set(ids)
                 and all(views.get(i, 0) == len(db.side_offsets) for i in ids)
-                and all(db._scan_problem_m(r) is None for r in db._query(
-                    f"id >= {ids[0]} and id <= {ids[-1]}", db._SCAN_FIELDS))
+                and all(
+                    db._scan_problem_m(r) is None
+                    for r in db._query(f"id >= {ids[0]} and id <= {ids[-1]}", db._SCAN_FIELDS)
+                )
             )
             if whole:
                 now = read_state(db._client, db._meta_c)

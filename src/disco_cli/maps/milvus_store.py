@@ -238,9 +238,7 @@ class MilvusDatabase(StoreBase):
             except LostLock:
                 self._undo(lock.epoch, intent)
                 raise
-            advance_counters(
-                self._client, self._meta_c, state, intent["end"], state.generation + 1
-            )
+            advance_counters(self._client, self._meta_c, state, intent["end"], state.generation + 1)
             drop_intent(self._client, self._meta_c, lock.epoch, None)
             self.meta.update(next_id=str(intent["end"]), generation=str(state.generation + 1))
             self._choose_index()
@@ -262,9 +260,7 @@ class MilvusDatabase(StoreBase):
                 self._client.delete(self._views_c, filter=f"scan_id in {ids}")
             self._put_rows(rows, views, lock, upsert=True)
             state = lock.check()
-            advance_counters(
-                self._client, self._meta_c, state, state.next_id, state.generation + 1
-            )
+            advance_counters(self._client, self._meta_c, state, state.next_id, state.generation + 1)
             self.meta.update(next_id=str(state.next_id), generation=str(state.generation + 1))
         for i in ids:
             self.damaged.pop(i, None)

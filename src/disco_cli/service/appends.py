@@ -14,8 +14,9 @@ A request is all or nothing: every scan in it is read and checked before anythin
 written, and written as one batch: one SQLite transaction, or on a Milvus map one
 append of three requests (side views, scans, counters) whose ids stay reserved by its
 intent until the last, so that one cut off halfway is found by `disco info --check`
-and finished or undone by `disco build-db --repair` (`maps/milvus_repair.py`). A scan the map holds already (a file by its
-absolute path, inline points by their name) is not added again: its id is replied,
+and finished or undone by `disco build-db --repair` (`maps/milvus_repair.py`). A scan
+the map holds already (a file by its absolute path, inline points by their name) is not
+added again: its id is replied,
 so that a writer may resend a request whose reply it never got.
 """
 
