@@ -3,13 +3,13 @@
 `FrozenUNet` computes what `unet.UNet` computes in eval mode, from the same state dict
 (as NumPy arrays), with BatchNorm folded into the convolutions. Importing torch costs
 about a second, more than the whole query, and torch's small convolutions and padding
-copies cost more than their arithmetic. By default each 3 x 3 convolution runs in the
-compiled core (`_core.Conv3x3`, src/cpp/disco/conv3x3.cpp: direct and register-blocked,
-AVX-512, AVX2 or plain C++ as the CPU allows), about twice as fast as BLAS on these
-small images; without the core, or with `backend="numpy"` (the reference the tests
-and benchmarks hold it to), each is one or a few BLAS products on a padded copy of
-its input, made once per convolution with the concatenated skip connection written
-straight into it.
+copies cost more than their arithmetic. By default each 3 x 3 convolution, pooling and
+upsampling runs in the compiled core (`_core.Conv3x3`, src/cpp/disco/conv3x3.cpp:
+direct and register-blocked AVX-512 or AVX2 kernels), about twice as fast as BLAS on
+these small images. Without the core, on a CPU with neither (the plain C++ kernel is
+slower than BLAS), or with `backend="numpy"` (the reference the tests and benchmarks
+hold it to), each is one or a few BLAS products on a padded copy of its input, made
+once per convolution with the concatenated skip connection written straight into it.
 
 Activations are kept as [C, B, R, S]. A padded image [C, B, R + 2, S + 2] flattened to
 [C, B * (R + 2) * (S + 2)] turns a kernel tap (dy, dx) into a shift of dy * (S + 2) + dx
@@ -112,6 +112,11 @@ def compiled_core() -> Any:
     return _core if hasattr(_core, "Conv3x3") else None
 
 
+def _has_simd_kernel(core: Any) -> bool:
+    """Whether this CPU has the AVX-512 or AVX2 convolution (levels 3 and 2)."""
+    return bool(core._conv3x3_kernel_name(3) or core._conv3x3_kernel_name(2))
+
+
 class _Conv3x3:
     """A 3 x 3 convolution (BatchNorm folded in) with an optional ReLU; in C++ when
     given the compiled core, else in NumPy."""
@@ -181,9 +186,9 @@ class FrozenUNet:
     `state` is a DiscoNet state dict as NumPy arrays (keys `unet.*`); `model_config`
     the checkpoint's (`norm`, `circular`, `sigmoid`). `backend`: "cpp" (the
     convolutions in the compiled core), "numpy" (BLAS products), or None for "cpp"
-    where the core is built, else "numpy". KeyError or ValueError when the state does
-    not fit, the configuration holds a key it does not know, or "cpp" is asked for
-    without the core."""
+    where the core is built and the CPU has its AVX-512 or AVX2 kernel, else "numpy".
+    KeyError or ValueError when the state does not fit, the configuration holds a key it
+    does not know, or "cpp" is asked for without the core."""
 
     def __init__(
         self,
@@ -198,6 +203,8 @@ class FrozenUNet:
         if backend not in (None, "cpp", "numpy"):
             raise ValueError(f"backend must be 'cpp' or 'numpy', not {backend!r}")
         core = None if backend == "numpy" else compiled_core()
+        if backend is None and core is not None and not _has_simd_kernel(core):
+            core = None  # the plain C++ kernel is about 2x slower than BLAS
         if backend == "cpp" and core is None:
             raise ValueError("backend 'cpp' needs disco_cli._core, which is not built")
         self._core = core
