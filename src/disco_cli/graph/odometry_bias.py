@@ -5,9 +5,9 @@ than the other or a LiDAR odometry that under-turns each corner add yaw at a ste
 rate as the robot drives. A pose graph whose odometry edges are independent can only
 bend the trajectory where loops pin it; between and beyond them the drift stays. When
 the loops cluster on one stretch of a revisit, the rest of it keeps metres of error
-that the same graph with every true loop would not (a third of the revisit's loops at
-one end left NCLT-like selection worlds at 2.9-3.9x the true loops' ATE, against
-1.15-1.2x with the drift estimated; docs/correct.md).
+that the same graph with every true loop would not (a quarter of the loops found, at
+the start of the revisit, left the NCLT-like selection worlds at 2.9-3.9x the true
+loops' ATE, against 1.16-1.21x with the drift fitted; docs/correct.md).
 
 So the graph first fits one number, the yaw added per metre driven, to the loops: the
 odometry is chained again with each step turned back by that rate, and the rate that
