@@ -272,3 +272,28 @@ def test_a_reply_that_comes_too_late_is_a_client_error(strict: Path, small_map: 
         c._timeout = 60.0
         assert c.ping()  # on a new connection: the late reply is not taken for this one
         assert c.request({"op": "info"})["cancelled"] == before + 1
+
+
+def test_the_socket_file_appears_only_once_the_server_listens(tmp_path: Path, monkeypatch) -> None:
+    """A client that sees the socket file must be able to connect: the server binds under
+    a private name and moves the file into place after listen()."""
+    from disco_cli.service import serve_net
+
+    path = tmp_path / "s.sock"
+    seen: dict[str, bool] = {}
+    real_listen = socket.socket.listen
+
+    def listen(sock, *args):
+        seen["file before listen"] = path.exists()
+        return real_listen(sock, *args)
+
+    monkeypatch.setattr(socket.socket, "listen", listen)
+    server = serve_net.make_server(object(), socket_path=path)
+    try:
+        assert seen == {"file before listen": False}
+        assert path.is_socket() and str(server.server_address) == str(path)
+        assert [p.name for p in tmp_path.iterdir()] == ["s.sock"]  # no private name left
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as client:
+            client.connect(str(path))  # accepted by the backlog without a serving thread
+    finally:
+        server.server_close()

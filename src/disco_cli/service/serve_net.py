@@ -17,6 +17,7 @@ connections that never show a token cannot keep out a client that has it.
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import ipaddress
 import json
@@ -453,7 +454,20 @@ class _Limited(socketserver.ThreadingMixIn):
 
 
 class _UnixServer(_Limited, socketserver.UnixStreamServer):
-    pass
+    """Bound under a private name and moved into place once it listens: a client that
+    sees the socket file is never refused by a server still between bind and listen."""
+
+    def server_bind(self) -> None:
+        self._final_path = str(self.server_address)
+        self.server_address = f"{self._final_path}.{os.getpid()}.binding"
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.server_address)
+        super().server_bind()
+
+    def server_activate(self) -> None:
+        super().server_activate()
+        os.replace(self.server_address, self._final_path)
+        self.server_address = self._final_path
 
 
 class _TCPServer(_Limited, socketserver.TCPServer):
