@@ -7,6 +7,8 @@
 #include <mutex>
 #include <thread>
 
+#include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
+
 #if defined(__x86_64__) || defined(__i386__)
 #include <immintrin.h>
 #define DISCO_X86 1
@@ -47,11 +49,22 @@ bool have_avx2() {
 }
 #endif
 
+// Whether the AVX2 kernels run: the CPU has them and the level cap that the BEV
+// kernels share (set_bev_kernel_level) allows level 2, so tests can force the plain
+// kernels. Read once per call, never per row.
+bool use_avx2() {
+#ifdef DISCO_X86
+    return bev_kernel_level() >= 2 && have_avx2();
+#else
+    return false;
+#endif
+}
+
 using DotFn = std::int32_t (*)(const std::int8_t*, const std::int16_t*, std::int64_t);
 
 DotFn pick_dot() {
 #ifdef DISCO_X86
-    if (have_avx2()) return dot_avx2;
+    if (use_avx2()) return dot_avx2;
 #endif
     return dot_scalar;
 }
@@ -124,7 +137,7 @@ __attribute__((target("avx2,fma"))) void encode_row_avx2(const float* row, std::
 
 EncodeFn pick_encode() {
 #ifdef DISCO_X86
-    if (have_avx2()) return encode_row_avx2;
+    if (use_avx2()) return encode_row_avx2;
 #endif
     return encode_row_plain;
 }

@@ -70,7 +70,9 @@ void polar_bev_batch(const std::vector<AnyBEVPointsView>& scans, const BEVConfig
 // Every kernel gives identical BEVs; capping the level lets tests check each one and
 // benchmarks compare them. set_bev_kernel_level returns the previous cap. Grids of
 // 2^24 cells or more always use the plain kernel (the others form the cell index in
-// float).
+// float). The cap also holds for the U-Net convolutions (conv3x3.cpp), the int8
+// signature scan (int8_search.cpp) and the polar resampling (polar_resample.cpp):
+// their AVX2 paths run only at level 2 or above (the convolutions' AVX-512 at 3).
 int set_bev_kernel_level(int cap);
 int bev_kernel_level();
 // "avx512", "avx2", "sse2", "neon" or "plain": the kernel of `level` on this build and

@@ -2,6 +2,8 @@
 
 #include <stdexcept>
 
+#include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
+
 #if defined(__SSE2__) && (defined(__GNUC__) || defined(__clang__))
 #include <immintrin.h>
 #define DISCO_RESAMPLE_AVX2 1
@@ -89,13 +91,19 @@ bool has_avx2() {
 void resample_views(const float* padded, std::int64_t padded_size, std::int64_t width,
                     const std::vector<ResamplePlaces>& places, std::int64_t cells, float* out) {
     const Limits lim{static_cast<float>(padded_size / width - 1), static_cast<float>(width - 1)};
+#if DISCO_RESAMPLE_AVX2
+    // The AVX2 kernel where the CPU has it and the level cap that the BEV kernels share
+    // (set_bev_kernel_level) allows level 2, so tests can check the plain one too.
+    // 32-bit gather offsets: images of up to 2^31 floats (any polar BEV here).
+    const bool avx2 =
+        bev_kernel_level() >= 2 && has_avx2() && padded_size < (std::int64_t{1} << 31);
+#endif
     for (std::size_t v = 0; v < places.size(); ++v) {
         const float* ring = places[v];
         const float* sector = ring + cells;
         float* o = out + static_cast<std::int64_t>(v) * cells;
 #if DISCO_RESAMPLE_AVX2
-        // 32-bit gather offsets: images of up to 2^31 floats (any polar BEV here).
-        if (has_avx2() && padded_size < (std::int64_t{1} << 31)) {
+        if (avx2) {
             resample_avx2(padded, width, ring, sector, cells, lim, o);
             continue;
         }
