@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -70,6 +72,36 @@ def _shell_terminal_size() -> None:
             os.environ[key] = given[key]
         else:
             os.environ.pop(key, None)
+
+
+KERNEL_LEVELS = {3: "level3", 2: "level2", 1: "level1", 0: "plain"}
+
+
+@contextmanager
+def kernel_level(level: int) -> Iterator[int]:
+    """The compiled core's SIMD level capped at `level` within the block (the cap that
+    the BEV kernels, the U-Net convolutions, the int8 signature scan and the polar
+    resampling share); skips the test where this CPU or build has no such level."""
+    from disco_cli import _core  # deferred: only the tests that ask for a level need the core
+
+    previous = _core._set_bev_kernel_level(level)
+    try:
+        if _core._bev_kernel_level() != level:
+            pytest.skip(f"this CPU or build has no kernel level {level}")
+        yield level
+    finally:
+        _core._set_bev_kernel_level(previous)
+
+
+# Every level up to the CPU's best is forced in turn, so that an AVX-512 machine also
+# checks the AVX2, SSE2 and plain kernels, and an aarch64 one NEON and plain. Levels
+# above the CPU's best are skipped: nothing here needs AVX-512.
+@pytest.fixture(params=list(KERNEL_LEVELS), ids=list(KERNEL_LEVELS.values()))
+def kernel(request: pytest.FixtureRequest) -> Iterator[int]:
+    """Run a test on each SIMD kernel level the CPU has (each must agree with the
+    test's reference)."""
+    with kernel_level(request.param) as level:
+        yield level
 
 
 @pytest.fixture(scope="session")

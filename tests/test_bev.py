@@ -70,19 +70,7 @@ def reference_bev(points: np.ndarray, config: BEVConfig) -> np.ndarray:
     return out
 
 
-# Every level up to the CPU's best is forced in turn, so that an AVX-512 machine also
-# checks the AVX2, SSE2 and plain kernels, and an aarch64 one NEON and plain. Levels
-# above the CPU's best are skipped: nothing here needs AVX-512.
-@pytest.fixture(params=[3, 2, 1, 0], ids=["level3", "level2", "level1", "plain"])
-def kernel(request):
-    """Run a test on each fast-path kernel the CPU has (they must agree exactly)."""
-    previous = _core._set_bev_kernel_level(request.param)
-    try:
-        if _core._bev_kernel_level() != request.param:
-            pytest.skip(f"this CPU or build has no kernel level {request.param}")
-        yield request.param
-    finally:
-        _core._set_bev_kernel_level(previous)
+# The `kernel` fixture (tests/conftest.py) forces each kernel level the CPU has in turn.
 
 
 def test_every_level_below_the_best_can_be_forced_and_says_which_kernel_ran():

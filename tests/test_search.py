@@ -2,18 +2,31 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
+from conftest import KERNEL_LEVELS, kernel_level
 
 from disco_cli.query.search import SignatureIndex
 
-# Both first passes: the float32 BLAS product, and the compiled int8 scan.
+# Both first passes: the float32 BLAS product, and the compiled int8 scan, the latter at
+# each SIMD kernel level the CPU has (its AVX2 and plain kernels must find the same rows).
 PASSES = {"blas": {"int8_min_rows": 10**12}, "int8": {"int8_min_rows": 0}}
+FIRST_PASSES = [("blas", None)] + [("int8", level) for level in KERNEL_LEVELS]
 
 
-@pytest.fixture(params=list(PASSES))
-def first_pass(request: pytest.FixtureRequest) -> dict:
-    return PASSES[request.param]
+@pytest.fixture(
+    params=FIRST_PASSES,
+    ids=[name if level is None else f"int8-{KERNEL_LEVELS[level]}" for name, level in FIRST_PASSES],
+)
+def first_pass(request: pytest.FixtureRequest) -> Iterator[dict]:
+    name, level = request.param
+    if level is None:
+        yield PASSES[name]
+        return
+    with kernel_level(level):
+        yield PASSES[name]
 
 
 def _truth(sigs: np.ndarray, q: np.ndarray, k: int, allowed: np.ndarray | None = None):
@@ -88,7 +101,7 @@ def test_rejects_bad_shapes() -> None:
         SignatureIndex(np.full((2, 2), np.nan, np.float32))
 
 
-def test_int8_pass_constant_dimensions_and_far_queries() -> None:
+def test_int8_pass_constant_dimensions_and_far_queries(kernel: int) -> None:
     # A constant column (scale 0), values far from the map, and k above the row count.
     rng = np.random.default_rng(7)
     sigs = rng.normal(size=(700, 40)).astype(np.float32)
@@ -104,7 +117,7 @@ def test_int8_pass_constant_dimensions_and_far_queries() -> None:
             np.testing.assert_allclose(dists[i, : len(want_d)], want_d, rtol=1e-12)
 
 
-def test_int8_bounds_hold_for_every_row() -> None:
+def test_int8_bounds_hold_for_every_row(kernel: int) -> None:
     # The kernel's candidates must include every row whose true distance is within the
     # k-th smallest: check the bound directly on near-duplicate rows (tight spacing).
     from disco_cli import _core
@@ -126,7 +139,7 @@ def test_int8_bounds_hold_for_every_row() -> None:
     )
 
 
-def test_degenerate_signatures_fall_back_and_stay_exact() -> None:
+def test_degenerate_signatures_fall_back_and_stay_exact(kernel: int) -> None:
     # Rows that differ far below the int8 step: the bounds cannot prune.
     rng = np.random.default_rng(4)
     base = rng.random(64).astype(np.float32)
@@ -140,3 +153,27 @@ def test_degenerate_signatures_fall_back_and_stay_exact() -> None:
     want_rows, want_d = _truth(sigs, q, 5)
     np.testing.assert_array_equal(rows, want_rows)
     np.testing.assert_allclose(dists, want_d, rtol=1e-9)
+
+
+@pytest.mark.parametrize("n,dim", [(1, 1), (40, 15), (300, 16), (1000, 37), (64, 256)])
+def test_int8_codes_and_dots_equal_numpy(n: int, dim: int, kernel: int) -> None:
+    # The encoder's definition (int8_search.hpp) and g . c, written in NumPy: float64
+    # codes and sums, int64 dots. Widths below, at and past the AVX2 kernels' 16 lanes.
+    from disco_cli import _core
+
+    rng = np.random.default_rng(n * dim)
+    x = (rng.normal(size=(n, dim)) * rng.uniform(0.1, 10.0, size=dim)).astype(np.float32)
+    mean = x.mean(axis=0, dtype=np.float64)
+    spread = np.abs(x - mean).max(axis=0)
+    scale = np.where(spread > 0, spread / 127.0, 1.0)
+    codes, code_sq, code_norm, err = _core.int8_encode(x, mean, scale, 2)
+    centred = x.astype(np.float64) - mean
+    want = np.rint(np.clip(centred * (1.0 / scale), -127.0, 127.0))
+    np.testing.assert_array_equal(codes, want.astype(np.int8))
+    np.testing.assert_allclose(code_sq, ((want * scale) ** 2).sum(1), rtol=1e-12)
+    np.testing.assert_allclose(code_norm, np.sqrt((want**2).sum(1)), rtol=1e-12)
+    np.testing.assert_allclose(err, np.sqrt(((centred - want * scale) ** 2).sum(1)), rtol=1e-12)
+    g = rng.integers(-_core.int8_query_limit(dim), _core.int8_query_limit(dim), dim)
+    np.testing.assert_array_equal(
+        _core.int8_dots(codes, g.astype(np.int16), 2), codes.astype(np.int64) @ g
+    )

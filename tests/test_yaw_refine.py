@@ -32,14 +32,14 @@ def reference_recentre(image: np.ndarray, position: tuple[float, float]) -> np.n
     return out
 
 
-def test_recentre_at_the_origin_is_the_image():
+def test_recentre_at_the_origin_is_the_image(kernel):
     img = np.random.default_rng(0).random((R, S)).astype(np.float32)
     got = recentre(img, np.zeros((1, 2)), MAX_RANGE)[0]
     np.testing.assert_allclose(got, img, atol=1e-4)
 
 
 @pytest.mark.parametrize("position", [(3.0, 0.0), (-1.3, 2.7), (0.4, -4.1)])
-def test_recentre_agrees_with_a_cell_by_cell_reference(position):
+def test_recentre_agrees_with_a_cell_by_cell_reference(position, kernel):
     img = np.random.default_rng(1).random((R, S)).astype(np.float32)
     got = recentre(img, np.array([position]), MAX_RANGE)[0]
     np.testing.assert_allclose(got, reference_recentre(img, position), atol=1e-4)
@@ -210,7 +210,7 @@ def test_shipped_network_re_centres_the_bev_it_was_given(samples):
     assert got == pytest.approx(want, abs=0.02)
 
 
-def test_core_resampling_refuses_places_outside_the_image():
+def test_core_resampling_refuses_places_outside_the_image(kernel):
     """The C++ reads check their places: a bad one is an error, not a stray read."""
     from disco_cli import _core
 
@@ -222,6 +222,46 @@ def test_core_resampling_refuses_places_outside_the_image():
             _core.resample_views(padded, 2 * S + 1, [places], R * S)
     with pytest.raises(ValueError):
         _core.resample_views(padded, 2 * S + 1, [np.ones((3, R * S), np.float32)], R * S)
+
+
+def reference_resample(padded: np.ndarray, width: int, places: np.ndarray) -> np.ndarray:
+    """polar_resample.hpp's bilinear read in float32 NumPy, each operation rounded as
+    written there."""
+    ring, sector = places
+    r0, s0 = ring.astype(np.int64), sector.astype(np.int64)  # truncation, places >= 0
+    fr = ring - r0.astype(np.float32)
+    fs = sector - s0.astype(np.float32)
+    i0 = r0 * width + s0
+    a0, a1 = padded[i0], padded[i0 + 1]
+    b0, b1 = padded[i0 + width], padded[i0 + width + 1]
+    near = a0 + (a1 - a0) * fs
+    far = b0 + (b1 - b0) * fs
+    return near + (far - near) * fr
+
+
+@pytest.mark.parametrize("cells", [1, 8, 13, R * S + 5])
+def test_core_resampling_equals_the_numpy_definition(cells, kernel):
+    """Every SIMD level reads the same float32 values as the definition, to the bit:
+    places anywhere in the image up to just below its last ring and sector, and cell
+    counts that are not whole vectors."""
+    from disco_cli import _core
+
+    rng = np.random.default_rng(cells)
+    rows, width = R + 3, 2 * S + 1
+    padded = rng.normal(scale=3.0, size=rows * width).astype(np.float32)
+    views = []
+    for _ in range(3):
+        ring = rng.uniform(0.0, rows - 1, cells).astype(np.float32)
+        sector = rng.uniform(0.0, width - 1, cells).astype(np.float32)
+        ring[::5] = np.floor(ring[::5])  # whole places: fraction 0
+        edge = np.nextafter(np.float32(rows - 1), np.float32(0))
+        side = np.nextafter(np.float32(width - 1), np.float32(0))
+        ring[-1], sector[0] = edge, side
+        views.append(np.stack([np.minimum(ring, edge), np.minimum(sector, side)]))
+    got = _core.resample_views(padded, width, views, cells)
+    want = np.stack([reference_resample(padded, width, v) for v in views])
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, want)
 
 
 def test_kept_views_give_what_a_fresh_search_gives():
