@@ -533,3 +533,44 @@ def test_points_exactly_on_voxel_and_cell_edges():
     assert img.shape == (16, 16)
     # Every cell holds the two points z = 0 and z = 0.5 of one grid node.
     assert np.array_equal(img, np.full((16, 16), 0.5, np.float32))
+
+
+def test_a_half_turn_spectrum_follows_from_the_image_spectrum(street):
+    from disco_cli.query.relative_pose import _hann, _spectrum, _turned_spectrum
+
+    img = _core.height_image(street, 0.3, 0.4, 40.0)
+    turned = np.fft.rfft2(img[::-1, ::-1] * _hann(img.shape[0]))
+    derived = _turned_spectrum(_spectrum(img), img.shape)
+    assert np.allclose(derived, turned, rtol=0, atol=1e-9 * np.abs(turned).max())
+
+
+def test_the_half_turn_image_is_the_image_turned_about_the_sensor(street):
+    """What lets the check derive the yaw + 180 spectrum: the grid and window are
+    symmetric about the sensor."""
+    img = _core.height_image(street, 0.3, 0.4, 40.0)
+    half_turn = _core.height_image(street, 0.3 + math.pi, 0.4, 40.0)
+    assert np.count_nonzero(img) > 500
+    # Points within rounding of a cell edge may fall either side.
+    filled = (img[::-1, ::-1] != 0) | (half_turn != 0)
+    assert np.mean(np.abs(half_turn - img[::-1, ::-1])[filled] < 1e-4) > 0.99
+
+
+@pytest.mark.parametrize("hint_off", [0.0, 180.0])
+def test_layout_check_matches_images_made_at_both_headings(street, hint_off):
+    """The check's peak and flip against both query images computed from the points."""
+    from disco_cli.query.relative_pose import _peak, _spectrum, layout_check
+
+    c = PoseConfig()
+    T = make_transform(25.0, (1.5, -0.8, 0.0))
+    query = (street[:, :3] - T[:3, 3]) @ T[:3, :3]  # the same place seen from T
+    got = layout_check(query, street, 25.0 + hint_off, c)
+    fm = _spectrum(_core.height_image(street, 0.0, c.bev_cell, c.bev_extent))
+    peaks = []
+    for turn in (0.0, 180.0):
+        yaw = math.radians(25.0 + hint_off + turn)
+        fq = _spectrum(_core.height_image(np.ascontiguousarray(query, np.float32), yaw,
+                                          c.bev_cell, c.bev_extent))  # fmt: skip
+        peaks.append(_peak(fm, fq, (200, 200), c.bev_cell, c.max_translation)[2])
+    assert got.flipped == (hint_off == 180.0)
+    assert got.peak == pytest.approx(max(peaks), rel=0.02)
+    assert got.shift_m == pytest.approx(math.hypot(1.5, -0.8), abs=0.5)

@@ -241,17 +241,36 @@ def layout_check(
     match = _as_points(match_points, "match")
     match_image = _core.height_image(match, 0.0, config.bev_cell, config.bev_extent)
     fm = _spectrum(match_image)
+    yaw = math.radians(float(yaw_deg))
+    fq = _spectrum(_core.height_image(query, yaw, config.bev_cell, config.bev_extent))
     best = None
     for flipped in (False, True) if config.try_flipped_yaw else (False,):
-        yaw = math.radians(float(yaw_deg) + (180.0 if flipped else 0.0))
-        query_image = _core.height_image(query, yaw, config.bev_cell, config.bev_extent)
-        x, y, peak = _peak(
-            fm, _spectrum(query_image), match_image.shape, config.bev_cell, config.max_translation
-        )
+        # The image a half turn on is this one turned about its centre (the grid is
+        # symmetric about the sensor, and so is the window), so its spectrum follows
+        # from this one's: a third of the check's cost saved.
+        spectrum = _turned_spectrum(fq, match_image.shape) if flipped else fq
+        x, y, peak = _peak(fm, spectrum, match_image.shape, config.bev_cell, config.max_translation)
         if best is None or peak > best.peak:
             best = LayoutCheck(peak, math.hypot(x, y), flipped)
     assert best is not None
     return best
+
+
+def _turned_spectrum(spectrum: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """`_spectrum` of a real image [N0, N1] turned by a half turn (img[::-1, ::-1]), from
+    the image's own (`rfft2` layout): for g[n] = f[N - 1 - n] along an axis,
+    G[k] = exp(2 pi i k / N) conj(F[k])."""
+    return _half_turn_ramp(*shape) * np.conj(spectrum)
+
+
+@functools.lru_cache(maxsize=4)
+def _half_turn_ramp(n0: int, n1: int) -> np.ndarray:
+    """exp(2 pi i (k0 / N0 + k1 / N1)) over an `rfft2` spectrum's [N0, N1 // 2 + 1]."""
+    k0 = np.fft.fftfreq(n0, d=1.0 / n0)[:, None]
+    k1 = np.arange(n1 // 2 + 1)[None, :]
+    out = np.exp(2j * np.pi * (k0 / n0 + k1 / n1))
+    out.flags.writeable = False
+    return out
 
 
 def _icp_config(config: PoseConfig) -> Any:
