@@ -177,3 +177,28 @@ def test_int8_codes_and_dots_equal_numpy(n: int, dim: int, kernel: int) -> None:
     np.testing.assert_array_equal(
         _core.int8_dots(codes, g.astype(np.int16), 2), codes.astype(np.int64) @ g
     )
+
+
+@pytest.mark.parametrize("n", [10, 300, 10_000, 40_001])
+@pytest.mark.parametrize("k", [1, 40, 160])
+def test_smallest_per_row_finds_what_argpartition_finds(n: int, k: int) -> None:
+    """The views' first pass: each row's k smallest values, against a full sort."""
+    from disco_cli.maps.signature_index import smallest_per_row
+
+    if k > n:
+        pytest.skip("k beyond the row")
+    rng = np.random.default_rng(n + k)
+    rows = [
+        rng.normal(size=n),
+        np.arange(n, dtype=float)[::-1],  # the smallest at the end, between samples
+        np.where(np.arange(n) % 16 == 0, 0.0, 1.0) + rng.random(n) * 1e-3,  # samples lowest
+        np.where(np.arange(n) % 16 == 0, 1.0, 0.0) + rng.random(n) * 1e-3,  # samples highest
+        np.full(n, np.inf),
+    ]
+    values = np.stack(rows).astype(np.float32)
+    values[0, rng.integers(0, n, 5)] = np.inf  # excluded rows
+    got = smallest_per_row(values, k)
+    assert got.shape == (len(rows), k)
+    for row, idx in zip(values, got):
+        assert len(set(idx.tolist())) == k
+        assert np.array_equal(np.sort(row[idx]), np.sort(row)[:k])
