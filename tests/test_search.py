@@ -179,14 +179,14 @@ def test_int8_codes_and_dots_equal_numpy(n: int, dim: int, kernel: int) -> None:
     )
 
 
-@pytest.mark.parametrize("n", [10, 300, 10_000, 40_001])
-@pytest.mark.parametrize("k", [1, 40, 160])
+@pytest.mark.parametrize(
+    ("n", "k"),
+    [(n, k) for n in (10, 300, 10_000, 40_001) for k in (1, 40, 160) if k <= n],
+)
 def test_smallest_per_row_finds_what_argpartition_finds(n: int, k: int) -> None:
     """The views' first pass: each row's k smallest values, against a full sort."""
     from disco_cli.maps.signature_index import smallest_per_row
 
-    if k > n:
-        pytest.skip("k beyond the row")
     rng = np.random.default_rng(n + k)
     rows = [
         rng.normal(size=n),
