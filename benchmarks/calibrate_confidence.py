@@ -1,25 +1,28 @@
 """Fit the confidence of query/confidence.py on the selection worlds, and judge it.
 
     benchmarks/calibrate_confidence.py collect [--families nclt mulran oxford]
-    benchmarks/calibrate_confidence.py fit [--write]
-    benchmarks/calibrate_confidence.py judge [--seeds selection|report]
+    benchmarks/calibrate_confidence.py fit [--write] [--plot]
+    benchmarks/calibrate_confidence.py loops
 
 `collect` runs every query of the calibrated families' selection worlds (seeds
 8621-8623, `evaluation/paper_families.py`; the worlds `benchmarks/paper_table.py`
 simulates, under out/paper/worlds) through `Map.query` with the shipped model and its
 query rule, unverified, and records for each of its best 10 rows the place cues
 (`confidence.PlaceCues`), the yaw confidence and whether it is a true revisit (within the
-family's radius of the query's true position); the best `VERIFY_DEPTH` rows also get
-the geometric check (`relative_pose.estimate_relative_pose`: fitness, rmse, accepted)
-and its time. Rows are cached as JSON lines under out/confidence/.
+family's radius of the query's true position); the best `CHECK_DEPTH` rows also get
+the layout check (`relative_pose.layout_check`: peak, shift, flipped) and the best
+`ICP_DEPTH` the ICP (`relative_pose.estimate_relative_pose`: fitness, rmse, accepted),
+each with its time. Rows are cached as JSON lines under out/confidence/.
 
-`fit` fits two logistic models on those rows (the place cues alone; with the fit) by
-Newton's method on the log-loss with a small ridge, leaving one world out in turn to
-say what each cue adds (the held-out log-loss with the cue and without it) and how well
-the predicted probability matches the observed share in bins. `--write` stores the
-coefficients in src/disco_cli/query/confidence_fit.json, which the package loads.
+`fit` fits a logistic model on those rows per kind of evidence (`KINDS`: the place
+cues alone; with the layout check) by Newton's method on the log-loss with a small
+ridge, leaving one world out in turn to say what each cue adds (the held-out log-loss
+with the cue and without it) and how well the predicted probability matches the
+observed share in bins. `--write` stores the coefficients in
+src/disco_cli/query/confidence_fit.json, which the package loads. `loops` gives the
+precision and recall of each confidence bar for the default loop detector.
 
-Only selection seeds are fitted on. `judge --seeds report` is for the report, after.
+Only selection seeds are fitted on; `collect --seeds report` is for the report, after.
 """
 
 from __future__ import annotations
