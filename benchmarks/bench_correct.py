@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -35,7 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import cpu_model
+from _common import machine_line
 
 from disco_cli.evaluation.paper_families import FAMILIES
 from disco_cli.evaluation.trajectory import ate
@@ -140,9 +138,7 @@ def main() -> None:
                       f"{fooled / clean:.2f} {t_loops[0]:.1f} {t_correct[0]:.1f} "
                       f"{t_correct[0] / t_loops[0]:.2f} {t_loops[1]:.1f} {t_correct[1]:.1f} "
                       f"{t_correct[1] / t_loops[1]:.2f}", flush=True)  # fmt: skip
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    print(f"# {cpu_model()}, {os.cpu_count()} cores, load average {load}, "
-          f"Python {platform.python_version()}")  # fmt: skip
+    print(f"# {machine_line()}")  # last: the load average over the runs
 
 
 if __name__ == "__main__":
