@@ -27,7 +27,7 @@ import numpy as np
 from disco_cli.evaluation import paper_families
 from disco_cli.query import search
 
-SEEDS = (8621, 8622, 8623)
+SEEDS = paper_families.SEEDS["selection"]
 FAMILIES = ("nclt", "mulran", "oxford")
 
 
