@@ -310,7 +310,7 @@ def write_between(doc: Path, mark: str, text: str) -> None:
 
 
 def clean_tree() -> bool:
-    """Whether the package, benchmarks and docs are as committed (what `--update-docs`
+    """Whether src/, benchmarks/ and pyproject.toml are as committed (what `--update-docs`
     publishes must be reproducible from a commit)."""
     out = subprocess.run(
         ["git", "status", "--porcelain", "--", "src", "benchmarks", "pyproject.toml"],
