@@ -148,15 +148,10 @@ def as_match(m: Any) -> Match:
         m.path,
         m.distance,
         m.yaw_deg,
-        yaw_conf=conf_or_none(m),
+        yaw_conf=number_or_none(m.yaw_conf),
         confidence=number_or_none(m.confidence),
         cues=m.cues,
     )
-
-
-def conf_or_none(m: Any) -> float | None:
-    """A search match's `yaw_conf`, None where it has none (NaN)."""
-    return number_or_none(m.yaw_conf)
 
 
 def number_or_none(x: float) -> float | None:
