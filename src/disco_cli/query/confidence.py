@@ -149,9 +149,9 @@ def _probability(cal: Calibration, features: dict[str, float]) -> float:
     return 1.0 / (1.0 + math.exp(-max(min(z, 40.0), -40.0)))
 
 
-def _confidence(model: Any, kind: str, cues: PlaceCues | None, features: dict) -> float:
+def _confidence(model: Any, kind: str, features: dict) -> float:
     cal = calibrations().get((str(getattr(model, "fingerprint", "")), kind))
-    return math.nan if cal is None or cues is None else _probability(cal, features)
+    return math.nan if cal is None else _probability(cal, features)
 
 
 def calibrated(model: Any) -> bool:
@@ -164,14 +164,14 @@ def place_confidence(model: Any, cues: PlaceCues | None, yaw_conf: float) -> flo
     """P(true revisit | the row's place cues) under `model`'s calibration (NaN: none)."""
     if cues is None:
         return math.nan
-    return _confidence(model, "place", cues, cue_features(cues, yaw_conf))
+    return _confidence(model, "place", cue_features(cues, yaw_conf))
 
 
 def checked_confidence(model: Any, cues: PlaceCues | None, yaw_conf: float, layout: Any) -> float:
     """P(true revisit | the place cues and the layout check)."""
     if cues is None:
         return math.nan
-    return _confidence(model, "checked", cues, cue_features(cues, yaw_conf, layout))
+    return _confidence(model, "checked", cue_features(cues, yaw_conf, layout))
 
 
 # The fitted calibrations, written by `benchmarks/calibrate_confidence.py fit --write`
