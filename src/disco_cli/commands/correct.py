@@ -10,18 +10,18 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Optional
 
-import typer
-
 from disco_cli.commands.options import (
     ExcludeFramesOpt,
     MaxDistanceOpt,
     PosesFormatOpt,
     QuietOpt,
     ScanFormatOpt,
+    SequenceArg,
     ThreadsOpt,
     TimesOpt,
     TopicOpt,
     opt,
+    output_option,
 )
 from disco_cli.io.readers import list_scans
 from disco_cli.runtime.console import fail, handle_errors, plural, say
@@ -31,14 +31,7 @@ PANEL_GRAPH = "Pose graph"
 
 @handle_errors
 def correct(
-    sequence: Annotated[
-        Path,
-        typer.Argument(
-            show_default=False,
-            help="The sequence: a folder of scans (KITTI-style DIR/velodyne/ or a folder "
-            "of scan files), or a ROS bag.",
-        ),
-    ],
+    sequence: SequenceArg,
     odometry: Annotated[
         Path,
         opt(
@@ -47,9 +40,7 @@ def correct(
             "time, or any pose format disco reads; --poses-format).",
         ),
     ],
-    output: Annotated[
-        Path, opt("--output", "-o", help="The corrected trajectory, in the odometry's format.")
-    ],
+    output: Annotated[Path, output_option("The corrected trajectory, in the odometry's format.")],
     gt: Annotated[
         Optional[Path],
         opt("--gt", help="True poses of the scans: print ATE and RPE before and after."),
