@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.errors import DiscoError, PoseFileError
-from disco_cli.graph.pose_graph import Correction, PoseGraph
+from disco_cli.graph.pose_graph import Correction, correct
 from disco_cli.io.output_paths import atomic_path
 from disco_cli.io.poses import ScanPoser, scan_times, write_kitti_poses
 from disco_cli.io.poses.tum import write_tum_poses
@@ -201,6 +201,5 @@ def correct_sequence(
     for message in errors:
         if on_pose_error is not None:
             on_pose_error(message)
-    graph = PoseGraph(odometry, **graph_options)
-    graph.add_loops(loops + list(extra_loops or []))
-    return SequenceCorrection(graph.optimize(), loops, len(found))
+    correction = correct(odometry, loops + list(extra_loops or []), **graph_options)
+    return SequenceCorrection(correction, loops, len(found))
