@@ -14,6 +14,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import kernel_level
 
 from disco_cli import _core
 from disco_cli.model import DEFAULT_WEIGHTS, load_model, npz_beside
@@ -28,17 +29,13 @@ needs_default = pytest.mark.skipif(
 
 
 # Each kernel level the CPU has is forced in turn through the cap the BEV kernels
-# share, so an AVX-512 machine checks the AVX2 and plain kernels too.
+# share, so an AVX-512 machine checks the AVX2 and plain kernels too (level 1 runs
+# the plain convolution, as 0 does).
 @pytest.fixture(params=sorted(LEVELS, reverse=True), ids=list(LEVELS.values()))
 def level(request):
-    if _core._conv3x3_kernel_name(request.param) == "":
-        pytest.skip(f"this CPU has no {LEVELS[request.param]} kernel")
-    previous = _core._set_bev_kernel_level(request.param)
-    try:
+    with kernel_level(request.param):
         assert _core._conv3x3_kernel_name() == LEVELS[request.param]
         yield request.param
-    finally:
-        _core._set_bev_kernel_level(previous)
 
 
 def reference_conv(parts, weight, bias, circular, relu):
