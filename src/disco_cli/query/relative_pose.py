@@ -176,17 +176,9 @@ def phase_correlation_shift(
     Normalised cross-power spectrum with a Hann window; the peak is searched within
     `max_shift` and refined to sub-cell precision.
     """
-    x, y, _ = phase_correlation_peak(match_image, query_image, cell, max_shift)
+    fm, fq = _spectrum(match_image), _spectrum(query_image)
+    x, y, _ = _peak(fm, fq, match_image.shape, cell, max_shift)
     return x, y
-
-
-def phase_correlation_peak(
-    match_image: np.ndarray, query_image: np.ndarray, cell: float, max_shift: float
-) -> tuple[float, float, float]:
-    """`phase_correlation_shift`'s (x, y) and the peak's height: the phase-only
-    correlation at the shift, near 1 where one image is the other moved, near 0 (the
-    noise floor of a few hundredths) where they share no structure."""
-    return _peak(_spectrum(match_image), _spectrum(query_image), match_image.shape, cell, max_shift)
 
 
 def _spectrum(image: np.ndarray) -> np.ndarray:
@@ -197,7 +189,10 @@ def _spectrum(image: np.ndarray) -> np.ndarray:
 def _peak(
     fm: np.ndarray, fq: np.ndarray, shape: tuple[int, ...], cell: float, max_shift: float
 ) -> tuple[float, float, float]:
-    """`phase_correlation_peak` of two spectra (`_spectrum`)."""
+    """`phase_correlation_shift`'s (x, y) from two spectra (`_spectrum`), and the
+    peak's height: the phase-only correlation at the shift, near 1 where one image is
+    the other moved, near 0 (the noise floor of a few hundredths) where they share no
+    structure."""
     n = shape[0]
     cross = fm * np.conj(fq)
     mag = np.abs(cross)
