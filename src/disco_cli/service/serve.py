@@ -133,7 +133,7 @@ class QueryService:
             None if self.options.scan_root is None else os.path.realpath(self.options.scan_root)
         )
         self._lock = threading.Lock()
-        self._stamp = self._file_stamp()
+        self._stamp = self._map_stamp()
         self._queue: queue.Queue = queue.Queue()
         self._alive: Callable[[], bool] = _always
         self._notes: list[str] | None = None  # this query's warnings
@@ -184,25 +184,16 @@ class QueryService:
             except queue.Empty:
                 break
 
-    # -- the map on disk ----------------------------------------------------------
+    # -- the map changed ----------------------------------------------------------
 
-    def _file_stamp(self) -> tuple:
-        """Size and mtime of the map file and its WAL: they change when another
-        process appends."""
+    def _map_stamp(self) -> int | None:
+        """The store's `generation` (`store.MapStore`: every write raises it, another
+        process's too); None for a new map before its first scan."""
         db = self.map.database
-        if hasattr(db, "address"):  # a Milvus map: its generation counts every write
-            return (db.generation,)
-        stamp = []
-        for suffix in ("", "-wal"):
-            try:
-                st = os.stat(f"{self.map.path}{suffix}")
-                stamp.append((st.st_size, st.st_mtime_ns))
-            except OSError:
-                stamp.append(None)
-        return tuple(stamp)
+        return None if db is None else db.generation
 
     def _refresh_if_changed(self) -> None:
-        stamp = self._file_stamp()
+        stamp = self._map_stamp()
         if stamp != self._stamp:
             self.map.refresh()
             self._stamp = stamp
