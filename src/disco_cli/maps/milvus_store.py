@@ -323,10 +323,6 @@ class MilvusDatabase(StoreBase):
         """Finish or undo every append cut off halfway (`milvus_repair.settle`)."""
         return settle(self)
 
-    def _row(self, rid: int) -> dict:
-        got = self._query(f"id == {rid}", self._SCAN_FIELDS)
-        return got[0] if got else {"id": rid}
-
     def _choose_index(self) -> None:
         """FLAT (exact) below `HNSW_MIN_ROWS` scans, HNSW from there on."""
         # next_id - 1 bounds the rows (ids are never reused): no count per append below
