@@ -111,8 +111,7 @@ def check_map(db: Any) -> list[str]:
     (ids are never skipped but by an undone append)."""
     db.damaged = {}
     problems: list[str] = []
-    state = read_state(db._client, db._meta_c)
-    db.meta.update(next_id=str(state.next_id), generation=str(state.generation))
+    state = db._read_counters()
     if COPY_MARK in db.meta:
         problems.append(
             f"an unfinished copy from {db.meta[COPY_MARK]}: it lacks scans; "
