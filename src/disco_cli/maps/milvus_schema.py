@@ -19,7 +19,7 @@ from disco_cli.maps.database_codec import (
 from disco_cli.maps.database_file import FORMAT_VERSION
 from disco_cli.maps.database_types import ScanBatch
 from disco_cli.maps.milvus_address import MilvusAddress, reason_of
-from disco_cli.maps.milvus_lock import fold_state, is_protocol_key
+from disco_cli.maps.milvus_lock import _rows, fold_state, is_protocol_key
 
 __all__ = [
     "create_collections",
@@ -52,20 +52,13 @@ def read_meta(address: MilvusAddress, client: Any) -> dict[str, str]:
     try:
         if not client.has_collection(f"{address.name}_meta"):
             raise DatabaseError(address, "no such database")
-        got = client.query(
-            f"{address.name}_meta",
-            filter='key != ""',
-            output_fields=["key", "value"],
-            limit=16384,
-            consistency_level="Strong",
-        )
+        rows = _rows(client, f"{address.name}_meta")
     except DiscoError:
         raise
     except Exception as exc:
         raise DatabaseError(address, f"Milvus error ({reason_of(exc)})") from None
     # The write protocol's rows (`milvus_lock.py`) share the collection; they are no
     # meta, but hold the counters (each the largest of its rows).
-    rows = {r["key"]: r["value"] for r in got}
     meta = {k: v for k, v in rows.items() if not is_protocol_key(k)}
     if "next_id" in meta and "generation" in meta:
         try:
