@@ -236,7 +236,7 @@ class MilvusDatabase(StoreBase):
                 self._put_rows(rows, views, lock)
                 state = lock.check()
             except LostLock:
-                self._undo(lock.epoch, intent)
+                undo(self, lock.epoch, intent)
                 raise
             advance_counters(self._client, self._meta_c, state, intent["end"], state.generation + 1)
             drop_intent(self._client, self._meta_c, lock.epoch, None)
@@ -314,9 +314,6 @@ class MilvusDatabase(StoreBase):
         advance_counters(self._client, self._meta_c, state, end, state.generation + 1)
         self.meta.update(next_id=str(end), generation=str(state.generation + 1))
         return end
-
-    def _undo(self, epoch: int, intent: dict) -> None:
-        undo(self, epoch, intent)
 
     @_milvus_errors
     def settle(self) -> list[str]:
