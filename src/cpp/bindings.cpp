@@ -6,11 +6,11 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include "bindings.hpp"
+
 #include "disco/conv3x3.hpp"      // U-Net convolutions
 #include "disco/icp.hpp"          // relative pose
-#include "disco/int8_search.hpp"  // signature search
 #include "disco/polar_bev.hpp"    // polar BEV voxelizer
-#include "disco/polar_resample.hpp"  // re-centred views (parallax-free yaw)
 #include "disco/raycast.hpp"      // simulator ray casting
 #include "disco/version.hpp"
 
@@ -312,125 +312,8 @@ PYBIND11_MODULE(_core, m) {
             py::arg("points"), py::arg("yaw"), py::arg("cell"), py::arg("half_extent"));
     }
 
-    // --- signature search: int8 first pass (src/cpp/disco/int8_search.*) ---
-    {
-        // The Python wrapper (disco_cli.search) builds the codes and per-row tables once
-        // and passes C-contiguous arrays of the right dtypes; checked again here.
-        using I8 = py::array_t<std::int8_t, py::array::c_style>;
-        using I16 = py::array_t<std::int16_t, py::array::c_style>;
-        using F64 = py::array_t<double, py::array::c_style>;
-        auto rows_of = [](const I8& codes, const F64& code_sq, const F64& code_norm,
-                          const F64& err) {
-            if (codes.ndim() != 2) throw py::value_error("codes must be [n, d] int8");
-            const auto n = codes.shape(0);
-            if (code_sq.size() != n || code_norm.size() != n || err.size() != n)
-                throw py::value_error("code_sq, code_norm and err must have n entries");
-            disco::Int8Rows rows;
-            rows.codes = codes.data();
-            rows.n = n;
-            rows.d = codes.shape(1);
-            rows.code_sq = code_sq.data();
-            rows.code_norm = code_norm.data();
-            rows.err = err.data();
-            return rows;
-        };
-        m.def(
-            "int8_candidates",
-            [rows_of](const I8& codes, const F64& code_sq, const F64& code_norm, const F64& err,
-                      const I16& g, double u_sq, double step, double delta_norm, int k,
-                      std::int64_t limit,
-                      std::optional<py::array_t<std::uint8_t, py::array::c_style>> exclude,
-                      int threads) {
-                const disco::Int8Rows rows = rows_of(codes, code_sq, code_norm, err);
-                if (g.ndim() != 1 || g.shape(0) != rows.d)
-                    throw py::value_error("g must be [d] int16");
-                const std::uint8_t* ex = nullptr;
-                if (exclude) {
-                    if (exclude->size() < std::min<std::int64_t>(limit, rows.n))
-                        throw py::value_error("exclude must cover the rows searched");
-                    ex = exclude->data();
-                }
-                disco::Int8Query q{g.data(), u_sq, step, delta_norm};
-                std::vector<std::int64_t> out;
-                {
-                    py::gil_scoped_release release;
-                    out = disco::int8_candidates(rows, q, k, limit, ex, threads);
-                }
-                return py::array_t<std::int64_t>(static_cast<py::ssize_t>(out.size()), out.data());
-            },
-            py::arg("codes"), py::arg("code_sq"), py::arg("code_norm"), py::arg("err"),
-            py::arg("g"), py::arg("u_sq"), py::arg("step"), py::arg("delta_norm"), py::arg("k"),
-            py::arg("limit"), py::arg("exclude") = py::none(), py::arg("threads") = 1,
-            "Rows whose distance lower bound is at most the k-th smallest upper bound");
-        m.def(
-            "int8_dots",
-            [](const I8& codes, const I16& g, int threads) {
-                if (codes.ndim() != 2 || g.ndim() != 1 || g.shape(0) != codes.shape(1))
-                    throw py::value_error("codes must be [n, d] int8 and g [d] int16");
-                disco::Int8Rows rows;
-                rows.codes = codes.data();
-                rows.n = codes.shape(0);
-                rows.d = codes.shape(1);
-                std::vector<std::int32_t> out;
-                {
-                    py::gil_scoped_release release;
-                    out = disco::int8_dots(rows, g.data(), threads);
-                }
-                return py::array_t<std::int32_t>(static_cast<py::ssize_t>(out.size()), out.data());
-            },
-            py::arg("codes"), py::arg("g"), py::arg("threads") = 1, "g . c for every row (int32)");
-        m.def(
-            "int8_encode",
-            [](const py::array_t<float, py::array::c_style>& x, const F64& mean, const F64& scale,
-               int threads) {
-                if (x.ndim() != 2) throw py::value_error("x must be [n, d] float32");
-                const auto n = x.shape(0), d = x.shape(1);
-                if (mean.size() != d || scale.size() != d)
-                    throw py::value_error("mean and scale must have d entries");
-                I8 codes({n, d});
-                F64 code_sq(n), code_norm(n), err(n);
-                {
-                    py::gil_scoped_release release;
-                    disco::int8_encode(x.data(), n, d, mean.data(), scale.data(),
-                                       codes.mutable_data(), code_sq.mutable_data(),
-                                       code_norm.mutable_data(), err.mutable_data(), threads);
-                }
-                return py::make_tuple(codes, code_sq, code_norm, err);
-            },
-            py::arg("x"), py::arg("mean"), py::arg("scale"), py::arg("threads") = 1,
-            "int8 codes of float32 rows, with |scale c|^2, |c| and the error per row");
-        m.def("int8_query_limit", &disco::int8_query_limit, py::arg("d"),
-              "Largest |g_j| for which g . c cannot overflow int32");
-    }
-
-    // --- re-centred views of a polar image (src/cpp/disco/polar_resample.*) ---
-    {
-        using F32 = py::array_t<float, py::array::c_style>;
-        m.def(
-            "resample_views",
-            [](const F32& padded, std::int64_t width, const std::vector<F32>& places,
-               std::int64_t cells) {
-                if (padded.ndim() != 1 || width < 1 || cells < 0)
-                    throw py::value_error("padded must be a flat float32 image, width >= 1");
-                std::vector<disco::ResamplePlaces> ptrs;
-                ptrs.reserve(places.size());
-                for (const auto& p : places) {
-                    if (p.ndim() != 2 || p.shape(0) != 2 || p.shape(1) != cells)
-                        throw py::value_error("each view's places must be float32 [2, cells]");
-                    ptrs.push_back(p.data());
-                }
-                py::array_t<float> out({static_cast<py::ssize_t>(places.size()),
-                                        static_cast<py::ssize_t>(cells)});
-                {
-                    py::gil_scoped_release release;
-                    disco::resample_views(padded.data(), padded.size(), width, ptrs, cells,
-                                          out.mutable_data());
-                }
-                return out;
-            },
-            py::arg("padded"), py::arg("width"), py::arg("places"), py::arg("cells"),
-            "Bilinear reads [views, cells] of a padded polar image at precomputed places");
-    }
+    disco_bindings::add_search(m);  // bindings_search.cpp
+    disco_bindings::add_yaw(m);     // bindings_yaw.cpp
 
     // --- the U-Net's 3 x 3 convolution (src/cpp/disco/conv3x3.*) ---
     {
