@@ -17,34 +17,123 @@
 namespace disco {
 namespace {
 
-std::int32_t dot_scalar(const std::int8_t* c, const std::int16_t* g, std::int64_t d) {
-    std::int32_t acc = 0;
-    for (std::int64_t j = 0; j < d; ++j) acc += static_cast<std::int32_t>(c[j]) * g[j];
-    return acc;
+// The query's g as the kernels read it: int16 for the plain and AVX2 kernels; for the
+// VNNI one also split as g = 256 hi + lo (both int8), since its instruction multiplies
+// unsigned by signed bytes: it reads each code as c + 128 (c ^ 0x80) and takes
+// 128 * sum(g) off again, so that G = 256 (hi . (c + 128)) + lo . (c + 128) - 128 sum(g),
+// exactly the same integer.
+struct DotQuery {
+    const std::int16_t* g = nullptr;
+    std::vector<std::int8_t> hi, lo;
+    std::int64_t sum = 0;
+};
+
+// g . c for the rows [a, b) of codes [*, d] into out[r] (0 for an excluded row): one
+// call per block of rows, so that the row kernel inlines into its loop.
+using DotsFn = void (*)(const std::int8_t*, std::int64_t, std::int64_t, std::int64_t,
+                        const std::uint8_t*, const DotQuery&, std::int32_t*);
+
+void dots_scalar(const std::int8_t* codes, std::int64_t d, std::int64_t a, std::int64_t b,
+                 const std::uint8_t* exclude, const DotQuery& q, std::int32_t* out) {
+    for (std::int64_t r = a; r < b; ++r) {
+        // Unsigned: the wrap of int32 (never reached within int8_query_limit) is defined.
+        std::uint32_t acc = 0;
+        if (!(exclude && exclude[r])) {
+            const std::int8_t* c = codes + r * d;
+            for (std::int64_t j = 0; j < d; ++j)
+                acc += static_cast<std::uint32_t>(static_cast<std::int32_t>(c[j]) * q.g[j]);
+        }
+        out[r] = static_cast<std::int32_t>(acc);
+    }
 }
 
 #ifdef DISCO_X86
 // 16 codes at a time: widen int8 to int16, multiply-add pairs into int32 lanes.
-__attribute__((target("avx2"))) std::int32_t dot_avx2(const std::int8_t* c, const std::int16_t* g,
-                                                      std::int64_t d) {
-    __m256i acc = _mm256_setzero_si256();
-    std::int64_t j = 0;
-    for (; j + 16 <= d; j += 16) {
-        const __m128i c8 = _mm_loadu_si128(reinterpret_cast<const __m128i*>(c + j));
-        const __m256i c16 = _mm256_cvtepi8_epi16(c8);
-        const __m256i g16 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(g + j));
-        acc = _mm256_add_epi32(acc, _mm256_madd_epi16(c16, g16));
+__attribute__((target("avx2"))) void dots_avx2(const std::int8_t* codes, std::int64_t d,
+                                               std::int64_t a, std::int64_t b,
+                                               const std::uint8_t* exclude, const DotQuery& q,
+                                               std::int32_t* out) {
+    const std::int16_t* g = q.g;
+    for (std::int64_t r = a; r < b; ++r) {
+        if (exclude && exclude[r]) {
+            out[r] = 0;
+            continue;
+        }
+        const std::int8_t* c = codes + r * d;
+        __m256i acc = _mm256_setzero_si256();
+        std::int64_t j = 0;
+        for (; j + 16 <= d; j += 16) {
+            const __m128i c8 = _mm_loadu_si128(reinterpret_cast<const __m128i*>(c + j));
+            const __m256i c16 = _mm256_cvtepi8_epi16(c8);
+            const __m256i g16 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(g + j));
+            acc = _mm256_add_epi32(acc, _mm256_madd_epi16(c16, g16));
+        }
+        __m128i s = _mm_add_epi32(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
+        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4E));
+        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xB1));
+        auto total = static_cast<std::uint32_t>(_mm_cvtsi128_si32(s));
+        for (; j < d; ++j)
+            total += static_cast<std::uint32_t>(static_cast<std::int32_t>(c[j]) * g[j]);
+        out[r] = static_cast<std::int32_t>(total);
     }
-    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
-    s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4E));
-    s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xB1));
-    std::int32_t total = _mm_cvtsi128_si32(s);
-    for (; j < d; ++j) total += static_cast<std::int32_t>(c[j]) * g[j];
-    return total;
 }
+
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic push
+// GCC 12 warns inside its own avx512fintrin.h (_mm512_undefined_epi32): a false positive.
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#endif
+// 64 codes at a time, two VPDPBUSD (unsigned codes times the signed halves of g) into
+// int32 lanes; a last partial block through masked loads (zeros past d). All sums
+// wrap modulo 2^32 and G itself lies within int32 (int8_query_limit), so the lanes
+// may combine as 256 hi + lo before the one horizontal sum.
+__attribute__((target("avx512f,avx512bw,avx512vnni"))) void dots_vnni(
+    const std::int8_t* codes, std::int64_t d, std::int64_t a, std::int64_t b,
+    const std::uint8_t* exclude, const DotQuery& q, std::int32_t* out) {
+    const __m512i flip = _mm512_set1_epi8(static_cast<char>(0x80));
+    const auto bias = static_cast<std::uint32_t>(128 * static_cast<std::uint64_t>(q.sum));
+    const std::int8_t* hi = q.hi.data();
+    const std::int8_t* lo = q.lo.data();
+    for (std::int64_t r = a; r < b; ++r) {
+        if (exclude && exclude[r]) {
+            out[r] = 0;
+            continue;
+        }
+        const std::int8_t* c = codes + r * d;
+        __m512i acc_hi = _mm512_setzero_si512(), acc_lo = _mm512_setzero_si512();
+        std::int64_t j = 0;
+        for (; j + 64 <= d; j += 64) {
+            const __m512i cu = _mm512_xor_si512(_mm512_loadu_si512(c + j), flip);
+            acc_hi = _mm512_dpbusd_epi32(acc_hi, cu, _mm512_loadu_si512(hi + j));
+            acc_lo = _mm512_dpbusd_epi32(acc_lo, cu, _mm512_loadu_si512(lo + j));
+        }
+        if (j < d) {
+            const __mmask64 m = (__mmask64{1} << (d - j)) - 1;
+            const __m512i cu = _mm512_xor_si512(_mm512_maskz_loadu_epi8(m, c + j), flip);
+            acc_hi = _mm512_dpbusd_epi32(acc_hi, cu, _mm512_maskz_loadu_epi8(m, hi + j));
+            acc_lo = _mm512_dpbusd_epi32(acc_lo, cu, _mm512_maskz_loadu_epi8(m, lo + j));
+        }
+        const __m512i v = _mm512_add_epi32(_mm512_slli_epi32(acc_hi, 8), acc_lo);
+        __m256i s8 = _mm256_add_epi32(_mm512_castsi512_si256(v), _mm512_extracti64x4_epi64(v, 1));
+        __m128i s = _mm_add_epi32(_mm256_castsi256_si128(s8), _mm256_extracti128_si256(s8, 1));
+        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4E));
+        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xB1));
+        out[r] = static_cast<std::int32_t>(static_cast<std::uint32_t>(_mm_cvtsi128_si32(s)) - bias);
+    }
+}
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic pop
+#endif
 
 bool have_avx2() {
     static const bool yes = __builtin_cpu_supports("avx2");
+    return yes;
+}
+
+bool have_vnni() {
+    static const bool yes = __builtin_cpu_supports("avx512f") &&
+                            __builtin_cpu_supports("avx512bw") &&
+                            __builtin_cpu_supports("avx512vnni");
     return yes;
 }
 #endif
@@ -60,13 +149,36 @@ bool use_avx2() {
 #endif
 }
 
-using DotFn = std::int32_t (*)(const std::int8_t*, const std::int16_t*, std::int64_t);
+// |g_j| up to this splits into int8 halves hi, lo (hi = round(g / 256)).
+constexpr int kVnniMaxG = 127 * 256 + 127;
 
-DotFn pick_dot() {
+// The kernel for g: VNNI at level 3 where the CPU has it and g splits (always so
+// within int8_query_limit), else AVX2 at level 2, else plain. Fills q's halves for
+// the VNNI kernel.
+DotsFn pick_dots(DotQuery& q, std::int64_t d) {
 #ifdef DISCO_X86
-    if (use_avx2()) return dot_avx2;
+    if (bev_kernel_level() >= 3 && have_vnni()) {
+        bool fits = true;
+        for (std::int64_t j = 0; j < d && fits; ++j) fits = std::abs(int{q.g[j]}) <= kVnniMaxG;
+        if (fits) {
+            q.hi.resize(static_cast<std::size_t>(d));
+            q.lo.resize(static_cast<std::size_t>(d));
+            q.sum = 0;
+            for (std::int64_t j = 0; j < d; ++j) {
+                const int g = q.g[j];
+                const int hi = (g >= 0 ? g + 128 : g - 127) / 256;  // rounds half away
+                q.hi[j] = static_cast<std::int8_t>(hi);
+                q.lo[j] = static_cast<std::int8_t>(g - 256 * hi);
+                q.sum += g;
+            }
+            return dots_vnni;
+        }
+    }
+    if (use_avx2()) return dots_avx2;
+#else
+    (void)d;
 #endif
-    return dot_scalar;
+    return dots_scalar;
 }
 
 // Runs body(begin, end) over [0, n) split into `threads` contiguous parts.
@@ -91,10 +203,11 @@ void parallel_rows(std::int64_t n, int threads,
 }  // namespace
 
 int int8_query_limit(std::int64_t d) {
-    // |c_j| <= 127; the sum of d products must stay within int32.
+    // |c_j| <= 127; the sum of d products must stay within int32, and g_j must split
+    // into the VNNI kernel's two int8 halves.
     const double cap = static_cast<double>(std::numeric_limits<std::int32_t>::max()) /
                        (127.0 * static_cast<double>(std::max<std::int64_t>(d, 1)));
-    return static_cast<int>(std::max(1.0, std::min(32767.0, std::floor(cap))));
+    return static_cast<int>(std::max(1.0, std::min(double{kVnniMaxG}, std::floor(cap))));
 }
 
 namespace {
@@ -158,11 +271,21 @@ void int8_encode(const float* x, std::int64_t n, std::int64_t d, const double* m
     });
 }
 
+const char* int8_kernel_name() {
+#ifdef DISCO_X86
+    if (bev_kernel_level() >= 3 && have_vnni()) return "avx512vnni";
+    if (use_avx2()) return "avx2";
+#endif
+    return "plain";
+}
+
 std::vector<std::int32_t> int8_dots(const Int8Rows& rows, const std::int16_t* g, int threads) {
     std::vector<std::int32_t> out(static_cast<std::size_t>(rows.n));
-    const DotFn dot = pick_dot();
+    DotQuery dq;
+    dq.g = g;
+    const DotsFn dots = pick_dots(dq, rows.d);
     parallel_rows(rows.n, threads, [&](std::int64_t a, std::int64_t b) {
-        for (std::int64_t r = a; r < b; ++r) out[r] = dot(rows.codes + r * rows.d, g, rows.d);
+        dots(rows.codes, rows.d, a, b, nullptr, dq, out.data());
     });
     return out;
 }
@@ -173,38 +296,52 @@ std::vector<std::int64_t> int8_candidates(const Int8Rows& rows, const Int8Query&
     const std::int64_t n = std::min(rows.n, std::max<std::int64_t>(limit, 0));
     std::vector<std::int64_t> out;
     if (n == 0 || k <= 0) return out;
-    const DotFn dot = pick_dot();
+    DotQuery dq;
+    dq.g = query.g;
+    const DotsFn dots = pick_dots(dq, rows.d);
     const double inf = std::numeric_limits<double>::infinity();
     // Rounding in the double arithmetic below is far under this relative margin.
     constexpr double kRel = 1e-9;
-    // Per row: the squared lower bound of |q - x_hat| (inf when excluded). Reused across
-    // calls so that a query allocates and faults in no fresh pages.
-    static thread_local std::vector<double> low_sq;
-    if (low_sq.size() < static_cast<std::size_t>(n)) low_sq.resize(static_cast<std::size_t>(n));
+    // Per row: g . c, the squared lower bound of |q - x_hat| and the upper bound of
+    // |q - x| (both inf when excluded). Reused across calls so that a query allocates
+    // and faults in no fresh pages.
+    static thread_local std::vector<std::int32_t> dot_buf;
+    static thread_local std::vector<double> low_sq, up_buf;
+    if (low_sq.size() < static_cast<std::size_t>(n)) {
+        dot_buf.resize(static_cast<std::size_t>(n));
+        low_sq.resize(static_cast<std::size_t>(n));
+        up_buf.resize(static_cast<std::size_t>(n));
+    }
+    std::int32_t* dot = dot_buf.data();
     double* lo = low_sq.data();
+    double* up = up_buf.data();
     // Each part keeps the k smallest upper bounds it saw (a max-heap), merged below.
     std::vector<double> all;
     std::mutex all_lock;
     parallel_rows(n, threads, [&](std::int64_t a, std::int64_t b) {
-        std::vector<double> heap;
-        heap.reserve(static_cast<std::size_t>(k) + 1);
+        dots(rows.codes, rows.d, a, b, exclude, dq, dot);
+        // Without branches, so that the compiler vectorizes it; excluded rows after.
         for (std::int64_t r = a; r < b; ++r) {
-            if (exclude && exclude[r]) {
-                lo[r] = inf;
-                continue;
-            }
-            const double G = dot(rows.codes + r * rows.d, query.g, rows.d);
+            const double G = dot[r];
             const double A = query.u_sq - 2.0 * query.step * G + rows.code_sq[r];
             const double scale = query.u_sq + rows.code_sq[r] + 2.0 * std::abs(query.step * G);
             const double beta = 2.0 * query.delta_norm * rows.code_norm[r] + kRel * scale;
             lo[r] = std::max(A - beta, 0.0);
-            const double up = std::sqrt(std::max(A + beta, 0.0)) + rows.err[r];
+            up[r] = std::sqrt(std::max(A + beta, 0.0)) + rows.err[r];
+        }
+        if (exclude)
+            for (std::int64_t r = a; r < b; ++r)
+                if (exclude[r]) lo[r] = up[r] = inf;
+        std::vector<double> heap;
+        heap.reserve(static_cast<std::size_t>(k) + 1);
+        for (std::int64_t r = a; r < b; ++r) {
+            if (up[r] == inf) continue;
             if (static_cast<int>(heap.size()) < k) {
-                heap.push_back(up);
+                heap.push_back(up[r]);
                 std::push_heap(heap.begin(), heap.end());
-            } else if (up < heap.front()) {
+            } else if (up[r] < heap.front()) {
                 std::pop_heap(heap.begin(), heap.end());
-                heap.back() = up;
+                heap.back() = up[r];
                 std::push_heap(heap.begin(), heap.end());
             }
         }

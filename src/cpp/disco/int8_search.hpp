@@ -47,7 +47,12 @@ void int8_encode(const float* x, std::int64_t n, std::int64_t d, const double* m
 // g . c for every row (for tests of the kernel itself).
 std::vector<std::int32_t> int8_dots(const Int8Rows& rows, const std::int16_t* g, int threads);
 
-// The largest |g_j| for which g . c cannot overflow int32 at dimension d.
+// The largest |g_j| for which g . c cannot overflow int32 at dimension d (and which
+// splits into the two int8 halves of the VNNI kernel).
 int int8_query_limit(std::int64_t d);
+
+// "avx512vnni", "avx2" or "plain": the kernel that computes g . c now (under the BEV
+// kernels' level cap) for a g within int8_query_limit.
+const char* int8_kernel_name();
 
 }  // namespace disco
