@@ -3,10 +3,12 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <algorithm>
 #include <cstdint>
 #include <optional>
 #include <vector>
 
+#include "disco/exact_search.hpp"
 #include "disco/int8_search.hpp"
 
 #include "bindings.hpp"
@@ -103,7 +105,60 @@ void add_search(py::module_& m) {
         py::arg("x"), py::arg("mean"), py::arg("scale"), py::arg("threads") = 1,
         "int8 codes of float32 rows, with |scale c|^2, |c| and the error per row");
     m.def("int8_query_limit", &disco::int8_query_limit, py::arg("d"),
-          "Largest |g_j| for which g . c cannot overflow int32");
+          "Largest |g_j| for which g . c cannot overflow int32 (and g_j splits in int8 halves)");
+
+    // --- signature search: exact distances of candidate rows (src/cpp/disco/exact_search.*) ---
+    using F32 = py::array_t<float, py::array::c_style>;
+    using I64 = py::array_t<std::int64_t, py::array::c_style>;
+    // Candidates must be rows of x; -1 (any negative) marks none.
+    auto check_rows = [](const I64& rows, std::int64_t n) {
+        const std::int64_t* r = rows.data();
+        for (py::ssize_t i = 0; i < rows.size(); ++i)
+            if (r[i] >= n) throw py::value_error("candidate rows must be below the row count");
+    };
+    m.def(
+        "exact_topk",
+        [check_rows](const F32& x, const F32& q, const I64& cand, int k) {
+            if (x.ndim() != 2 || q.ndim() != 2 || q.shape(1) != x.shape(1))
+                throw py::value_error("x must be [n, d] and q [b, d] float32");
+            if (cand.ndim() != 2 || cand.shape(0) != q.shape(0))
+                throw py::value_error("cand must be [b, m] int64");
+            check_rows(cand, x.shape(0));
+            const auto b = q.shape(0), kk = static_cast<py::ssize_t>(std::max(k, 0));
+            I64 rows({b, kk});
+            F64 dists({b, kk});
+            {
+                py::gil_scoped_release release;
+                disco::exact_topk(x.data(), x.shape(1), q.data(), b, cand.data(), cand.shape(1),
+                                  static_cast<int>(kk), rows.mutable_data(), dists.mutable_data());
+            }
+            return py::make_tuple(rows, dists);
+        },
+        py::arg("x"), py::arg("q"), py::arg("cand"), py::arg("k"),
+        "Per query, the k nearest of its candidate rows (ties by row): rows [b, k] "
+        "(-1 past the candidates) and distances [b, k] (inf), summed in float64");
+    m.def(
+        "exact_sq_distances",
+        [check_rows](const F32& x, const F32& q, const I64& rows) {
+            if (x.ndim() != 2 || q.ndim() != 1 || q.shape(0) != x.shape(1) || rows.ndim() != 1)
+                throw py::value_error("x must be [n, d], q [d] float32 and rows [m] int64");
+            check_rows(rows, x.shape(0));
+            F64 out(rows.shape(0));
+            {
+                py::gil_scoped_release release;
+                disco::exact_sq_distances(x.data(), x.shape(1), q.data(), rows.data(),
+                                          rows.shape(0), out.mutable_data());
+            }
+            return out;
+        },
+        py::arg("x"), py::arg("q"), py::arg("rows"),
+        "|x[rows[i]] - q|^2 in float64 (inf for a negative row)");
+    m.def(
+        "search_kernel_names",
+        []() {
+            return py::make_tuple(disco::int8_kernel_name(), disco::exact_kernel_name());
+        },
+        "The kernels that int8_candidates and exact_topk run now, under the level cap");
 }
 
 }  // namespace disco_bindings

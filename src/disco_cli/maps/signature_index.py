@@ -24,7 +24,13 @@ import numpy as np
 
 from disco_cli.runtime.threads import get_threads
 
-__all__ = ["SignatureIndex", "ProjectedSignatures", "brute_force_topk", "checked_queries"]
+__all__ = [
+    "SignatureIndex",
+    "ProjectedSignatures",
+    "brute_force_topk",
+    "checked_queries",
+    "exact_topk",
+]
 
 _EPS32 = float(np.finfo(np.float32).eps)
 # Cap on the [rows, queries] float32 distance block, in elements (64 MiB).
@@ -182,17 +188,6 @@ class SignatureIndex:
         q, _ = checked_queries(queries, self.dim)
         return self._projected.search(q, k, limit=limit, exclude=exclude)
 
-    def _exact(self, q: np.ndarray, cand: np.ndarray) -> np.ndarray:
-        """Squared distances in float64, a block of rows at a time (bounded memory even
-        when degenerate signatures make most rows candidates)."""
-        out = np.empty(len(cand))
-        q64 = q.astype(np.float64)
-        step = max(1, _BLOCK_ELEMS // 8 // max(self.dim, 1))
-        for a in range(0, len(cand), step):
-            diff = self.matrix[cand[a : a + step]].astype(np.float64) - q64
-            out[a : a + step] = np.einsum("ij,ij->i", diff, diff)
-        return out
-
     def _topk_int8(
         self, q: np.ndarray, lim: int, k: int, exclude: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -204,9 +199,7 @@ class SignatureIndex:
             # Signatures closer together than their int8 error: the bounds prune little,
             # and the float32 product is then cheaper than re-measuring so many rows.
             return self._topk(q, self.matrix[:lim] @ q, lim, k, exclude)
-        exact = self._exact(q, cand)
-        order = np.lexsort((cand, exact))[:k]
-        return cand[order], np.sqrt(exact[order])
+        return _nearest(self.matrix, q, cand, k)
 
     def _topk(
         self, q: np.ndarray, dots: np.ndarray, lim: int, k: int, exclude: np.ndarray | None
@@ -237,10 +230,51 @@ class SignatureIndex:
             )
             + 1e-30
         )
-        cand = np.flatnonzero(approx <= kth + tol)
-        exact = self._exact(q, cand)
-        order = np.lexsort((cand, exact))[:kk]
-        return cand[order], np.sqrt(exact[order])
+        return _nearest(self.matrix, q, np.flatnonzero(approx <= kth + tol), kk)
+
+
+def exact_topk(
+    matrix: np.ndarray, queries: np.ndarray, cand: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per query (float32 [B, D]), the k nearest of its candidate rows of `matrix`
+    (int64 [B, M], -1 for none) by float64 distance, ties by row: `(rows [B, k],
+    distances [B, k])`, padded with -1 and inf. The compiled core reads the rows in
+    place (`src/cpp/disco/exact_search.hpp`); without it, NumPy does the same."""
+    try:
+        from disco_cli import _core  # deferred: looked up at each call: tests replace it
+
+        kernel = _core.exact_topk
+    except (ImportError, AttributeError):
+        return _exact_topk_numpy(matrix, queries, cand, k)
+    return kernel(matrix, queries, cand, int(k))
+
+
+def _exact_topk_numpy(
+    matrix: np.ndarray, queries: np.ndarray, cand: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    rows = np.full((len(queries), max(k, 0)), -1, np.int64)
+    dists = np.full((len(queries), max(k, 0)), np.inf)
+    # A block of rows at a time: bounded memory even when degenerate signatures make
+    # most rows candidates.
+    step = max(1, _BLOCK_ELEMS // 8 // max(matrix.shape[1], 1))
+    for i, q in enumerate(queries):
+        c = cand[i][cand[i] >= 0]
+        exact = np.empty(len(c))
+        q64 = q.astype(np.float64)
+        for a in range(0, len(c), step):
+            diff = matrix[c[a : a + step]].astype(np.float64) - q64
+            exact[a : a + step] = np.einsum("ij,ij->i", diff, diff)
+        order = np.lexsort((c, exact))[: max(k, 0)]
+        rows[i, : len(order)], dists[i, : len(order)] = c[order], np.sqrt(exact[order])
+    return rows, dists
+
+
+def _nearest(
+    matrix: np.ndarray, q: np.ndarray, cand: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """One query's k nearest candidates (fewer if fewer are given), as `exact_topk`."""
+    rows, dists = exact_topk(matrix, q[None], cand[None], min(k, len(cand)))
+    return rows[0], dists[0]
 
 
 class _Int8Codes:
@@ -364,15 +398,9 @@ class ProjectedSignatures:
         if wide == 0:
             return rows, dists
         cand = smallest_per_row(approx, wide)  # [B, wide]
-        ok = np.isfinite(np.take_along_axis(approx, cand, axis=1))
-        diff = self.matrix[cand] - q[:, None]  # [B, wide, D]
-        exact = np.sqrt(np.einsum("bkd,bkd->bk", diff, diff)).astype(np.float64)
-        exact[~ok] = np.inf
-        for i in range(b):
-            o = np.lexsort((cand[i], exact[i]))[:k]
-            o = o[np.isfinite(exact[i, o])]
-            rows[i, : len(o)], dists[i, : len(o)] = cand[i, o], exact[i, o]
-        return rows, dists
+        # Rows past the limit or excluded (infinite here) are not candidates.
+        cand[~np.isfinite(np.take_along_axis(approx, cand, axis=1))] = -1
+        return exact_topk(self.matrix, q, cand, k)
 
 
 # `smallest_per_row` looks at every SAMPLE_STRIDE-th value first: a row's k smallest all
