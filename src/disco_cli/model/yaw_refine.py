@@ -14,9 +14,14 @@ rounds of its 8 neighbours at 1.5 m and 0.5 m. Its peak is the yaw.
 
 Every position lies on a 0.5 m lattice, so the searches share their work: where a view
 reads is kept per position, the query's views and their spectra per query (its matches
-are searched from the same positions), and the curves per query and match. The reads
-themselves are C++ (`_core.resample_views`). A search costs about 0.4 ms, the yaw
-check's five about 1.3 ms (docs/benchmarks.md).
+are searched from the same positions), and the curves per query and match.
+
+Each round's new curves come from one C++ call (`_core.recentre_curves`: the reads, the
+spectra along sectors, the whitened cross-power and its inverse, GIL released); the
+NumPy path (`BACKEND = "numpy"`, the reference the tests compare it with, and the
+fallback where the core lacks the kernel) reads in C++ (`_core.resample_views`) and
+transforms with pocketfft. A search costs about 0.4 ms, the yaw check's five about
+1.3 ms on the NumPy path (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -59,6 +65,31 @@ COARSE_REACH = 3.0
 SIDE_REACH = 6.0
 FINE_STEPS = (1.5, 0.5)
 _NEIGHBOURS = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if (a, b) != (0, 0)])
+
+# Which code computes the curves: None, the compiled kernel where the core has it, else
+# NumPy; "numpy", the NumPy reference. Read when a query's searches start.
+BACKEND: str | None = None
+# The compiled kernel's views hold their rings padded to a multiple of this (its
+# vectors' lanes at every SIMD level).
+_LANES = 16
+
+
+def _kernel() -> Any:
+    """`disco_cli._core` where BACKEND lets it compute the curves and it can, else None."""
+    if BACKEND == "numpy":
+        return None
+    if BACKEND is not None:
+        raise ValueError(f"yaw_refine.BACKEND must be None or 'numpy', not {BACKEND!r}")
+    try:
+        # deferred: the package imports without the compiled core (a GPU training box)
+        from disco_cli import _core
+    except ImportError:
+        return None
+    return _core if hasattr(_core, "recentre_curves") else None
+
+
+def _padded_rings(rings: int) -> int:
+    return -(-rings // _LANES) * _LANES
 
 
 @lru_cache(maxsize=8)
@@ -134,21 +165,41 @@ _places_kept: dict[tuple, dict[int, np.ndarray]] = {}
 
 
 def _places_at(
-    rings: int, sectors: int, max_range: float, index: np.ndarray, positions: np.ndarray
+    rings: int,
+    sectors: int,
+    max_range: float,
+    index: np.ndarray,
+    positions: np.ndarray,
+    lanes: bool = False,
 ) -> list:
     """`_places` of lattice `positions` [M, 2] (flat lattice `index` [M]), each
-    position's computed once and kept."""
+    position's computed once and kept; `lanes`: in the compiled kernel's layout
+    (`_lane_places`), kept beside the other under keys past the lattice's."""
     kept = _places_kept.setdefault((rings, sectors, max_range), {})
-    keys = index.tolist()
+    keys = (index + _LATTICE_SIDE**2).tolist() if lanes else index.tolist()
     new = [j for j, key in enumerate(keys) if key not in kept]
     if not new:
         return [kept[key] for key in keys]
-    places = dict(zip((keys[j] for j in new), _places(rings, sectors, max_range, positions[new])))
+    computed = _places(rings, sectors, max_range, positions[new])
+    if lanes:
+        computed = _lane_places(computed, rings, sectors)
+    places = dict(zip((keys[j] for j in new), computed))
     out = [kept[key] if key in kept else places[key] for key in keys]
-    if (len(kept) + len(places)) * 2 * rings * sectors * 4 > PLACES_KEPT_BYTES:
+    if (len(kept) + len(places)) * computed[0].nbytes > PLACES_KEPT_BYTES:
         kept.clear()
     kept.update(places)
     return out
+
+
+def _lane_places(places: list, rings: int, sectors: int) -> list:
+    """`_places`' tables [2, R * S] as the compiled kernel reads them: [2, S * Rp],
+    sector-major, the rings padded to Rp (`_padded_rings`) with places (0, 0), which
+    read the zero ring in front of the image."""
+    rp = _padded_rings(rings)
+    both = np.stack(places).reshape(len(places), 2, rings, sectors)
+    out = np.zeros((len(places), 2, sectors, rp), np.float32)
+    out[..., :rings] = both.transpose(0, 1, 3, 2)
+    return list(out.reshape(len(places), 2, sectors * rp))
 
 
 def recentre_kept(image: np.ndarray, positions: np.ndarray, max_range: float) -> np.ndarray:
@@ -280,7 +331,11 @@ class _Views:
     def __init__(self, q: np.ndarray, m: np.ndarray, max_range: float):
         self.q, self.m = q, m
         self.query = _query_views(q, max_range)
-        self.fm = fft.rfft(m, axis=-1)
+        self.core = _kernel()
+        if self.core is None:
+            self.fm = fft.rfft(m, axis=-1)
+        else:
+            self.weights = ring_weights(q.shape[0]).astype(np.float32)
         self.kept = np.empty((_LATTICE_SIDE**2, q.shape[1]), np.float32)
         self.done = np.zeros(_LATTICE_SIDE**2, bool)
         self.m_centred = m - m.mean()
@@ -292,16 +347,36 @@ class _Views:
         todo = ~self.done[index]
         new, first = np.unique(index[todo], return_index=True)
         if len(new):  # all new positions in one batch
-            spectra = self.query.spectra(new, _metres(cells[todo][first]))
-            self.kept[new] = _curves(spectra, self.fm, self.q.shape[1])
+            positions = _metres(cells[todo][first])
+            if self.core is None:
+                spectra = self.query.spectra(new, positions)
+                self.kept[new] = _curves(spectra, self.fm, self.q.shape[1])
+            else:
+                self.kept[new] = self._core_curves(new, positions)
             self.done[new] = True
         return self.kept[index]
+
+    def _core_curves(self, index: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        rings, sectors = self.q.shape
+        q = self.query
+        places = _places_at(rings, sectors, q.max_range, index, positions, lanes=True)
+        return self.core.recentre_curves(
+            q.padded, 2 * sectors + 1, places, self.m, self.weights, _padded_rings(rings)
+        )
 
     def view(self, position: np.ndarray) -> np.ndarray:
         """The query re-centred at one lattice `position` [2] (m)."""
         cells = np.rint((np.asarray(position)[None] + LATTICE_REACH) / LATTICE_STEP)
         cells = cells.astype(np.int64)
-        return self.query.views(_flat(cells), _metres(cells))[0]
+        if self.core is None:
+            return self.query.views(_flat(cells), _metres(cells))[0]
+        # The same reads from the kernel's places (no second table for the position).
+        rings, sectors = self.q.shape
+        rp = _padded_rings(rings)
+        q = self.query
+        places = _places_at(rings, sectors, q.max_range, _flat(cells), _metres(cells), True)
+        read = self.core.resample_views(q.padded, 2 * sectors + 1, places, sectors * rp)
+        return read.reshape(sectors, rp)[:, :rings].T
 
 
 def _images(query: np.ndarray, match: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
