@@ -278,7 +278,7 @@ def _nearest(
 
 
 class _Int8Codes:
-    """The signatures as int8 codes, `x ~ mean + scale * c` per dimension, with each
+    """The signatures as int8 codes, `x ~ offset + scale * c` per dimension, with each
     row's reconstruction error; the compiled core bounds distances from them."""
 
     @staticmethod
@@ -294,14 +294,19 @@ class _Int8Codes:
 
         self._core = _core
         n, d = matrix.shape
-        self.mean = matrix.mean(axis=0, dtype=np.float64)
-        spread = np.maximum(matrix.max(axis=0) - self.mean, self.mean - matrix.min(axis=0))
+        # Codes centred on each dimension's midrange span its whole range: a step of
+        # (max - min) / 254, never more than the mean's max(max - mean, mean - min) / 127
+        # and far less on skewed values (|normal| ones: 0.6 of it, and 0.6 times the
+        # candidates on a synthetic 10,000-scan map). Any offset keeps the search exact.
+        low = matrix.min(axis=0).astype(np.float64)
+        high = matrix.max(axis=0).astype(np.float64)
+        self.offset = (low + high) / 2.0
         # A constant dimension gets scale 1 and codes 0: its error is exactly 0.
-        self.scale = np.where(spread > 0, spread / 127.0, 1.0)
+        self.scale = np.where(high > low, (high - low) / 254.0, 1.0)
         # One pass in the compiled core (double precision), rounded up: the error bound
         # must never be below the true error.
         self.codes, self.code_sq, self.code_norm, err = _core.int8_encode(
-            matrix, self.mean, self.scale, get_threads()
+            matrix, self.offset, self.scale, get_threads()
         )
         self.err = err * (1 + 1e-9) + 1e-12 * (np.sqrt(sq_norms) + 1.0)
         self.g_max = int(_core.int8_query_limit(d))
@@ -309,7 +314,7 @@ class _Int8Codes:
     def candidates(
         self, q: np.ndarray, k: int, lim: int, exclude: np.ndarray | None, threads: int
     ) -> np.ndarray:
-        u = q.astype(np.float64) - self.mean
+        u = q.astype(np.float64) - self.offset
         w = u * self.scale
         top = float(np.abs(w).max())
         step = top / self.g_max if top > 0 else 1.0
