@@ -42,31 +42,36 @@ void add_search(py::module_& m) {
     m.def(
         "int8_candidates",
         [rows_of](const I8& codes, const F64& code_sq, const F64& code_norm, const F64& err,
-                  const I16& g, double u_sq, double step, double delta_norm, int k,
-                  std::int64_t limit,
+                  const py::array_t<float, py::array::c_style>& q, const F64& offset,
+                  const F64& scale, int k, std::int64_t limit,
                   std::optional<py::array_t<std::uint8_t, py::array::c_style>> exclude,
                   int threads) {
             const disco::Int8Rows rows = rows_of(codes, code_sq, code_norm, err);
-            if (g.ndim() != 1 || g.shape(0) != rows.d)
-                throw py::value_error("g must be [d] int16");
+            if (q.ndim() != 1 || q.shape(0) != rows.d || offset.size() != rows.d ||
+                scale.size() != rows.d)
+                throw py::value_error("q [d] float32, offset and scale [d] float64");
             const std::uint8_t* ex = nullptr;
             if (exclude) {
                 if (exclude->size() < std::min<std::int64_t>(limit, rows.n))
                     throw py::value_error("exclude must cover the rows searched");
                 ex = exclude->data();
             }
-            disco::Int8Query q{g.data(), u_sq, step, delta_norm};
             std::vector<std::int64_t> out;
             {
                 py::gil_scoped_release release;
-                out = disco::int8_candidates(rows, q, k, limit, ex, threads);
+                std::vector<std::int16_t> g(static_cast<std::size_t>(rows.d));
+                const disco::Int8Query query =
+                    disco::int8_query(q.data(), offset.data(), scale.data(), rows.d,
+                                      disco::int8_query_limit(rows.d), g.data());
+                out = disco::int8_candidates(rows, query, k, limit, ex, threads);
             }
             return py::array_t<std::int64_t>(static_cast<py::ssize_t>(out.size()), out.data());
         },
-        py::arg("codes"), py::arg("code_sq"), py::arg("code_norm"), py::arg("err"),
-        py::arg("g"), py::arg("u_sq"), py::arg("step"), py::arg("delta_norm"), py::arg("k"),
-        py::arg("limit"), py::arg("exclude") = py::none(), py::arg("threads") = 1,
-        "Rows whose distance lower bound is at most the k-th smallest upper bound");
+        py::arg("codes"), py::arg("code_sq"), py::arg("code_norm"), py::arg("err"), py::arg("q"),
+        py::arg("offset"), py::arg("scale"), py::arg("k"), py::arg("limit"),
+        py::arg("exclude") = py::none(), py::arg("threads") = 1,
+        "Rows whose distance lower bound (codes x ~ offset + scale * c) is at most the k-th "
+        "smallest upper bound");
     m.def(
         "int8_dots",
         [](const I8& codes, const I16& g, int threads) {

@@ -290,6 +290,30 @@ std::vector<std::int32_t> int8_dots(const Int8Rows& rows, const std::int16_t* g,
     return out;
 }
 
+Int8Query int8_query(const float* q, const double* offset, const double* scale, std::int64_t d,
+                     int g_max, std::int16_t* g) {
+    std::vector<double> w(static_cast<std::size_t>(d));
+    double u_sq = 0.0, top = 0.0;
+    for (std::int64_t j = 0; j < d; ++j) {
+        const double u = static_cast<double>(q[j]) - offset[j];
+        u_sq += u * u;
+        w[j] = u * scale[j];
+        top = std::max(top, std::abs(w[j]));
+    }
+    const double step = top > 0.0 ? top / g_max : 1.0, most = g_max;
+    double delta_sq = 0.0, w_sq = 0.0;
+    for (std::int64_t j = 0; j < d; ++j) {
+        const double c = std::min(most, std::max(-most, std::nearbyint(w[j] / step)));
+        g[j] = static_cast<std::int16_t>(c);
+        const double delta = w[j] - step * c;
+        delta_sq += delta * delta;
+        w_sq += w[j] * w[j];
+    }
+    // The rounding of delta itself is far below 1e-12 |w|; of its norm, below 1e-9.
+    const double delta_norm = std::sqrt(delta_sq) * (1 + 1e-9) + 1e-12 * std::sqrt(w_sq);
+    return Int8Query{g, u_sq, step, delta_norm};
+}
+
 std::vector<std::int64_t> int8_candidates(const Int8Rows& rows, const Int8Query& query, int k,
                                           std::int64_t limit, const std::uint8_t* exclude,
                                           int threads) {

@@ -31,6 +31,12 @@ struct Int8Query {
     double delta_norm = 0.0;          // |w - t g|
 };
 
+// The query q (float32 [d]) as int8_candidates reads it, for codes made with `offset`
+// and `scale` [d]: u = q - offset, w = u * scale, g = rint(w / t) (|g| <= g_max, with
+// t = max |w| / g_max), and |w - t g| rounded up. `g` [d] receives the weights.
+Int8Query int8_query(const float* q, const double* offset, const double* scale, std::int64_t d,
+                     int g_max, std::int16_t* g);
+
 // Rows < limit that are not excluded (exclude may be null) and whose lower bound is
 // at most the k-th smallest upper bound, in increasing row order. `threads` >= 1.
 std::vector<std::int64_t> int8_candidates(const Int8Rows& rows, const Int8Query& query, int k,

@@ -293,7 +293,6 @@ class _Int8Codes:
         from disco_cli import _core  # deferred: looked up at each call: tests replace it
 
         self._core = _core
-        n, d = matrix.shape
         # Codes centred on each dimension's midrange span its whole range: a step of
         # (max - min) / 254, never more than the mean's max(max - mean, mean - min) / 127
         # and far less on skewed values (|normal| ones: 0.6 of it, and 0.6 times the
@@ -309,28 +308,21 @@ class _Int8Codes:
             matrix, self.offset, self.scale, get_threads()
         )
         self.err = err * (1 + 1e-9) + 1e-12 * (np.sqrt(sq_norms) + 1.0)
-        self.g_max = int(_core.int8_query_limit(d))
 
     def candidates(
         self, q: np.ndarray, k: int, lim: int, exclude: np.ndarray | None, threads: int
     ) -> np.ndarray:
-        u = q.astype(np.float64) - self.offset
-        w = u * self.scale
-        top = float(np.abs(w).max())
-        step = top / self.g_max if top > 0 else 1.0
-        g = np.clip(np.rint(w / step), -self.g_max, self.g_max).astype(np.int16)
-        delta = w - step * g.astype(np.float64)
-        delta_norm = float(np.linalg.norm(delta)) * (1 + 1e-9) + 1e-12 * float(np.linalg.norm(w))
+        """The rows (< lim, not excluded) that can be among q's k nearest; the core
+        rounds q to int16 weights itself (`int8_query` in int8_search.hpp)."""
         ex = None if exclude is None else np.ascontiguousarray(exclude, dtype=np.uint8)
         return self._core.int8_candidates(
             self.codes,
             self.code_sq,
             self.code_norm,
             self.err,
-            g,
-            float(u @ u),
-            step,
-            delta_norm,
+            np.ascontiguousarray(q, dtype=np.float32),
+            self.offset,
+            self.scale,
             int(k),
             int(lim),
             ex,
