@@ -314,6 +314,7 @@ PYBIND11_MODULE(_core, m) {
 
     disco_bindings::add_search(m);  // bindings_search.cpp
     disco_bindings::add_yaw(m);     // bindings_yaw.cpp
+    disco_bindings::add_rerank(m);  // bindings_rerank.cpp
 
     // --- the U-Net's 3 x 3 convolution (src/cpp/disco/conv3x3.*) ---
     {

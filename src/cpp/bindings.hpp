@@ -8,5 +8,6 @@ namespace disco_bindings {
 
 void add_search(pybind11::module_& m);  // bindings_search.cpp: signature search
 void add_yaw(pybind11::module_& m);     // bindings_yaw.cpp: yaw and re-centred views
+void add_rerank(pybind11::module_& m);  // bindings_rerank.cpp: re-ranking correlations
 
 }  // namespace disco_bindings

@@ -1,0 +1,107 @@
+#include "disco/sector_correlation.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <memory>
+#include <stdexcept>
+#include <vector>
+
+#include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
+#include "disco/sector_fft.hpp"
+
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#include <immintrin.h>
+#define DISCO_CORRELATION_X86 1
+#endif
+
+namespace disco {
+
+namespace {
+
+#define DISCO_CORRELATION_SCALAR 1  // the plain level: one lane, no shuffles
+namespace plain {
+constexpr int W = 1;
+typedef float vf;
+static inline vf vsqrt(vf x) { return std::sqrt(x); }
+#include "disco/sector_fft.inc"
+#include "disco/sector_correlation.inc"
+}  // namespace plain
+#undef DISCO_CORRELATION_SCALAR
+#define DISCO_CORRELATION_SCALAR 0
+
+#if DISCO_CORRELATION_X86
+namespace sse2 {  // the x86-64 baseline: no target needed
+constexpr int W = 4;
+typedef float vf __attribute__((vector_size(16)));
+static inline vf vsqrt(vf x) { return (vf)_mm_sqrt_ps((__m128)x); }
+#include "disco/sector_fft.inc"
+#include "disco/sector_correlation.inc"
+}  // namespace sse2
+
+#pragma GCC push_options
+#pragma GCC target("avx2")
+namespace avx2 {
+constexpr int W = 8;
+typedef float vf __attribute__((vector_size(32)));
+static inline vf vsqrt(vf x) { return (vf)_mm256_sqrt_ps((__m256)x); }
+#include "disco/sector_fft.inc"
+#include "disco/sector_correlation.inc"
+}  // namespace avx2
+#pragma GCC pop_options
+
+#pragma GCC push_options
+#pragma GCC target("avx512f")
+#pragma GCC diagnostic push
+// GCC 12 warns inside its own avx512fintrin.h (_mm512_undefined_*): a false positive.
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+namespace avx512 {
+constexpr int W = 16;
+typedef float vf __attribute__((vector_size(64)));
+static inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
+#include "disco/sector_fft.inc"
+#include "disco/sector_correlation.inc"
+}  // namespace avx512
+#pragma GCC diagnostic pop
+#pragma GCC pop_options
+#endif
+
+void check_shape(std::int64_t images, std::int64_t rings, std::int64_t sectors) {
+    if (images < 0 || rings < 1 || sectors < 1 || sectors > (1 << 20))
+        throw std::invalid_argument(
+            "sector_correlation: rings >= 1, sectors in [1, 2^20], images >= 0");
+}
+
+}  // namespace
+
+void aligned_correlations(const float* queries, std::int64_t views, const float* candidates,
+                          std::int64_t count, std::int64_t rings, std::int64_t sectors,
+                          float* scores) {
+    check_shape(views, rings, sectors);
+    check_shape(count, rings, sectors);
+    if (views == 0 || count == 0) return;
+    switch (sector_fft_level()) {
+#if DISCO_CORRELATION_X86
+        case 3: return avx512::aligned_run(queries, views, candidates, count, rings, sectors, scores);
+        case 2: return avx2::aligned_run(queries, views, candidates, count, rings, sectors, scores);
+        case 1: return sse2::aligned_run(queries, views, candidates, count, rings, sectors, scores);
+#endif
+        default: return plain::aligned_run(queries, views, candidates, count, rings, sectors, scores);
+    }
+}
+
+void yaw_curves(const float* query, const float* matches, std::int64_t count,
+                std::int64_t rings, std::int64_t sectors, const float* weights,
+                float* curves) {
+    check_shape(count, rings, sectors);
+    if (count == 0) return;
+    switch (sector_fft_level()) {
+#if DISCO_CORRELATION_X86
+        case 3: return avx512::yaw_run(query, matches, count, rings, sectors, weights, curves);
+        case 2: return avx2::yaw_run(query, matches, count, rings, sectors, weights, curves);
+        case 1: return sse2::yaw_run(query, matches, count, rings, sectors, weights, curves);
+#endif
+        default: return plain::yaw_run(query, matches, count, rings, sectors, weights, curves);
+    }
+}
+
+}  // namespace disco
