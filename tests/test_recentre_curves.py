@@ -31,10 +31,10 @@ def compiled(image: np.ndarray, match: np.ndarray, positions: np.ndarray) -> np.
     rings, sectors = image.shape
     places = yaw_refine._places(rings, sectors, MAX_RANGE, positions)
     lanes = yaw_refine._lane_places(places, rings, sectors)
-    padded = yaw_refine._padded(image)
+    table = core.recentre_table(yaw_refine._padded(image), 2 * sectors + 1)
     weights = ring_weights(rings).astype(np.float32)
     rp = yaw_refine._padded_rings(rings)
-    return core.recentre_curves(padded, 2 * sectors + 1, lanes, match, weights, rp)
+    return core.recentre_curves(table, 2 * sectors + 1, lanes, match, weights, rp)
 
 
 def images(rings: int, sectors: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -87,13 +87,14 @@ def test_empty_views_and_no_views():
     got = compiled(q, m, POSITIONS[:3])
     assert np.isfinite(got).all() and (got == 0).all()
     weights = ring_weights(40).astype(np.float32)
-    none = core.recentre_curves(yaw_refine._padded(q), 241, [], m, weights, 48)
+    table = core.recentre_table(yaw_refine._padded(q), 241)
+    none = core.recentre_curves(table, 241, [], m, weights, 48)
     assert none.shape == (0, 120)
 
 
 def test_bad_input_is_one_clear_error():
     q, m = images(40, 120, seed=3)
-    padded = yaw_refine._padded(q)
+    padded = core.recentre_table(yaw_refine._padded(q), 241)
     weights = ring_weights(40).astype(np.float32)
     places = np.zeros((2, 120 * 48), np.float32)
     with pytest.raises(ValueError, match="multiple of 16"):
@@ -102,9 +103,15 @@ def test_bad_input_is_one_clear_error():
         core.recentre_curves(padded, 241, [places[:, 1:]], m, weights, 48)
     with pytest.raises(ValueError, match="weights"):
         core.recentre_curves(padded, 241, [places], m, weights[1:], 48)
-    places[0, 5] = 44.0  # past the last ring: a place outside the table
-    with pytest.raises(IndexError):
-        core.recentre_curves(padded, 241, [places], m, weights, 48)
+    # Places outside the table, in a whole vector of rings and in the last, partial one.
+    for cell, ring, sector in [(5, 44.0, 3.0), (39, 2.0, 250.0), (120 * 48 - 9, np.nan, 1.0)]:
+        bad = places.copy()
+        bad[:, cell] = ring, sector
+        with pytest.raises(IndexError):
+            core.recentre_curves(padded, 241, [bad], m, weights, 48)
+    # The padding rings' places are never read.
+    places[:, 45] = 1e9, -1e9
+    assert np.isfinite(core.recentre_curves(padded, 241, [places], m, weights, 48)).all()
 
 
 def moved(points: np.ndarray, xy: tuple[float, float], yaw_deg: float) -> np.ndarray:

@@ -4,8 +4,10 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <algorithm>
 #include <complex>
 #include <cstdint>
+#include <limits>
 #include <vector>
 
 #include "disco/polar_resample.hpp"
@@ -83,11 +85,28 @@ void add_yaw(py::module_& m) {
 
     // --- phase-correlation curves of re-centred views (src/cpp/disco/recentre_curves.*) ---
     m.def(
-        "recentre_curves",
-        [](const F32& padded, std::int64_t width, const std::vector<F32>& places,
-           const F32& match, const F32& weights, std::int64_t rings_padded) {
-            if (padded.ndim() != 1 || width < 2 || padded.size() < 2 * width)
+        "recentre_table",
+        [](const F32& padded, std::int64_t width) {
+            if (padded.ndim() != 1 || width < 2 || padded.size() % width != 0 ||
+                padded.size() < 2 * width)
                 throw py::value_error("padded must be a flat float32 table of rows of width");
+            const std::int64_t rows = padded.size() / width;
+            F32 out(static_cast<py::ssize_t>((rows - 1) * (width - 1) * 4));
+            {
+                py::gil_scoped_release release;
+                disco::recentre_table(padded.data(), rows, width, out.mutable_data());
+            }
+            return out;
+        },
+        py::arg("padded"), py::arg("width"),
+        "Each corner's four reads of a padded polar table, for recentre_curves");
+    m.def(
+        "recentre_curves",
+        [](const F32& table, std::int64_t width, const std::vector<F32>& places,
+           const F32& match, const F32& weights, std::int64_t rings_padded) {
+            if (table.ndim() != 1 || width < 2 || table.size() % (4 * (width - 1)) != 0 ||
+                table.size() == 0)
+                throw py::value_error("table must be recentre_table's of rows of width");
             if (match.ndim() != 2 || weights.ndim() != 1 || weights.shape(0) != match.shape(0))
                 throw py::value_error("match must be float32 [R, S] and weights float32 [R]");
             const std::int64_t rings = match.shape(0), sectors = match.shape(1);
@@ -101,19 +120,142 @@ void add_yaw(py::module_& m) {
                         "each view's places must be float32 [2, sectors * rings_padded]");
                 ptrs.push_back(p.data());
             }
-            const disco::RecentreImage image{padded.data(), padded.size(), width,
-                                             rings,         sectors,       rings_padded};
+            const std::int64_t rows = table.size() / (4 * (width - 1)) + 1;
+            const disco::RecentreImage image{table.data(), rows,    width,
+                                             rings,        sectors, rings_padded};
             F32 out({static_cast<py::ssize_t>(places.size()), static_cast<py::ssize_t>(sectors)});
             {
                 py::gil_scoped_release release;
-                disco::recentre_curves(image, ptrs, match.data(), weights.data(),
+                std::vector<float> spectrum(static_cast<std::size_t>(2 * (sectors / 2 + 1) * rings_padded));
+                disco::recentre_match(image, match.data(), spectrum.data());
+                disco::recentre_curves(image, ptrs, spectrum.data(), weights.data(),
                                        out.mutable_data());
             }
             return out;
         },
-        py::arg("padded"), py::arg("width"), py::arg("places"), py::arg("match"),
+        py::arg("table"), py::arg("width"), py::arg("places"), py::arg("match"),
         py::arg("weights"), py::arg("rings_padded"),
         "Phase-correlation curves [views, S] of re-centred views against one match");
+    // --- the re-centring searches (yaw_refine._Views.core_searches): each round's
+    // candidates, the new ones' curves (recentre_curves, GIL released) and each search's
+    // best, for all of a call's searches side by side. The places come from the kept
+    // places dict, else `more_places` (keys flat + key_offset); where some are in
+    // neither, nothing of that round is computed and their flat indices come back, to be
+    // added and asked again (the rounds before are done by then, their curves in
+    // `kept`). ---
+    m.def(
+        "recentre_search",
+        [](const F32& table, std::int64_t width, const py::dict& kept_places,
+           const py::dict& more_places, std::int64_t key_offset, const F32& match, const F32& weights,
+           std::int64_t rings_padded, py::array_t<float, py::array::c_style>& kept,
+           py::array_t<std::uint8_t, py::array::c_style>& done,
+           const std::vector<std::vector<std::int64_t>>& coarse,
+           const std::vector<py::object>& windows, const std::vector<std::int64_t>& steps,
+           const std::vector<std::int64_t>& offsets) {
+            if (table.ndim() != 1 || width < 2 || table.size() % (4 * (width - 1)) != 0 ||
+                table.size() == 0)
+                throw py::value_error("table must be recentre_table's of rows of width");
+            if (match.ndim() != 2 || weights.ndim() != 1 || weights.shape(0) != match.shape(0))
+                throw py::value_error("match must be float32 [R, S] and weights float32 [R]");
+            const std::int64_t rings = match.shape(0), sectors = match.shape(1);
+            if (rings < 1 || sectors < 1 || rings_padded < rings || rings_padded % 16 != 0)
+                throw py::value_error("rings_padded must be a multiple of 16, at least R");
+            const std::int64_t cells = kept.ndim() == 2 ? kept.shape(0) : -1;
+            if (cells < 1 || kept.shape(1) != sectors || done.ndim() != 1 ||
+                done.shape(0) != cells || coarse.size() != windows.size())
+                throw py::value_error("kept [L, S], done [L] and one window per search");
+            const std::size_t n = coarse.size();
+            std::vector<std::vector<std::int64_t>> window(n);
+            for (std::size_t i = 0; i < n; ++i) {
+                if (coarse[i].empty()) throw py::value_error("a search without a first grid");
+                if (!windows[i].is_none())
+                    window[i] = windows[i].cast<std::vector<std::int64_t>>();
+                for (std::int64_t w : window[i])
+                    if (w < 0 || w >= sectors) throw py::value_error("a window past the sectors");
+            }
+            const std::int64_t rows = table.size() / (4 * (width - 1)) + 1;
+            const disco::RecentreImage image{table.data(), rows,    width,
+                                             rings,        sectors, rings_padded};
+            std::vector<float> spectrum(static_cast<std::size_t>(2 * (sectors / 2 + 1) * rings_padded));
+            disco::recentre_match(image, match.data(), spectrum.data());
+            float* kept_rows = kept.mutable_data();
+            std::uint8_t* is_done = done.mutable_data();
+            std::vector<std::int64_t> best(n);
+            std::vector<double> value(n, -std::numeric_limits<double>::infinity());
+            for (std::size_t i = 0; i < n; ++i) best[i] = coarse[i][0];
+            for (std::size_t round = 0; round <= steps.size(); ++round) {
+                std::vector<std::vector<std::int64_t>> cand(n);
+                for (std::size_t i = 0; i < n; ++i) {
+                    if (round == 0) {
+                        cand[i] = coarse[i];
+                    } else {
+                        for (std::int64_t d : offsets)
+                            cand[i].push_back(best[i] + d * steps[round - 1]);
+                    }
+                    for (std::int64_t f : cand[i])
+                        if (f < 0 || f >= cells) throw py::value_error("a search left the lattice");
+                }
+                std::vector<std::int64_t> fresh, missing;
+                std::vector<F32> arrays;
+                std::vector<std::uint8_t> seen(static_cast<std::size_t>(cells), 0);
+                for (const auto& c : cand)
+                    for (std::int64_t f : c) {
+                        if (is_done[f] || seen[f]) continue;
+                        seen[f] = 1;
+                        const py::int_ key(f + key_offset);
+                        PyObject* p = PyDict_GetItem(kept_places.ptr(), key.ptr());
+                        if (p == nullptr) p = PyDict_GetItem(more_places.ptr(), key.ptr());
+                        if (p == nullptr) {
+                            missing.push_back(f);
+                            continue;
+                        }
+                        auto a = py::reinterpret_borrow<py::object>(p).cast<F32>();
+                        if (a.ndim() != 2 || a.shape(0) != 2 || a.shape(1) != sectors * rings_padded)
+                            throw py::value_error(
+                                "each view's places must be float32 [2, sectors * rings_padded]");
+                        fresh.push_back(f);
+                        arrays.push_back(std::move(a));
+                    }
+                if (!missing.empty())
+                    return py::tuple(py::make_tuple(py::cast(missing), py::list()));
+                if (!fresh.empty()) {
+                    std::vector<const float*> ptrs;
+                    for (const auto& a : arrays) ptrs.push_back(a.data());
+                    std::vector<float> out(fresh.size() * static_cast<std::size_t>(sectors));
+                    {
+                        py::gil_scoped_release release;
+                        disco::recentre_curves(image, ptrs, spectrum.data(), weights.data(),
+                                               out.data());
+                    }
+                    for (std::size_t j = 0; j < fresh.size(); ++j) {
+                        std::copy(out.begin() + static_cast<std::ptrdiff_t>(j * sectors),
+                                  out.begin() + static_cast<std::ptrdiff_t>((j + 1) * sectors),
+                                  kept_rows + fresh[j] * sectors);
+                        is_done[fresh[j]] = 1;
+                    }
+                }
+                // Each search's best: the highest peak (in its window), the first of equals.
+                for (std::size_t i = 0; i < n; ++i)
+                    for (std::int64_t f : cand[i]) {
+                        const float* curve = kept_rows + f * sectors;
+                        float peak = -std::numeric_limits<float>::infinity();
+                        if (window[i].empty()) {
+                            for (std::int64_t s = 0; s < sectors; ++s) peak = std::max(peak, curve[s]);
+                        } else {
+                            for (std::int64_t s : window[i]) peak = std::max(peak, curve[s]);
+                        }
+                        if (static_cast<double>(peak) > value[i]) best[i] = f, value[i] = peak;
+                    }
+            }
+            py::list found;
+            for (std::size_t i = 0; i < n; ++i) found.append(py::make_tuple(best[i], value[i]));
+            return py::tuple(py::make_tuple(py::list(), found));
+        },
+        py::arg("table"), py::arg("width"), py::arg("kept_places"), py::arg("more_places"),
+        py::arg("key_offset"),
+        py::arg("match"), py::arg("weights"), py::arg("rings_padded"),
+        py::arg("kept").noconvert(), py::arg("done").noconvert(), py::arg("coarse"), py::arg("windows"), py::arg("steps"),
+        py::arg("offsets"), "The re-centring searches' rounds: (missing places, best per search)");
 }
 
 }  // namespace disco_bindings

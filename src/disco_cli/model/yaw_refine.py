@@ -143,6 +143,8 @@ _LATTICE_SIDE = int(round(2 * LATTICE_REACH / LATTICE_STEP)) + 1
 
 # Searches move on the lattice in whole cells: each fine step's length in cells.
 _FINE_CELLS = tuple(int(round(step / LATTICE_STEP)) for step in FINE_STEPS)
+# The neighbours' offsets in flat lattice indices (`_flat`), in _NEIGHBOURS' order.
+_NEIGHBOUR_OFFSETS = tuple(int(a) * _LATTICE_SIDE + int(b) for a, b in _NEIGHBOURS)
 
 
 def _metres(cells: np.ndarray) -> np.ndarray:
@@ -228,6 +230,12 @@ def _coarse_cells(reach: float = COARSE_REACH, side: float = SIDE_REACH) -> np.n
     return np.rint((metres + LATTICE_REACH) / LATTICE_STEP).astype(np.int64)
 
 
+@lru_cache(maxsize=8)
+def _coarse_flat(reach: float) -> list[int]:
+    """`_coarse_cells(reach)` as flat lattice indices."""
+    return _flat(_coarse_cells(reach)).tolist()
+
+
 def _padded(img: np.ndarray) -> np.ndarray:
     """The image flat with a zero ring before the first and two after the last, and its
     sectors twice and the first once more, so that sector indices in [S - 1, 2 S] never
@@ -268,8 +276,15 @@ class _QueryViews:
     def __init__(self, q: np.ndarray, max_range: float):
         self.q, self.max_range = q, float(max_range)
         self.padded = _padded(q)
+        self._quads: np.ndarray | None = None
         self.kept_views: dict[int, np.ndarray] = {}
         self.kept_spectra: dict[int, np.ndarray] = {}
+
+    def quads(self, core: Any) -> np.ndarray:
+        """The compiled kernel's table of the padded image (`_core.recentre_table`)."""
+        if self._quads is None:
+            self._quads = core.recentre_table(self.padded, 2 * self.q.shape[1] + 1)
+        return self._quads
 
     def spectra(self, index: np.ndarray, positions: np.ndarray) -> np.ndarray:
         """Spectra [M, R, S // 2 + 1] of the views at lattice `positions` [M, 2] (flat
@@ -336,6 +351,7 @@ class _Views:
             self.fm = fft.rfft(m, axis=-1)
         else:
             self.weights = ring_weights(q.shape[0]).astype(np.float32)
+            self.done_flat = np.zeros(_LATTICE_SIDE**2, np.uint8)
         self.kept = np.empty((_LATTICE_SIDE**2, q.shape[1]), np.float32)
         self.done = np.zeros(_LATTICE_SIDE**2, bool)
         self.m_centred = m - m.mean()
@@ -361,22 +377,79 @@ class _Views:
         q = self.query
         places = _places_at(rings, sectors, q.max_range, index, positions, lanes=True)
         return self.core.recentre_curves(
-            q.padded, 2 * sectors + 1, places, self.m, self.weights, _padded_rings(rings)
+            q.quads(self.core), 2 * sectors + 1, places, self.m, self.weights, _padded_rings(rings)
+        )
+
+    def core_searches(
+        self, specs: list[tuple[np.ndarray | None, float]]
+    ) -> list[tuple[np.ndarray, float, np.ndarray]]:
+        """`_searches` on the compiled kernel (`_core.recentre_search`): the same rounds,
+        candidates in the same order and the same choices (the first of equal peaks, as
+        np.argmax), all rounds in one call once the places they need are kept."""
+        rings, sectors = self.q.shape
+        q = self.query
+        coarse = [_coarse_flat(reach) for _, reach in specs]
+        windows = [window for window, _ in specs]
+        more: dict[int, np.ndarray] = {}  # places computed here, kept or not
+        while True:
+            kept_places = _places_kept.setdefault((rings, sectors, q.max_range), {})
+            missing, found = self.core.recentre_search(
+                q.quads(self.core), 2 * sectors + 1, kept_places, more, _LATTICE_SIDE**2,
+                self.m, self.weights, _padded_rings(rings), self.kept, self.done_flat,
+                coarse, windows, _FINE_CELLS, _NEIGHBOUR_OFFSETS,
+            )  # fmt: skip
+            if not missing:
+                break
+            index = np.array(missing)
+            cells = np.stack([index // _LATTICE_SIDE, index % _LATTICE_SIDE], axis=1)
+            places = _places_at(rings, sectors, q.max_range, index, _metres(cells), lanes=True)
+            more.update(zip((index + _LATTICE_SIDE**2).tolist(), places))
+        side = _LATTICE_SIDE
+        return [(_metres(np.array([divmod(f, side)]))[0], v, self.kept[f].copy()) for f, v in found]
+
+    def _core_curves_at(self, flat: list[int]) -> np.ndarray:
+        """The kernel's curves [M, S] at flat lattice indices `flat`."""
+        rings, sectors = self.q.shape
+        q = self.query
+        kept = _places_kept.get((rings, sectors, q.max_range), {})
+        places = [kept.get(f + _LATTICE_SIDE**2) for f in flat]
+        if any(p is None for p in places):
+            index = np.array(flat)
+            cells = np.stack([index // _LATTICE_SIDE, index % _LATTICE_SIDE], axis=1)
+            places = _places_at(rings, sectors, q.max_range, index, _metres(cells), lanes=True)
+        return self.core.recentre_curves(
+            q.quads(self.core), 2 * sectors + 1, places, self.m, self.weights, _padded_rings(rings)
         )
 
     def view(self, position: np.ndarray) -> np.ndarray:
         """The query re-centred at one lattice `position` [2] (m)."""
         cells = np.rint((np.asarray(position)[None] + LATTICE_REACH) / LATTICE_STEP)
         cells = cells.astype(np.int64)
-        if self.core is None:
-            return self.query.views(_flat(cells), _metres(cells))[0]
-        # The same reads from the kernel's places (no second table for the position).
+        return self.query.views(_flat(cells), _metres(cells))[0]
+
+    def core_aligned_ncc(self, position: np.ndarray, shift: int) -> float:
+        """`_aligned_ncc` with the view read from the kernel's places (no second table
+        for the position), sector-major as they lie, its padding rings 0, against the
+        match turned by +shift (the view turned by -shift), from sums in float64:
+        sum(a m') = sum(v m') - mean(v) sum(m') and sum(a a) = sum(v v) - n mean(v)^2,
+        a = v - mean(v) and m' the centred match."""
         rings, sectors = self.q.shape
         rp = _padded_rings(rings)
+        cells = np.rint((np.asarray(position)[None] + LATTICE_REACH) / LATTICE_STEP)
+        cells = cells.astype(np.int64)
         q = self.query
         places = _places_at(rings, sectors, q.max_range, _flat(cells), _metres(cells), True)
-        read = self.core.resample_views(q.padded, 2 * sectors + 1, places, sectors * rp)
-        return read.reshape(sectors, rp)[:, :rings].T
+        view = self.core.resample_views(q.padded, 2 * sectors + 1, places, sectors * rp)[0]
+        if not hasattr(self, "m_turns"):
+            m = np.zeros((2 * sectors, rp), np.float64)  # twice: any turn is one slice
+            m[:sectors, :rings] = m[sectors:, :rings] = self.m_centred.T
+            self.m_turns, self.m_sum = m.reshape(-1), float(self.m_centred.sum(dtype=np.float64))
+        v = view.astype(np.float64)
+        n = rings * sectors
+        mean = float(v.sum()) / n
+        m = self.m_turns[(sectors - shift) * rp : (2 * sectors - shift) * rp]
+        norm = np.sqrt(max(float(v @ v) - n * mean * mean, 0.0)) * self.m_norm
+        return (float(v @ m) - mean * self.m_sum) / norm if norm > 0 else 0.0
 
 
 def _images(query: np.ndarray, match: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -414,6 +487,8 @@ def _searches(
     """`_search` for each (window, reach) of `specs`, run side by side so that each
     round's new views are computed in one batch; each search's result is what it gives
     alone."""
+    if views.core is not None:
+        return views.core_searches(specs)
     found = [(_coarse_cells(reach)[0], -np.inf, None) for _, reach in specs]
     for step in (None, *_FINE_CELLS):
         if step is None:
@@ -492,6 +567,8 @@ def _heading(
 def _aligned_ncc(views: _Views, position: np.ndarray, shift: int) -> float:
     """Normalized correlation of the query re-centred at `position` and turned by `shift`
     sectors onto the match, with the match."""
+    if views.core is not None:
+        return views.core_aligned_ncc(position, shift)
     view = np.roll(views.view(position), -shift, axis=1)
     a = view - view.mean()
     norm = float(np.linalg.norm(a)) * views.m_norm
