@@ -48,79 +48,119 @@ void dots_scalar(const std::int8_t* codes, std::int64_t d, std::int64_t a, std::
 }
 
 #ifdef DISCO_X86
-// 16 codes at a time: widen int8 to int16, multiply-add pairs into int32 lanes.
+// The SIMD kernels read this many rows, spaced evenly over the block, at a time: more
+// streams in flight than one row's keep a single core nearer its memory bandwidth
+// when the codes are not in cache, and in it too (four rows of the 10,000-scan map:
+// 0.52 ms cold and 0.20 warm for the VNNI scan, against 0.79 and 0.28 one at a time).
+constexpr int kStreams = 4;
+
+// 16 codes at a time: widen int8 to int16, multiply-add pairs into int32 lanes; the
+// rows r + s * h for s < S.
+template <int S>
+__attribute__((target("avx2"))) inline void rows_avx2(const std::int8_t* codes, std::int64_t d,
+                                                      std::int64_t r, std::int64_t h,
+                                                      const std::int16_t* g, std::int32_t* out) {
+    __m256i acc[S];
+    for (auto& v : acc) v = _mm256_setzero_si256();
+    std::int64_t j = 0;
+    for (; j + 16 <= d; j += 16) {
+        const __m256i g16 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(g + j));
+        for (int s = 0; s < S; ++s) {
+            const std::int8_t* c = codes + (r + s * h) * d + j;
+            const __m256i c16 = _mm256_cvtepi8_epi16(
+                _mm_loadu_si128(reinterpret_cast<const __m128i*>(c)));
+            acc[s] = _mm256_add_epi32(acc[s], _mm256_madd_epi16(c16, g16));
+        }
+    }
+    for (int s = 0; s < S; ++s) {
+        __m128i v = _mm_add_epi32(_mm256_castsi256_si128(acc[s]),
+                                  _mm256_extracti128_si256(acc[s], 1));
+        v = _mm_add_epi32(v, _mm_shuffle_epi32(v, 0x4E));
+        v = _mm_add_epi32(v, _mm_shuffle_epi32(v, 0xB1));
+        auto total = static_cast<std::uint32_t>(_mm_cvtsi128_si32(v));
+        const std::int8_t* c = codes + (r + s * h) * d;
+        for (std::int64_t t = j; t < d; ++t)
+            total += static_cast<std::uint32_t>(static_cast<std::int32_t>(c[t]) * g[t]);
+        out[r + s * h] = static_cast<std::int32_t>(total);
+    }
+}
+
 __attribute__((target("avx2"))) void dots_avx2(const std::int8_t* codes, std::int64_t d,
                                                std::int64_t a, std::int64_t b,
                                                const std::uint8_t* exclude, const DotQuery& q,
                                                std::int32_t* out) {
-    const std::int16_t* g = q.g;
-    for (std::int64_t r = a; r < b; ++r) {
-        if (exclude && exclude[r]) {
-            out[r] = 0;
-            continue;
-        }
-        const std::int8_t* c = codes + r * d;
-        __m256i acc = _mm256_setzero_si256();
-        std::int64_t j = 0;
-        for (; j + 16 <= d; j += 16) {
-            const __m128i c8 = _mm_loadu_si128(reinterpret_cast<const __m128i*>(c + j));
-            const __m256i c16 = _mm256_cvtepi8_epi16(c8);
-            const __m256i g16 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(g + j));
-            acc = _mm256_add_epi32(acc, _mm256_madd_epi16(c16, g16));
-        }
-        __m128i s = _mm_add_epi32(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
-        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4E));
-        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xB1));
-        auto total = static_cast<std::uint32_t>(_mm_cvtsi128_si32(s));
-        for (; j < d; ++j)
-            total += static_cast<std::uint32_t>(static_cast<std::int32_t>(c[j]) * g[j]);
-        out[r] = static_cast<std::int32_t>(total);
-    }
+    const std::int64_t h = (b - a) / kStreams;
+    for (std::int64_t r = a; r < a + h; ++r) rows_avx2<kStreams>(codes, d, r, h, q.g, out);
+    for (std::int64_t r = a + kStreams * h; r < b; ++r) rows_avx2<1>(codes, d, r, 0, q.g, out);
+    if (exclude)
+        for (std::int64_t r = a; r < b; ++r)
+            if (exclude[r]) out[r] = 0;
 }
 
 #if defined(__GNUC__) && !defined(__clang__)
 #pragma GCC diagnostic push
 // GCC 12 warns inside its own avx512fintrin.h (_mm512_undefined_epi32): a false positive.
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
 #endif
+#define DISCO_VNNI __attribute__((target("avx512f,avx512bw,avx512vnni")))
 // 64 codes at a time, two VPDPBUSD (unsigned codes times the signed halves of g) into
 // int32 lanes; a last partial block through masked loads (zeros past d). All sums
 // wrap modulo 2^32 and G itself lies within int32 (int8_query_limit), so the lanes
-// may combine as 256 hi + lo before the one horizontal sum.
-__attribute__((target("avx512f,avx512bw,avx512vnni"))) void dots_vnni(
-    const std::int8_t* codes, std::int64_t d, std::int64_t a, std::int64_t b,
-    const std::uint8_t* exclude, const DotQuery& q, std::int32_t* out) {
+// may combine as 256 hi + lo before the one horizontal sum. The rows r + s * h, s < S.
+template <int S>
+DISCO_VNNI inline void rows_vnni(const std::int8_t* codes, std::int64_t d, std::int64_t r,
+                                 std::int64_t h, const DotQuery& q, std::int32_t* out) {
     const __m512i flip = _mm512_set1_epi8(static_cast<char>(0x80));
-    const auto bias = static_cast<std::uint32_t>(128 * static_cast<std::uint64_t>(q.sum));
     const std::int8_t* hi = q.hi.data();
     const std::int8_t* lo = q.lo.data();
-    for (std::int64_t r = a; r < b; ++r) {
-        if (exclude && exclude[r]) {
-            out[r] = 0;
-            continue;
+    __m512i acc_hi[S], acc_lo[S];
+    for (int s = 0; s < S; ++s) acc_hi[s] = acc_lo[s] = _mm512_setzero_si512();
+    std::int64_t j = 0;
+    for (; j + 64 <= d; j += 64) {
+        const __m512i h8 = _mm512_loadu_si512(hi + j), l8 = _mm512_loadu_si512(lo + j);
+        for (int s = 0; s < S; ++s) {
+            const __m512i cu =
+                _mm512_xor_si512(_mm512_loadu_si512(codes + (r + s * h) * d + j), flip);
+            acc_hi[s] = _mm512_dpbusd_epi32(acc_hi[s], cu, h8);
+            acc_lo[s] = _mm512_dpbusd_epi32(acc_lo[s], cu, l8);
         }
-        const std::int8_t* c = codes + r * d;
-        __m512i acc_hi = _mm512_setzero_si512(), acc_lo = _mm512_setzero_si512();
-        std::int64_t j = 0;
-        for (; j + 64 <= d; j += 64) {
-            const __m512i cu = _mm512_xor_si512(_mm512_loadu_si512(c + j), flip);
-            acc_hi = _mm512_dpbusd_epi32(acc_hi, cu, _mm512_loadu_si512(hi + j));
-            acc_lo = _mm512_dpbusd_epi32(acc_lo, cu, _mm512_loadu_si512(lo + j));
+    }
+    if (j < d) {
+        const __mmask64 m = (__mmask64{1} << (d - j)) - 1;
+        const __m512i h8 = _mm512_maskz_loadu_epi8(m, hi + j);
+        const __m512i l8 = _mm512_maskz_loadu_epi8(m, lo + j);
+        for (int s = 0; s < S; ++s) {
+            const __m512i cu = _mm512_xor_si512(
+                _mm512_maskz_loadu_epi8(m, codes + (r + s * h) * d + j), flip);
+            acc_hi[s] = _mm512_dpbusd_epi32(acc_hi[s], cu, h8);
+            acc_lo[s] = _mm512_dpbusd_epi32(acc_lo[s], cu, l8);
         }
-        if (j < d) {
-            const __mmask64 m = (__mmask64{1} << (d - j)) - 1;
-            const __m512i cu = _mm512_xor_si512(_mm512_maskz_loadu_epi8(m, c + j), flip);
-            acc_hi = _mm512_dpbusd_epi32(acc_hi, cu, _mm512_maskz_loadu_epi8(m, hi + j));
-            acc_lo = _mm512_dpbusd_epi32(acc_lo, cu, _mm512_maskz_loadu_epi8(m, lo + j));
-        }
-        const __m512i v = _mm512_add_epi32(_mm512_slli_epi32(acc_hi, 8), acc_lo);
-        __m256i s8 = _mm256_add_epi32(_mm512_castsi512_si256(v), _mm512_extracti64x4_epi64(v, 1));
-        __m128i s = _mm_add_epi32(_mm256_castsi256_si128(s8), _mm256_extracti128_si256(s8, 1));
-        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4E));
-        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xB1));
-        out[r] = static_cast<std::int32_t>(static_cast<std::uint32_t>(_mm_cvtsi128_si32(s)) - bias);
+    }
+    const auto bias = static_cast<std::uint32_t>(128 * static_cast<std::uint64_t>(q.sum));
+    for (int s = 0; s < S; ++s) {
+        const __m512i v = _mm512_add_epi32(_mm512_slli_epi32(acc_hi[s], 8), acc_lo[s]);
+        const __m256i v8 =
+            _mm256_add_epi32(_mm512_castsi512_si256(v), _mm512_extracti64x4_epi64(v, 1));
+        __m128i t = _mm_add_epi32(_mm256_castsi256_si128(v8), _mm256_extracti128_si256(v8, 1));
+        t = _mm_add_epi32(t, _mm_shuffle_epi32(t, 0x4E));
+        t = _mm_add_epi32(t, _mm_shuffle_epi32(t, 0xB1));
+        out[r + s * h] =
+            static_cast<std::int32_t>(static_cast<std::uint32_t>(_mm_cvtsi128_si32(t)) - bias);
     }
 }
+
+DISCO_VNNI void dots_vnni(const std::int8_t* codes, std::int64_t d, std::int64_t a,
+                          std::int64_t b, const std::uint8_t* exclude, const DotQuery& q,
+                          std::int32_t* out) {
+    const std::int64_t h = (b - a) / kStreams;
+    for (std::int64_t r = a; r < a + h; ++r) rows_vnni<kStreams>(codes, d, r, h, q, out);
+    for (std::int64_t r = a + kStreams * h; r < b; ++r) rows_vnni<1>(codes, d, r, 0, q, out);
+    if (exclude)
+        for (std::int64_t r = a; r < b; ++r)
+            if (exclude[r]) out[r] = 0;
+}
+#undef DISCO_VNNI
 #if defined(__GNUC__) && !defined(__clang__)
 #pragma GCC diagnostic pop
 #endif
