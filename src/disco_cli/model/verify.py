@@ -6,13 +6,37 @@ a neighbour of the right scan rather than the right scan itself. The feature ima
 hold where things are. Aligned by their best circular shift along sectors (the rotation),
 their normalized cross-correlation is a finer measure of how far apart two scans are, and
 comparing the top few candidates this way costs a fraction of a millisecond.
+
+The scores come from the compiled core (`_core.aligned_correlations`,
+src/cpp/disco/sector_correlation.*) where it has them; the NumPy code below is the
+reference the tests compare it with (`BACKEND = "numpy"`) and the fallback.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from disco_cli.model import fft
+
+# Which code computes the scores: None, the compiled kernel where the core has it, else
+# NumPy; "numpy", the NumPy reference. Read at each call.
+BACKEND: str | None = None
+
+
+def _kernel() -> Any:
+    """`disco_cli._core` where BACKEND lets it compute the scores and it can, else None."""
+    if BACKEND == "numpy":
+        return None
+    if BACKEND is not None:
+        raise ValueError(f"verify.BACKEND must be None or 'numpy', not {BACKEND!r}")
+    try:
+        # deferred: the package imports without the compiled core (a GPU training box)
+        from disco_cli import _core
+    except ImportError:
+        return None
+    return _core if hasattr(_core, "aligned_correlations") else None
 
 
 def aligned_correlation(query: np.ndarray, candidates: np.ndarray) -> np.ndarray:
@@ -40,6 +64,9 @@ def aligned_correlations(queries: np.ndarray, candidates: np.ndarray) -> np.ndar
         )
     if len(q) == 0 or len(c) == 0:
         return np.zeros((len(q), len(c)), np.float32)
+    core = _kernel()
+    if core is not None and q.shape[1] > 0 and q.shape[2] > 0:
+        return core.aligned_correlations(q, c)
     q = q - q.mean(axis=(1, 2), keepdims=True)
     c = c - c.mean(axis=(1, 2), keepdims=True)
     norms = np.outer(

@@ -12,11 +12,15 @@ peaks at that shift, and the returned yaw is -a (the heading of the query sensor
 match's frame, the yaw of T_match<-query).
 
 Inference uses numpy/scipy (argmax and a parabolic sub-bin fit, batched over the K
-candidates); training uses the torch version with the paper's learnable softmax.
+candidates); training uses the torch version with the paper's learnable softmax. The
+curves come from the compiled core (`_core.yaw_curves`, src/cpp/disco/sector_correlation.*)
+where it has them; the NumPy code is the reference the tests compare it with
+(`BACKEND = "numpy"`) and the fallback.
 """
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -28,11 +32,37 @@ from disco_cli.model import fft
 # frequencies from turning into pure noise when divided by their own magnitude.
 _EPS_REL = 1e-3
 
+# Which code computes `correlation_curves`: None, the compiled kernel where the core has
+# it, else NumPy; "numpy", the NumPy reference. Read at each call.
+BACKEND: str | None = None
+
+
+def _kernel() -> Any:
+    """`disco_cli._core` where BACKEND lets it compute the curves and it can, else None."""
+    if BACKEND == "numpy":
+        return None
+    if BACKEND is not None:
+        raise ValueError(f"yaw.BACKEND must be None or 'numpy', not {BACKEND!r}")
+    try:
+        # deferred: the package imports without the compiled core (a GPU training box)
+        from disco_cli import _core
+    except ImportError:
+        return None
+    return _core if hasattr(_core, "yaw_curves") else None
+
 
 def ring_weights(rings: int) -> np.ndarray:
     """Weights [R] proportional to the ring's mean radius, summing to 1."""
     w = np.arange(rings, dtype=np.float64) + 0.5
     return w / w.sum()
+
+
+@lru_cache(maxsize=8)
+def _weights32(rings: int) -> np.ndarray:
+    """`ring_weights` in float32 (read-only: kept between calls)."""
+    w = ring_weights(rings).astype(np.float32)
+    w.flags.writeable = False
+    return w
 
 
 def shift_to_yaw(shift: np.ndarray | float, sectors: int) -> np.ndarray:
@@ -48,10 +78,13 @@ def correlation_curves(query: np.ndarray, matches: np.ndarray, workers: int = 1)
         m = m[None]
     if q.ndim != 2 or m.ndim != 3 or m.shape[1:] != q.shape:
         raise ValueError(f"query [R, S] and matches [K, R, S] must agree: {q.shape} vs {m.shape}")
+    core = _kernel()
+    if core is not None and q.shape[0] > 0 and q.shape[1] > 0:
+        return core.yaw_curves(q, m, _weights32(q.shape[0]))
     fq = fft.rfft(q, axis=-1, workers=workers)
     fm = fft.rfft(m, axis=-1, workers=workers)
     # float32 weights keep the spectra complex64 (float64 ones doubled the work).
-    weights = ring_weights(q.shape[0]).astype(np.float32)
+    weights = _weights32(q.shape[0])
     return curves_of_cross_power(fq[None] * np.conj(fm), weights, q.shape[-1], workers)
 
 
