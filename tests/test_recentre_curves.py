@@ -157,3 +157,28 @@ def test_unknown_backend_is_one_clear_error(monkeypatch):
     q, m = images(40, 120, seed=4)
     with pytest.raises(ValueError, match="BACKEND"):
         yaw_refine.refine_checked(q, m, MAX_RANGE)
+
+
+def test_one_curve_steps_are_yaw_pys():
+    """The core path's steps on one curve give yaw.py's values to the bit: the yaw of
+    its peak (peak_shift, shift_to_yaw), the second peak and the margin; on curves with
+    ties, flat tops, peaks at both ends and on every sector count of the tests."""
+    from disco_cli.model.yaw import margin, peak_shift, second_peak, shift_to_yaw
+
+    rng = np.random.default_rng(12)
+    for sectors in (120, 90, 121, 60, 8):
+        for case in range(60):
+            curve = rng.normal(size=sectors).astype(np.float32)
+            if case % 4 == 1:
+                curve = np.round(curve, 1)  # ties
+            elif case % 4 == 2:
+                curve[[0, -1]] = curve.max() + 1  # the peak wraps round
+            elif case % 4 == 3:
+                curve[:] = 0.25  # flat
+            want = float(shift_to_yaw(peak_shift(curve[None]), sectors)[0])
+            assert yaw_refine._yaw_of(curve) == want
+            best = int(np.argmax(curve))
+            idx, val = second_peak(curve[None], np.array([best]))
+            assert yaw_refine._second_peak_of(curve, best) == (int(idx[0]), float(val[0]))
+            a, b = float(curve.max()), float(val[0])
+            assert yaw_refine._margin(a, b) == float(margin(a, b))

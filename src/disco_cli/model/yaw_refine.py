@@ -26,9 +26,10 @@ transforms with pocketfft. A search costs about 0.4 ms, the yaw check's five abo
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import OrderedDict
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -40,6 +41,7 @@ from disco_cli.model.yaw import (
     peak_shift,
     ring_weights,
     second_peak,
+    separation_bins,
     shift_to_yaw,
 )
 
@@ -259,6 +261,13 @@ def _resample(padded: np.ndarray, places: list, shape: tuple[int, int]) -> np.nd
     return views.reshape(len(places), rings, sectors)
 
 
+@lru_cache(maxsize=8)
+def _weights32(rings: int) -> np.ndarray:
+    weights = ring_weights(rings).astype(np.float32)
+    weights.flags.writeable = False
+    return weights
+
+
 def _curves(spectra: np.ndarray, match_spectrum: np.ndarray, sectors: int) -> np.ndarray:
     """Phase-correlation curves [M, S] of views given by their spectra along sectors
     [M, R, S // 2 + 1] against one match's spectrum (yaw.py's curves; float32 weights
@@ -350,12 +359,19 @@ class _Views:
         if self.core is None:
             self.fm = fft.rfft(m, axis=-1)
         else:
-            self.weights = ring_weights(q.shape[0]).astype(np.float32)
+            self.weights = _weights32(q.shape[0])
             self.done_flat = np.zeros(_LATTICE_SIDE**2, np.uint8)
+            self.nccs: dict[tuple, float] = {}
         self.kept = np.empty((_LATTICE_SIDE**2, q.shape[1]), np.float32)
         self.done = np.zeros(_LATTICE_SIDE**2, bool)
-        self.m_centred = m - m.mean()
-        self.m_norm = float(np.linalg.norm(self.m_centred))
+
+    @cached_property
+    def m_centred(self) -> np.ndarray:
+        return self.m - self.m.mean()
+
+    @cached_property
+    def m_norm(self) -> float:
+        return float(np.linalg.norm(self.m_centred))
 
     def curves(self, cells: np.ndarray) -> np.ndarray:
         """Curves [M, S] of the views at lattice `cells` [M, 2]."""
@@ -363,22 +379,10 @@ class _Views:
         todo = ~self.done[index]
         new, first = np.unique(index[todo], return_index=True)
         if len(new):  # all new positions in one batch
-            positions = _metres(cells[todo][first])
-            if self.core is None:
-                spectra = self.query.spectra(new, positions)
-                self.kept[new] = _curves(spectra, self.fm, self.q.shape[1])
-            else:
-                self.kept[new] = self._core_curves(new, positions)
+            spectra = self.query.spectra(new, _metres(cells[todo][first]))
+            self.kept[new] = _curves(spectra, self.fm, self.q.shape[1])
             self.done[new] = True
         return self.kept[index]
-
-    def _core_curves(self, index: np.ndarray, positions: np.ndarray) -> np.ndarray:
-        rings, sectors = self.q.shape
-        q = self.query
-        places = _places_at(rings, sectors, q.max_range, index, positions, lanes=True)
-        return self.core.recentre_curves(
-            q.quads(self.core), 2 * sectors + 1, places, self.m, self.weights, _padded_rings(rings)
-        )
 
     def core_searches(
         self, specs: list[tuple[np.ndarray | None, float]]
@@ -407,20 +411,6 @@ class _Views:
         side = _LATTICE_SIDE
         return [(_metres(np.array([divmod(f, side)]))[0], v, self.kept[f].copy()) for f, v in found]
 
-    def _core_curves_at(self, flat: list[int]) -> np.ndarray:
-        """The kernel's curves [M, S] at flat lattice indices `flat`."""
-        rings, sectors = self.q.shape
-        q = self.query
-        kept = _places_kept.get((rings, sectors, q.max_range), {})
-        places = [kept.get(f + _LATTICE_SIDE**2) for f in flat]
-        if any(p is None for p in places):
-            index = np.array(flat)
-            cells = np.stack([index // _LATTICE_SIDE, index % _LATTICE_SIDE], axis=1)
-            places = _places_at(rings, sectors, q.max_range, index, _metres(cells), lanes=True)
-        return self.core.recentre_curves(
-            q.quads(self.core), 2 * sectors + 1, places, self.m, self.weights, _padded_rings(rings)
-        )
-
     def view(self, position: np.ndarray) -> np.ndarray:
         """The query re-centred at one lattice `position` [2] (m)."""
         cells = np.rint((np.asarray(position)[None] + LATTICE_REACH) / LATTICE_STEP)
@@ -428,6 +418,14 @@ class _Views:
         return self.query.views(_flat(cells), _metres(cells))[0]
 
     def core_aligned_ncc(self, position: np.ndarray, shift: int) -> float:
+        """`_core_ncc`, kept per position and shift (a heading's two searches often
+        end on the same)."""
+        key = (float(position[0]), float(position[1]), shift)
+        if key not in self.nccs:
+            self.nccs[key] = self._core_ncc(position, shift)
+        return self.nccs[key]
+
+    def _core_ncc(self, position: np.ndarray, shift: int) -> float:
         """`_aligned_ncc` with the view read from the kernel's places (no second table
         for the position), sector-major as they lie, its padding rings 0, against the
         match turned by +shift (the view turned by -shift), from sums in float64:
@@ -526,6 +524,8 @@ def refine_checked(
     training-free floor's occupancy correlation). The confidence is then the margin
     between the two headings' own peaks."""
     views = _Views(*_images(query, match), max_range)
+    if views.core is not None:
+        return _refine_checked_core(views, check_below)
     sectors = views.q.shape[1]
     pos, val, curve = _search(views)
     best = int(np.argmax(curve))
@@ -544,6 +544,63 @@ def refine_checked(
             conf = float(margin(v1, max(v2, other_val)))
     yaw = float(shift_to_yaw(peak_shift(curve[None]), sectors)[0])
     return yaw, np.asarray(pos, np.float64), conf
+
+
+def _refine_checked_core(views: _Views, check_below: float) -> tuple[float, np.ndarray, float]:
+    """`refine_checked`'s steps with the compiled searches, and its small steps on one
+    curve in Python scalars (NumPy calls of a few microseconds each): the same
+    choices, in the same float32 and float64 roundings."""
+    sectors = views.q.shape[1]
+    pos, val, curve = views.core_searches([(None, COARSE_REACH)])[0]
+    best = int(curve.argmax())
+    other, other_val = _second_peak_of(curve, best)
+    conf = _margin(val, other_val)
+    if conf < check_below:
+        windows = [(c + np.arange(-2, 3)) % sectors for c in (best, other)]
+        specs = [(w, r) for w in windows for r in (COARSE_REACH, CHECK_REACH)]
+        found = views.core_searches(specs)
+        v1, ncc1, _, _ = _heading(views, windows[0], found[:2])
+        v2, ncc2, pos2, curve2 = _heading(views, windows[1], found[2:])
+        v1 = max(v1, val)
+        if v2 > v1 and ncc2 > ncc1:
+            pos, curve, conf = pos2, curve2, _margin(v2, v1)
+        else:
+            conf = _margin(v1, max(v2, other_val))
+    return _yaw_of(curve), np.asarray(pos, np.float64), conf
+
+
+def _yaw_of(curve: np.ndarray) -> float:
+    """shift_to_yaw(peak_shift(curve[None]))[0] of one float32 curve [S]."""
+    sectors = len(curve)
+    idx = int(curve.argmax())
+    c0, cm, cp = curve[idx], curve[(idx - 1) % sectors], curve[(idx + 1) % sectors]
+    denom = cm - 2.0 * c0 + cp
+    offset = 0.5 * (cm - cp) / denom if abs(denom) > 1e-12 else np.float32(0.0)
+    a = -(idx + float(min(max(offset, np.float32(-0.5)), np.float32(0.5)))) * 360.0 / sectors
+    return a - 360.0 * math.ceil((a - 180.0) / 360.0)
+
+
+def _second_peak_of(curve: np.ndarray, best: int) -> tuple[int, float]:
+    """second_peak(curve[None], [best]) of one curve [S], as (int, float)."""
+    others = _others(len(curve), best)
+    if not len(others):
+        return 0, -np.inf
+    j = int(others[curve[others].argmax()])
+    return j, float(curve[j])
+
+
+@lru_cache(maxsize=1024)
+def _others(sectors: int, best: int) -> np.ndarray:
+    """The sectors `second_peak` looks at for a curve peaking at `best`, ascending."""
+    s = np.arange(sectors)
+    return s[np.abs((s - best + sectors // 2) % sectors - sectors // 2) > separation_bins(sectors)]
+
+
+def _margin(best: float, other: float) -> float:
+    """`margin` of two Python floats."""
+    o = max(float(other), 0.0)
+    conf = 1.0 - o / best if best > 0 else 0.0
+    return min(max(conf, 0.0), 1.0)
 
 
 def _heading(
