@@ -113,18 +113,6 @@ RowFn pick_row() {
     return row_plain;
 }
 
-// Asks for the next row's cache lines while the current one is summed: candidates lie
-// anywhere in a map of many megabytes.
-inline void prefetch_row(const float* row, std::int64_t d) {
-#ifdef DISCO_X86
-    const char* p = reinterpret_cast<const char*>(row);
-    for (std::int64_t off = 0; off < d * 4; off += 64) _mm_prefetch(p + off, _MM_HINT_T0);
-#else
-    (void)row;
-    (void)d;
-#endif
-}
-
 void sq_distances(RowFn fn, const float* x, std::int64_t d, const double* q,
                   const std::int64_t* rows, std::int64_t m, double* out) {
     for (std::int64_t i = 0; i < m; ++i) {
@@ -132,11 +120,6 @@ void sq_distances(RowFn fn, const float* x, std::int64_t d, const double* q,
             out[i] = std::numeric_limits<double>::infinity();
             continue;
         }
-        for (std::int64_t next = i + 1; next < m; ++next)
-            if (rows[next] >= 0) {
-                prefetch_row(x + rows[next] * d, d);
-                break;
-            }
         out[i] = fn(x + rows[i] * d, q, d);
     }
 }
