@@ -67,7 +67,9 @@ def test_the_levels_agree_to_the_bit(kernel):
     q, c = scenes(5, 30, 40, 120, seed=3)
     got = core.aligned_correlations(q, c)
     curves = core.yaw_curves(q[0], c[:13], yaw.ring_weights(40).astype(np.float32))
+    peaks = yaw.estimate_yaw_conf(q[0], c[:13])
     with kernel_level(0):
+        np.testing.assert_array_equal(peaks, yaw.estimate_yaw_conf(q[0], c[:13]))
         np.testing.assert_array_equal(got, core.aligned_correlations(q, c))
         np.testing.assert_array_equal(
             curves, core.yaw_curves(q[0], c[:13], yaw.ring_weights(40).astype(np.float32))
@@ -109,6 +111,22 @@ def test_yaw_curves_are_the_numpy_reference(rings, sectors, kernel, monkeypatch)
     np.testing.assert_array_equal(got.argmax(axis=1), want.argmax(axis=1))
 
 
+@pytest.mark.parametrize("rings, sectors", [(40, 120), (7, 45), (33, 64), (16, 121), (5, 12)])
+def test_yaw_conf_is_the_numpy_reference(rings, sectors, kernel, monkeypatch):
+    q, c = scenes(1, 21, rings, sectors, seed=sectors + 1)
+    c[5:9] = np.roll(q[0], 3 + sectors // 3, axis=1) * np.float32(0.5)  # turned copies
+    got_yaw, got_conf = yaw.estimate_yaw_conf(q[0], c)
+    with monkeypatch.context() as p:
+        p.setattr(yaw, "BACKEND", "numpy")
+        want_yaw, want_conf = yaw.estimate_yaw_conf(q[0], c)
+    assert got_yaw.dtype == got_conf.dtype == np.float32 and got_yaw.shape == (21,)
+    assert ((got_yaw > -180) & (got_yaw <= 180)).all()
+    np.testing.assert_allclose(yaw.wrap_deg(got_yaw - want_yaw), 0.0, atol=1e-3)
+    np.testing.assert_allclose(got_conf, want_conf, atol=1e-4)
+    empty = yaw.estimate_yaw_conf(q[0], c[:0])
+    assert empty[0].shape == empty[1].shape == (0,)
+
+
 def test_a_turned_image_gives_its_yaw_and_a_clear_margin(kernel, monkeypatch):
     # The query is the match rolled by +10 sectors of 3 degrees: yaw -30 (yaw.py's sign).
     rng = np.random.default_rng(11)
@@ -131,7 +149,7 @@ def test_the_backend_is_selectable_and_a_core_without_the_kernels_falls_back(mon
     want = numpy_scores(monkeypatch, q, c)
     want_curves = numpy_curves(monkeypatch, q[0], c)
     monkeypatch.delattr(core, "aligned_correlations")
-    monkeypatch.delattr(core, "yaw_curves")
+    monkeypatch.delattr(core, "yaw_conf")
     np.testing.assert_array_equal(verify.aligned_correlations(q, c), want)
     np.testing.assert_array_equal(yaw.correlation_curves(q[0], c), want_curves)
     monkeypatch.setattr(verify, "BACKEND", "fast")

@@ -65,43 +65,67 @@ static inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
 #pragma GCC pop_options
 #endif
 
-void check_shape(std::int64_t images, std::int64_t rings, std::int64_t sectors) {
-    if (images < 0 || rings < 1 || sectors < 1 || sectors > (1 << 20))
+void check_shape(std::int64_t images, std::int64_t stride, std::int64_t rings,
+                 std::int64_t sectors) {
+    if (images < 0 || stride < 0 || rings < 1 || sectors < 1 || sectors > (1 << 20))
         throw std::invalid_argument(
-            "sector_correlation: rings >= 1, sectors in [1, 2^20], images >= 0");
+            "sector_correlation: rings >= 1, sectors in [1, 2^20], images and stride >= 0");
 }
 
 }  // namespace
 
 void aligned_correlations(const float* queries, std::int64_t views, const float* candidates,
-                          std::int64_t count, std::int64_t rings, std::int64_t sectors,
-                          float* scores) {
-    check_shape(views, rings, sectors);
-    check_shape(count, rings, sectors);
+                          std::int64_t count, std::int64_t stride, std::int64_t rings,
+                          std::int64_t sectors, float* scores) {
+    check_shape(views, 0, rings, sectors);
+    check_shape(count, stride, rings, sectors);
     if (views == 0 || count == 0) return;
+    const auto run = [&](auto kernel) {
+        kernel(queries, views, candidates, count, stride, rings, sectors, scores);
+    };
     switch (sector_fft_level()) {
 #if DISCO_CORRELATION_X86
-        case 3: return avx512::aligned_run(queries, views, candidates, count, rings, sectors, scores);
-        case 2: return avx2::aligned_run(queries, views, candidates, count, rings, sectors, scores);
-        case 1: return sse2::aligned_run(queries, views, candidates, count, rings, sectors, scores);
+        case 3: return run(avx512::aligned_run);
+        case 2: return run(avx2::aligned_run);
+        case 1: return run(sse2::aligned_run);
 #endif
-        default: return plain::aligned_run(queries, views, candidates, count, rings, sectors, scores);
+        default: return run(plain::aligned_run);
     }
 }
 
-void yaw_curves(const float* query, const float* matches, std::int64_t count,
-                std::int64_t rings, std::int64_t sectors, const float* weights,
-                float* curves) {
-    check_shape(count, rings, sectors);
+namespace {
+
+void yaw_any(const float* query, const float* matches, std::int64_t count, std::int64_t stride,
+             std::int64_t rings, std::int64_t sectors, const float* weights, float* curves,
+             std::int64_t sep, float* yaws, float* confs) {
+    check_shape(count, stride, rings, sectors);
     if (count == 0) return;
+    const auto run = [&](auto kernel) {
+        kernel(query, matches, count, stride, rings, sectors, weights, curves, sep, yaws, confs);
+    };
     switch (sector_fft_level()) {
 #if DISCO_CORRELATION_X86
-        case 3: return avx512::yaw_run(query, matches, count, rings, sectors, weights, curves);
-        case 2: return avx2::yaw_run(query, matches, count, rings, sectors, weights, curves);
-        case 1: return sse2::yaw_run(query, matches, count, rings, sectors, weights, curves);
+        case 3: return run(avx512::yaw_run);
+        case 2: return run(avx2::yaw_run);
+        case 1: return run(sse2::yaw_run);
 #endif
-        default: return plain::yaw_run(query, matches, count, rings, sectors, weights, curves);
+        default: return run(plain::yaw_run);
     }
+}
+
+}  // namespace
+
+void yaw_curves(const float* query, const float* matches, std::int64_t count,
+                std::int64_t stride, std::int64_t rings, std::int64_t sectors,
+                const float* weights, float* curves) {
+    yaw_any(query, matches, count, stride, rings, sectors, weights, curves, 0, nullptr,
+            nullptr);
+}
+
+void yaw_conf(const float* query, const float* matches, std::int64_t count,
+              std::int64_t stride, std::int64_t rings, std::int64_t sectors,
+              const float* weights, std::int64_t sep, float* yaws, float* confs) {
+    yaw_any(query, matches, count, stride, rings, sectors, weights, nullptr, sep, yaws, confs);
 }
 
 }  // namespace disco

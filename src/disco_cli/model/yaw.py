@@ -48,7 +48,7 @@ def _kernel() -> Any:
         from disco_cli import _core
     except ImportError:
         return None
-    return _core if hasattr(_core, "yaw_curves") else None
+    return _core if hasattr(_core, "yaw_curves") and hasattr(_core, "yaw_conf") else None
 
 
 def ring_weights(rings: int) -> np.ndarray:
@@ -70,16 +70,22 @@ def shift_to_yaw(shift: np.ndarray | float, sectors: int) -> np.ndarray:
     return wrap_deg(-np.asarray(shift, dtype=np.float64) * 360.0 / sectors)
 
 
-def correlation_curves(query: np.ndarray, matches: np.ndarray, workers: int = 1) -> np.ndarray:
-    """Phase-correlation curves [K, S] of query [R, S] against matches [K, R, S]."""
+def _checked(query: np.ndarray, matches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """query [R, S] and matches [K, R, S] (or one [R, S]) in float32, or one clear error."""
     q = np.asarray(query, dtype=np.float32)
     m = np.asarray(matches, dtype=np.float32)
     if m.ndim == 2:
         m = m[None]
     if q.ndim != 2 or m.ndim != 3 or m.shape[1:] != q.shape:
         raise ValueError(f"query [R, S] and matches [K, R, S] must agree: {q.shape} vs {m.shape}")
+    return q, m
+
+
+def correlation_curves(query: np.ndarray, matches: np.ndarray, workers: int = 1) -> np.ndarray:
+    """Phase-correlation curves [K, S] of query [R, S] against matches [K, R, S]."""
+    q, m = _checked(query, matches)
     core = _kernel()
-    if core is not None and q.shape[0] > 0 and q.shape[1] > 0:
+    if core is not None and q.size > 0:
         return core.yaw_curves(q, m, _weights32(q.shape[0]))
     fq = fft.rfft(q, axis=-1, workers=workers)
     fm = fft.rfft(m, axis=-1, workers=workers)
@@ -160,7 +166,12 @@ def margin(best: np.ndarray | float, other: np.ndarray | float) -> np.ndarray:
 def estimate_yaw_conf(query: np.ndarray, matches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(`estimate_yaw`'s yaw [K], its confidence [K]: the margin between the curve's best
     peak and its best other heading)."""
-    curves = correlation_curves(query, matches)
+    q, m = _checked(query, matches)
+    core = _kernel()
+    if core is not None and q.size > 0:
+        # The same curves, peaks and margins in C++ (the tests compare the two).
+        return core.yaw_conf(q, m, _weights32(q.shape[0]), separation_bins(q.shape[1]))
+    curves = correlation_curves(q, m)
     if len(curves) == 0:
         return np.zeros(0, np.float32), np.zeros(0, np.float32)
     yaw = shift_to_yaw(peak_shift(curves), curves.shape[1]).astype(np.float32)
