@@ -115,9 +115,9 @@ void add_yaw(py::module_& m) {
             std::vector<const float*> ptrs;
             ptrs.reserve(places.size());
             for (const auto& p : places) {
-                if (p.ndim() != 2 || p.shape(0) != 2 || p.shape(1) != sectors * rings_padded)
+                if (p.ndim() != 2 || p.shape(0) != 2 || p.shape(1) != sectors * rings)
                     throw py::value_error(
-                        "each view's places must be float32 [2, sectors * rings_padded]");
+                        "each view's places must be float32 [2, sectors * rings]");
                 ptrs.push_back(p.data());
             }
             const std::int64_t rows = table.size() / (4 * (width - 1)) + 1;
@@ -210,9 +210,9 @@ void add_yaw(py::module_& m) {
                             continue;
                         }
                         auto a = py::reinterpret_borrow<py::object>(p).cast<F32>();
-                        if (a.ndim() != 2 || a.shape(0) != 2 || a.shape(1) != sectors * rings_padded)
+                        if (a.ndim() != 2 || a.shape(0) != 2 || a.shape(1) != sectors * rings)
                             throw py::value_error(
-                                "each view's places must be float32 [2, sectors * rings_padded]");
+                                "each view's places must be float32 [2, sectors * rings]");
                         fresh.push_back(f);
                         arrays.push_back(std::move(a));
                     }

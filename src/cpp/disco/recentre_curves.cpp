@@ -46,13 +46,12 @@ void resample_cells(const RecentreImage& im, const float* ring, const float* sec
     }
 }
 
-// One view's rings < R of every sector (its places [2][S * Rp], sector-major).
+// One view: its places [2][S][R] (sector-major), its cells written to o [S][Rp].
 void resample_plain(const RecentreImage& im, const float* places, Limits lim, float* o) {
-    const std::int64_t cells = im.sectors * im.rings_padded;
-    for (std::int64_t s = 0; s < im.sectors; ++s) {
-        const std::int64_t c = s * im.rings_padded;
-        resample_cells(im, places, places + cells, c, c + im.rings, lim, o);
-    }
+    const std::int64_t R = im.rings, cells = im.sectors * R;
+    for (std::int64_t s = 0; s < im.sectors; ++s)
+        resample_cells(im, places + s * R, places + cells + s * R, 0, R, lim,
+                       o + s * im.rings_padded);
 }
 
 namespace plain {
@@ -64,6 +63,12 @@ static inline void resample_view(const RecentreImage& im, const float* places, L
     resample_plain(im, places, lim, o);
 }
 #include "disco/sector_fft.inc"
+// The spectra of a vector of rings, `rings` of them not padding.
+static inline void rfft_block(const SectorPlan& plan, const float* in, std::int64_t in_stride,
+                              float* re, float* im, std::int64_t out_stride, float* work,
+                              std::int64_t) {
+    rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
+}
 #include "disco/recentre_curves.inc"
 }  // namespace plain
 
@@ -77,6 +82,12 @@ static inline void resample_view(const RecentreImage& im, const float* places, L
     resample_plain(im, places, lim, o);
 }
 #include "disco/sector_fft.inc"
+// The spectra of a vector of rings, `rings` of them not padding.
+static inline void rfft_block(const SectorPlan& plan, const float* in, std::int64_t in_stride,
+                              float* re, float* im, std::int64_t out_stride, float* work,
+                              std::int64_t) {
+    rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
+}
 #include "disco/recentre_curves.inc"
 }  // namespace sse2
 
@@ -86,23 +97,22 @@ namespace avx2 {
 constexpr int W = 8;
 typedef float vf __attribute__((vector_size(32)));
 static inline vf vsqrt(vf x) { return (vf)_mm256_sqrt_ps((__m256)x); }
-// Eight cells at once: each cell's quad is one 16-byte load, two cells to a register,
-// and four registers transposed within their halves give the cells' four values in
-// order. The same arithmetic as resample_cells.
+// Eight cells at once: each cell's quad is one 16-byte load, cells c and c + 4 to a
+// register, and four registers transposed within their halves give the cells' four
+// values in order. The same arithmetic as resample_cells.
 static void resample_view(const RecentreImage& im, const float* places, Limits lim,
                           float* o) {
-    const std::int64_t cells = im.sectors * im.rings_padded;
-    const float* ring = places;
-    const float* sector = places + cells;
+    const std::int64_t R = im.rings, cells = im.sectors * R;
     const float* quads = im.quads;
     const __m256 zero = _mm256_setzero_ps();
     const __m256 ring_lim = _mm256_set1_ps(lim.ring), sector_lim = _mm256_set1_ps(lim.sector);
     const __m256i rq = _mm256_set1_epi32(static_cast<std::int32_t>(im.rows - 1));
-    alignas(32) std::int32_t at[8];
     for (std::int64_t s = 0; s < im.sectors; ++s) {
-        const std::int64_t c0 = s * im.rings_padded, end = c0 + im.rings;
-        std::int64_t c = c0;
-        for (; c + 8 <= end; c += 8) {
+        const float* ring = places + s * R;
+        const float* sector = places + cells + s * R;
+        float* out = o + s * im.rings_padded;
+        std::int64_t c = 0;
+        for (; c + 8 <= R; c += 8) {
             const __m256 rf = _mm256_loadu_ps(ring + c);
             const __m256 sf = _mm256_loadu_ps(sector + c);
             const __m256 ok = _mm256_and_ps(
@@ -115,15 +125,23 @@ static void resample_view(const RecentreImage& im, const float* places, Limits l
             const __m256i s0 = _mm256_cvttps_epi32(sf);
             const __m256 fr = _mm256_sub_ps(rf, _mm256_cvtepi32_ps(r0));
             const __m256 fs = _mm256_sub_ps(sf, _mm256_cvtepi32_ps(s0));
-            _mm256_store_si256(reinterpret_cast<__m256i*>(at),
-                               _mm256_slli_epi32(_mm256_add_epi32(_mm256_mullo_epi32(s0, rq), r0), 2));
-            __m256 q[4];
-#pragma GCC unroll 4
-            for (int i = 0; i < 4; ++i)
-                q[i] = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(quads + at[i])),
-                                            _mm_loadu_ps(quads + at[4 + i]), 1);
-            const __m256 t0 = _mm256_unpacklo_ps(q[0], q[1]), t1 = _mm256_unpackhi_ps(q[0], q[1]);
-            const __m256 t2 = _mm256_unpacklo_ps(q[2], q[3]), t3 = _mm256_unpackhi_ps(q[2], q[3]);
+            const __m256i k =
+                _mm256_slli_epi32(_mm256_add_epi32(_mm256_mullo_epi32(s0, rq), r0), 2);
+            const __m128i lo = _mm256_castsi256_si128(k), hi = _mm256_extracti128_si256(k, 1);
+            const __m256 q0 = _mm256_insertf128_ps(
+                _mm256_castps128_ps256(_mm_loadu_ps(quads + _mm_cvtsi128_si32(lo))),
+                _mm_loadu_ps(quads + _mm_cvtsi128_si32(hi)), 1);
+            const __m256 q1 = _mm256_insertf128_ps(
+                _mm256_castps128_ps256(_mm_loadu_ps(quads + _mm_extract_epi32(lo, 1))),
+                _mm_loadu_ps(quads + _mm_extract_epi32(hi, 1)), 1);
+            const __m256 q2 = _mm256_insertf128_ps(
+                _mm256_castps128_ps256(_mm_loadu_ps(quads + _mm_extract_epi32(lo, 2))),
+                _mm_loadu_ps(quads + _mm_extract_epi32(hi, 2)), 1);
+            const __m256 q3 = _mm256_insertf128_ps(
+                _mm256_castps128_ps256(_mm_loadu_ps(quads + _mm_extract_epi32(lo, 3))),
+                _mm_loadu_ps(quads + _mm_extract_epi32(hi, 3)), 1);
+            const __m256 t0 = _mm256_unpacklo_ps(q0, q1), t1 = _mm256_unpackhi_ps(q0, q1);
+            const __m256 t2 = _mm256_unpacklo_ps(q2, q3), t3 = _mm256_unpackhi_ps(q2, q3);
             const __m256d d0 = _mm256_castps_pd(t0), d1 = _mm256_castps_pd(t1);
             const __m256d d2 = _mm256_castps_pd(t2), d3 = _mm256_castps_pd(t3);
             const __m256 a0 = _mm256_castpd_ps(_mm256_unpacklo_pd(d0, d2));
@@ -132,12 +150,19 @@ static void resample_view(const RecentreImage& im, const float* places, Limits l
             const __m256 b1 = _mm256_castpd_ps(_mm256_unpackhi_pd(d1, d3));
             const __m256 near = _mm256_add_ps(a0, _mm256_mul_ps(_mm256_sub_ps(a1, a0), fs));
             const __m256 far = _mm256_add_ps(b0, _mm256_mul_ps(_mm256_sub_ps(b1, b0), fs));
-            _mm256_storeu_ps(o + c, _mm256_add_ps(near, _mm256_mul_ps(_mm256_sub_ps(far, near), fr)));
+            _mm256_storeu_ps(out + c,
+                             _mm256_add_ps(near, _mm256_mul_ps(_mm256_sub_ps(far, near), fr)));
         }
-        resample_cells(im, ring, sector, c, end, lim, o);
+        resample_cells(im, ring, sector, c, R, lim, out);
     }
 }
 #include "disco/sector_fft.inc"
+// The spectra of a vector of rings, `rings` of them not padding.
+static inline void rfft_block(const SectorPlan& plan, const float* in, std::int64_t in_stride,
+                              float* re, float* im, std::int64_t out_stride, float* work,
+                              std::int64_t) {
+    rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
+}
 #include "disco/recentre_curves.inc"
 }  // namespace avx2
 #pragma GCC pop_options
@@ -158,6 +183,16 @@ static inline void resample_view(const RecentreImage& im, const float* places, L
     avx2::resample_view(im, places, lim, o);
 }
 #include "disco/sector_fft.inc"
+// The spectra of a vector of rings, `rings` of them not padding: eight or fewer (the
+// last of 40) as AVX2's eight lanes, the same values in half the work.
+static inline void rfft_block(const SectorPlan& plan, const float* in, std::int64_t in_stride,
+                              float* re, float* im, std::int64_t out_stride, float* work,
+                              std::int64_t rings) {
+    if (rings <= 8)
+        avx2::rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
+    else
+        rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
+}
 #include "disco/recentre_curves.inc"
 }  // namespace avx512
 #pragma GCC diagnostic pop

@@ -30,9 +30,9 @@ struct RecentreImage {
 void recentre_table(const float* padded, std::int64_t rows, std::int64_t width, float* quads);
 
 // curves[v, s] (float32 [views][sectors]) for each view v of `places`. A view's places
-// are float32 [2][sectors][rings_padded]: for cell (sector, ring), the fractional ring
-// and sector it reads in the padded table, as polar_resample.hpp's places but
-// sector-major (the padding rings' places are not read; they hold 0). Per view:
+// are float32 [2][sectors][rings]: for cell (sector, ring), the fractional ring and
+// sector it reads in the padded table, as polar_resample.hpp's places but sector-major.
+// Per view:
 //   X[r, k] = rfft of the view's ring r along sectors, M[r, k] the match's,
 //   C = X conj(M), floor = 1e-3 max |C| + 1e-12 (in float32, as NumPy rounds it),
 //   Y[k] = sum over r of C weight[r] / (|C| + floor), the rings summed in 16 lanes

@@ -196,14 +196,10 @@ def _places_at(
 
 
 def _lane_places(places: list, rings: int, sectors: int) -> list:
-    """`_places`' tables [2, R * S] as the compiled kernel reads them: [2, S * Rp],
-    sector-major, the rings padded to Rp (`_padded_rings`) with places (0, 0), which
-    read the zero ring in front of the image."""
-    rp = _padded_rings(rings)
+    """`_places`' tables [2, R * S] as the compiled kernel reads them: [2, S * R],
+    sector-major."""
     both = np.stack(places).reshape(len(places), 2, rings, sectors)
-    out = np.zeros((len(places), 2, sectors, rp), np.float32)
-    out[..., :rings] = both.transpose(0, 1, 3, 2)
-    return list(out.reshape(len(places), 2, sectors * rp))
+    return list(np.ascontiguousarray(both.transpose(0, 1, 3, 2)).reshape(len(places), 2, -1))
 
 
 def recentre_kept(image: np.ndarray, positions: np.ndarray, max_range: float) -> np.ndarray:
@@ -427,25 +423,23 @@ class _Views:
 
     def _core_ncc(self, position: np.ndarray, shift: int) -> float:
         """`_aligned_ncc` with the view read from the kernel's places (no second table
-        for the position), sector-major as they lie, its padding rings 0, against the
-        match turned by +shift (the view turned by -shift), from sums in float64:
-        sum(a m') = sum(v m') - mean(v) sum(m') and sum(a a) = sum(v v) - n mean(v)^2,
-        a = v - mean(v) and m' the centred match."""
+        for the position), sector-major as they lie, against the match turned by +shift
+        (the view turned by -shift), from sums in float64: sum(a m') = sum(v m') -
+        mean(v) sum(m') and sum(a a) = sum(v v) - n mean(v)^2, a = v - mean(v) and m'
+        the centred match."""
         rings, sectors = self.q.shape
-        rp = _padded_rings(rings)
         cells = np.rint((np.asarray(position)[None] + LATTICE_REACH) / LATTICE_STEP)
         cells = cells.astype(np.int64)
         q = self.query
         places = _places_at(rings, sectors, q.max_range, _flat(cells), _metres(cells), True)
-        view = self.core.resample_views(q.padded, 2 * sectors + 1, places, sectors * rp)[0]
+        n = rings * sectors
+        view = self.core.resample_views(q.padded, 2 * sectors + 1, places, n)[0]
         if not hasattr(self, "m_turns"):
-            m = np.zeros((2 * sectors, rp), np.float64)  # twice: any turn is one slice
-            m[:sectors, :rings] = m[sectors:, :rings] = self.m_centred.T
+            m = np.concatenate([self.m_centred.T] * 2).astype(np.float64)  # any turn: a slice
             self.m_turns, self.m_sum = m.reshape(-1), float(self.m_centred.sum(dtype=np.float64))
         v = view.astype(np.float64)
-        n = rings * sectors
         mean = float(v.sum()) / n
-        m = self.m_turns[(sectors - shift) * rp : (2 * sectors - shift) * rp]
+        m = self.m_turns[(sectors - shift) * rings : (2 * sectors - shift) * rings]
         norm = np.sqrt(max(float(v @ v) - n * mean * mean, 0.0)) * self.m_norm
         return (float(v @ m) - mean * self.m_sum) / norm if norm > 0 else 0.0
 
