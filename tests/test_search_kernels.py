@@ -145,15 +145,16 @@ def test_each_level_runs_its_own_kernel(kernel: int) -> None:
     flags = _cpu_flags()
     if "avx2" not in flags:
         pytest.skip("the AVX2 and AVX-512 kernels are x86's")
-    int8, exact = _core.search_kernel_names()
+    int8, exact, projected = _core.search_kernel_names()
     if kernel >= 3:
-        assert exact == "avx512"
+        assert exact == projected == "avx512"
         vnni = {"avx512f", "avx512bw", "avx512_vnni"} <= flags
         assert int8 == ("avx512vnni" if vnni else "avx2")
     elif kernel == 2:
         assert (int8, exact) == ("avx2", "avx2")
+        assert projected == ("avx2" if "fma" in flags else "plain")
     else:
-        assert (int8, exact) == ("plain", "plain")
+        assert (int8, exact, projected) == ("plain", "plain", "plain")
 
 
 def _grid_signatures(kind: str, n: int, dim: int) -> np.ndarray:
@@ -195,7 +196,9 @@ def test_projected_search_reranks_its_candidates_exactly(kernel: int) -> None:
     limit = np.array([3000, 2000, 50, 3000])
     exclude = rng.random(3000) < 0.2
     rows, dists = proj.search(queries, 10, limit=limit, exclude=exclude)
-    approx = (queries - proj.mean) @ proj.axes @ proj.projected_t * np.float32(-2.0) + proj.sq
+    # The projections as one [p, N] matrix, multiplied by BLAS as before the tiles.
+    projected_t = proj.tiles.transpose(1, 0, 2).reshape(16, -1)[:, :3000]
+    approx = (queries - proj.mean) @ proj.axes @ projected_t * np.float32(-2.0) + proj.sq
     approx[np.arange(3000)[None] >= limit[:, None]] = np.inf
     approx[:, exclude] = np.inf
     cand = smallest_per_row(approx, 40)
@@ -205,3 +208,27 @@ def test_projected_search_reranks_its_candidates_exactly(kernel: int) -> None:
         np.testing.assert_array_equal(rows[i, : len(want_r)], want_r)
         np.testing.assert_allclose(dists[i, : len(want_d)], want_d, rtol=1e-12, atol=0)
         assert (rows[i, len(want_r) :] == -1).all()
+
+
+@pytest.mark.parametrize(("n", "p", "b"), [(1, 1, 1), (63, 5, 2), (64, 96, 4), (1000, 96, 6)])
+def test_projected_approx_same_bits_at_every_level(n: int, p: int, b: int, kernel: int) -> None:
+    """The views' first pass: one fused multiply-add per axis in axis order on every
+    level (the plain kernel's std::fma included), near the float64 value."""
+    rng = np.random.default_rng(n + p)
+    projected = rng.normal(size=(n, p)).astype(np.float32)
+    tiles = np.zeros((-(-n // 64) * 64, p), np.float32)
+    tiles[:n] = projected
+    tiles = np.ascontiguousarray(tiles.reshape(-1, 64, p).transpose(0, 2, 1))
+    sq = rng.uniform(10, 20, size=n).astype(np.float32)
+    pq = rng.normal(size=(b, p)).astype(np.float32)
+    got = _core.projected_approx(tiles, sq, pq)
+    with kernel_level(0):
+        plain = _core.projected_approx(tiles, sq, pq)
+    np.testing.assert_array_equal(got, plain)
+    want = sq - 2.0 * (pq.astype(np.float64) @ projected.T.astype(np.float64))
+    scale = np.abs(pq).astype(np.float64) @ np.abs(projected.T).astype(np.float64) + sq
+    assert (np.abs(got - want) <= 1e-5 * scale).all()
+    with pytest.raises(ValueError, match="tiles"):
+        _core.projected_approx(tiles, np.zeros(n + 64, np.float32), pq)
+    with pytest.raises(ValueError, match="q must be"):
+        _core.projected_approx(tiles, sq, np.zeros((b, p + 1), np.float32))

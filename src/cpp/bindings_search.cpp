@@ -10,6 +10,7 @@
 
 #include "disco/exact_search.hpp"
 #include "disco/int8_search.hpp"
+#include "disco/projected_search.hpp"
 
 #include "bindings.hpp"
 
@@ -159,11 +160,32 @@ void add_search(py::module_& m) {
         py::arg("x"), py::arg("q"), py::arg("rows"),
         "|x[rows[i]] - q|^2 in float64 (inf for a negative row)");
     m.def(
+        "projected_approx",
+        [](const F32& tiles, const F32& sq, const F32& q) {
+            const auto n = sq.size();
+            const auto t = (n + disco::kProjectedTile - 1) / disco::kProjectedTile;
+            if (tiles.ndim() != 3 || tiles.shape(0) != t || tiles.shape(2) != disco::kProjectedTile)
+                throw py::value_error("tiles must be [ceil(n / 64), p, 64] float32 for sq [n]");
+            const auto p = tiles.shape(1);
+            if (q.ndim() != 2 || q.shape(1) != p) throw py::value_error("q must be [b, p] float32");
+            F32 out({q.shape(0), n});
+            {
+                py::gil_scoped_release release;
+                disco::projected_approx(tiles.data(), p, n, sq.data(), q.data(), q.shape(0),
+                                        out.mutable_data());
+            }
+            return out;
+        },
+        py::arg("tiles"), py::arg("sq"), py::arg("q"),
+        "sq[j] - 2 q[i] . x_j (float32) for every projected row x_j held in column tiles");
+    m.def(
         "search_kernel_names",
         []() {
-            return py::make_tuple(disco::int8_kernel_name(), disco::exact_kernel_name());
+            return py::make_tuple(disco::int8_kernel_name(), disco::exact_kernel_name(),
+                                  disco::projected_kernel_name());
         },
-        "The kernels that int8_candidates and exact_topk run now, under the level cap");
+        "The kernels that int8_candidates, exact_topk and projected_approx run now, under "
+        "the level cap");
 }
 
 }  // namespace disco_bindings

@@ -340,6 +340,9 @@ PROJECTED_DIMS = 96
 PROJECTED_WIDEN = 4
 # The principal axes come from at most this many rows, evenly spaced over the map.
 PROJECTED_SAMPLE = 2048
+# The projections are held in tiles of this many rows (`_core.projected_approx` reads
+# one tile, [PROJECTED_DIMS, PROJECTED_TILE], at a time: the whole pass in memory order).
+PROJECTED_TILE = 64
 
 
 class ProjectedSignatures:
@@ -372,7 +375,12 @@ class ProjectedSignatures:
             + m64 @ m64
         )
         self.sq = centred_sq.astype(np.float32)
-        self.projected_t = np.ascontiguousarray(projected.T)  # [p, N]: one GEMM per batch
+        # [ceil(N / PROJECTED_TILE), p, PROJECTED_TILE], zeros past the last row.
+        tiles = np.zeros((-(-n // PROJECTED_TILE) * PROJECTED_TILE, projected.shape[1]), np.float32)
+        tiles[:n] = projected
+        self.tiles = np.ascontiguousarray(
+            tiles.reshape(-1, PROJECTED_TILE, projected.shape[1]).transpose(0, 2, 1)
+        )
 
     def search(
         self, queries: np.ndarray, k: int, limit: Any = None, exclude: Any = None
@@ -381,9 +389,7 @@ class ProjectedSignatures:
         q = np.atleast_2d(np.asarray(queries, np.float32))
         b, n = len(q), len(self.matrix)
         pq = (q - self.mean) @ self.axes
-        approx = pq @ self.projected_t  # [B, N]: the distance less |pq|^2, per row
-        approx *= -2.0
-        approx += self.sq
+        approx = self._approx(pq)  # [B, N]: the distance less |pq|^2, per row
         if limit is not None:
             lim = np.broadcast_to(np.asarray(limit, np.int64), (b,))
             approx[np.arange(n)[None] >= lim[:, None]] = np.inf
@@ -398,6 +404,25 @@ class ProjectedSignatures:
         # Rows past the limit or excluded (infinite here) are not candidates.
         cand[~np.isfinite(np.take_along_axis(approx, cand, axis=1))] = -1
         return exact_topk(self.matrix, q, cand, k)
+
+    def _approx(self, pq: np.ndarray) -> np.ndarray:
+        """sq - 2 pq . x for every row (float32 [B, N]). The core sums each dot product
+        with one fused multiply-add per axis in axis order, as a BLAS sgemm does (NumPy's
+        OpenBLAS gives the same bits), from tiles in memory order; without its SIMD
+        kernels (a plain level, or no core) NumPy multiplies tile by tile."""
+        try:
+            from disco_cli import _core  # deferred: a core without it falls back to NumPy
+
+            fast = _core.search_kernel_names()[2] != "plain"
+        except (ImportError, AttributeError):
+            fast = False
+        if fast:
+            return _core.projected_approx(self.tiles, self.sq, np.ascontiguousarray(pq))
+        dots = np.matmul(pq, self.tiles)  # [T, B, PROJECTED_TILE]
+        approx = dots.transpose(1, 0, 2).reshape(len(pq), -1)[:, : len(self.sq)]
+        approx *= -2.0
+        approx += self.sq
+        return approx
 
 
 # `smallest_per_row` looks at every SAMPLE_STRIDE-th value first: a row's k smallest all
