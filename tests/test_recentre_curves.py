@@ -179,3 +179,25 @@ def test_one_curve_steps_are_yaw_pys():
             assert yaw_refine._second_peak_of(curve, best) == (int(idx[0]), float(val[0]))
             a, b = float(curve.max()), float(val[0])
             assert yaw_refine._margin(a, b) == float(margin(a, b))
+
+
+@pytest.mark.parametrize("shape", [(40, 120), (33, 60)])
+def test_plain_correlations_are_the_numpy_references(shape, kernel):
+    """`_core.recentre_nccs` (the heading check's evidence) against yaw_refine's NumPy
+    `_aligned_ncc`: the view turned by -shift, both images centred."""
+    q, m = images(*shape, seed=5)
+    rings, sectors = shape
+    positions = POSITIONS[:6]
+    shifts = [0, 9, sectors - 1, 17, 3, sectors // 2]
+    places = yaw_refine._places(rings, sectors, MAX_RANGE, positions)
+    views = yaw_refine._resample(yaw_refine._padded(q), places, q.shape)
+    want = []
+    for view, shift in zip(views, shifts):
+        a = np.roll(view, -shift, axis=1).astype(np.float64)
+        a -= a.mean()
+        b = m.astype(np.float64) - m.mean(dtype=np.float64)
+        want.append((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+    table = core.recentre_table(yaw_refine._padded(q), 2 * sectors + 1)
+    lanes = yaw_refine._lane_places(places, rings, sectors)
+    got = core.recentre_nccs(table, 2 * sectors + 1, lanes, m, shifts)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)

@@ -136,6 +136,33 @@ void add_yaw(py::module_& m) {
         py::arg("table"), py::arg("width"), py::arg("places"), py::arg("match"),
         py::arg("weights"), py::arg("rings_padded"),
         "Phase-correlation curves [views, S] of re-centred views against one match");
+    m.def(
+        "recentre_nccs",
+        [](const F32& table, std::int64_t width, const std::vector<F32>& places,
+           const F32& match, const std::vector<std::int64_t>& shifts) {
+            if (table.ndim() != 1 || width < 2 || table.size() % (4 * (width - 1)) != 0 ||
+                table.size() == 0)
+                throw py::value_error("table must be recentre_table's of rows of width");
+            if (match.ndim() != 2 || places.size() != shifts.size())
+                throw py::value_error("match must be float32 [R, S], one shift per view");
+            const std::int64_t rings = match.shape(0), sectors = match.shape(1);
+            for (const auto& p : places)
+                if (p.ndim() != 2 || p.shape(0) != 2 || p.shape(1) != sectors * rings)
+                    throw py::value_error("each view's places must be float32 [2, sectors * rings]");
+            const std::int64_t rows = table.size() / (4 * (width - 1)) + 1;
+            const disco::RecentreImage image{table.data(), rows,    width,
+                                             rings,        sectors, (rings + 15) / 16 * 16};
+            std::vector<double> out(places.size());
+            {
+                py::gil_scoped_release release;
+                for (std::size_t i = 0; i < places.size(); ++i)
+                    out[i] = disco::recentre_ncc(image, places[i].data(), match.data(), shifts[i]);
+            }
+            return out;
+        },
+        py::arg("table"), py::arg("width"), py::arg("places"), py::arg("match"), py::arg("shifts"),
+        "Normalized correlations of views turned by -shift with the match (float64)");
+
     // --- the re-centring searches (yaw_refine._Views.core_searches): each round's
     // candidates, the new ones' curves (recentre_curves, GIL released) and each search's
     // best, for all of a call's searches side by side. The places come from the kept

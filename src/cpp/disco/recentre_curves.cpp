@@ -223,6 +223,36 @@ void check(const RecentreImage& image) {
 
 }  // namespace
 
+double recentre_ncc(const RecentreImage& image, const float* places, const float* match,
+                    std::int64_t shift) {
+    check(image);
+    const std::int64_t R = image.rings, S = image.sectors, n = R * S;
+    const Limits lim{static_cast<float>(image.rows - 1), static_cast<float>(image.width - 1)};
+    std::vector<float> view(static_cast<std::size_t>(n));
+    RecentreImage dense = image;
+    dense.rings_padded = R;  // the view written [S][R]
+#if DISCO_RECENTRE_X86
+    if (sector_fft_level() >= 2)
+        avx2::resample_view(dense, places, lim, view.data());
+    else
+#endif
+        resample_plain(dense, places, lim, view.data());
+    double sv = 0.0, sm = 0.0;
+    for (std::int64_t i = 0; i < n; ++i) sv += view[i], sm += match[i];
+    const double mv = sv / static_cast<double>(n), mm = sm / static_cast<double>(n);
+    double aa = 0.0, bb = 0.0, ab = 0.0;
+    shift = ((shift % S) + S) % S;
+    for (std::int64_t s = 0; s < S; ++s) {
+        const std::int64_t t = (s - shift + S) % S;  // the match's sector under view sector s
+        for (std::int64_t r = 0; r < R; ++r) {
+            const double a = view[s * R + r] - mv, b = match[r * S + t] - mm;
+            aa += a * a, bb += b * b, ab += a * b;
+        }
+    }
+    const double norm = std::sqrt(aa) * std::sqrt(bb);
+    return norm > 0.0 ? ab / norm : 0.0;
+}
+
 void recentre_match(const RecentreImage& image, const float* match, float* spectrum) {
     check(image);
     switch (sector_fft_level()) {

@@ -389,7 +389,7 @@ class _Views:
         rings, sectors = self.q.shape
         q = self.query
         coarse = [_coarse_flat(reach) for _, reach in specs]
-        windows = [window for window, _ in specs]
+        windows = [None if w is None else w.tolist() for w, _ in specs]
         more: dict[int, np.ndarray] = {}  # places computed here, kept or not
         while True:
             kept_places = _places_kept.setdefault((rings, sectors, q.max_range), {})
@@ -404,8 +404,12 @@ class _Views:
             cells = np.stack([index // _LATTICE_SIDE, index % _LATTICE_SIDE], axis=1)
             places = _places_at(rings, sectors, q.max_range, index, _metres(cells), lanes=True)
             more.update(zip((index + _LATTICE_SIDE**2).tolist(), places))
-        side = _LATTICE_SIDE
-        return [(_metres(np.array([divmod(f, side)]))[0], v, self.kept[f].copy()) for f, v in found]
+        step, reach, side = LATTICE_STEP, LATTICE_REACH, _LATTICE_SIDE  # _metres of each
+        return [
+            (np.array([f // side * step - reach, f % side * step - reach], np.float32), v,
+             self.kept[f].copy())
+            for f, v in found
+        ]  # fmt: skip
 
     def view(self, position: np.ndarray) -> np.ndarray:
         """The query re-centred at one lattice `position` [2] (m)."""
@@ -414,34 +418,27 @@ class _Views:
         return self.query.views(_flat(cells), _metres(cells))[0]
 
     def core_aligned_ncc(self, position: np.ndarray, shift: int) -> float:
-        """`_core_ncc`, kept per position and shift (a heading's two searches often
-        end on the same)."""
+        """`_aligned_ncc` in C++ (`_core.recentre_nccs`, float64 sums), kept per position
+        and turn (a heading's two searches often end on the same)."""
         key = (float(position[0]), float(position[1]), shift)
         if key not in self.nccs:
-            self.nccs[key] = self._core_ncc(position, shift)
+            self.core_nccs([(position, shift)])
         return self.nccs[key]
 
-    def _core_ncc(self, position: np.ndarray, shift: int) -> float:
-        """`_aligned_ncc` with the view read from the kernel's places (no second table
-        for the position), sector-major as they lie, against the match turned by +shift
-        (the view turned by -shift), from sums in float64: sum(a m') = sum(v m') -
-        mean(v) sum(m') and sum(a a) = sum(v v) - n mean(v)^2, a = v - mean(v) and m'
-        the centred match."""
+    def core_nccs(self, turns: list[tuple[np.ndarray, int]]) -> None:
+        """Works out and keeps `core_aligned_ncc` of (position, shift) `turns` at once."""
+        todo = {(float(p[0]), float(p[1]), shift) for p, shift in turns} - self.nccs.keys()
+        if not todo:
+            return
+        keys = sorted(todo)
         rings, sectors = self.q.shape
-        cells = np.rint((np.asarray(position)[None] + LATTICE_REACH) / LATTICE_STEP)
+        cells = np.rint((np.array([k[:2] for k in keys]) + LATTICE_REACH) / LATTICE_STEP)
         cells = cells.astype(np.int64)
         q = self.query
         places = _places_at(rings, sectors, q.max_range, _flat(cells), _metres(cells), True)
-        n = rings * sectors
-        view = self.core.resample_views(q.padded, 2 * sectors + 1, places, n)[0]
-        if not hasattr(self, "m_turns"):
-            m = np.concatenate([self.m_centred.T] * 2).astype(np.float64)  # any turn: a slice
-            self.m_turns, self.m_sum = m.reshape(-1), float(self.m_centred.sum(dtype=np.float64))
-        v = view.astype(np.float64)
-        mean = float(v.sum()) / n
-        m = self.m_turns[(sectors - shift) * rings : (2 * sectors - shift) * rings]
-        norm = np.sqrt(max(float(v @ v) - n * mean * mean, 0.0)) * self.m_norm
-        return (float(v @ m) - mean * self.m_sum) / norm if norm > 0 else 0.0
+        shifts = [k[2] for k in keys]
+        nccs = self.core.recentre_nccs(q.quads(self.core), 2 * sectors + 1, places, self.m, shifts)
+        self.nccs.update(zip(keys, nccs))
 
 
 def _images(query: np.ndarray, match: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -553,6 +550,7 @@ def _refine_checked_core(views: _Views, check_below: float) -> tuple[float, np.n
         windows = [(c + np.arange(-2, 3)) % sectors for c in (best, other)]
         specs = [(w, r) for w in windows for r in (COARSE_REACH, CHECK_REACH)]
         found = views.core_searches(specs)
+        views.core_nccs([(p, _turned(c, windows[i // 2])[1]) for i, (p, _, c) in enumerate(found)])
         v1, ncc1, _, _ = _heading(views, windows[0], found[:2])
         v2, ncc2, pos2, curve2 = _heading(views, windows[1], found[2:])
         v1 = max(v1, val)
@@ -604,15 +602,21 @@ def _heading(
     two searches `found` (as wide as the first, and reaching CHECK_REACH): (its highest
     phase-correlation peak, the higher plain correlation of their re-centred views, the
     position and curve, peak kept in the window, of the search with that peak)."""
-    sectors = views.q.shape[1]
     best_val, best_ncc, best_pos, best_curve = -np.inf, -np.inf, None, None
     for p, v, c in found:
-        inside = np.full(sectors, c[window].min(), c.dtype)  # the peak stays in the window
-        inside[window] = c[window]
-        best_ncc = max(best_ncc, _aligned_ncc(views, p, int(np.argmax(inside))))
+        inside, shift = _turned(c, window)
+        best_ncc = max(best_ncc, _aligned_ncc(views, p, shift))
         if v > best_val:
             best_val, best_pos, best_curve = v, p, inside
     return best_val, best_ncc, best_pos, best_curve
+
+
+def _turned(curve: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, int]:
+    """(the curve with its peak kept in `window`: elsewhere the window's least, its
+    argmax)."""
+    inside = np.full(len(curve), curve[window].min(), curve.dtype)
+    inside[window] = curve[window]
+    return inside, int(np.argmax(inside))
 
 
 def _aligned_ncc(views: _Views, position: np.ndarray, shift: int) -> float:
