@@ -45,7 +45,14 @@ def scenes(views: int, count: int, rings: int, sectors: int, seed: int):
 
 @pytest.mark.parametrize(
     "views, count, rings, sectors",
-    [(5, 30, 40, 120), (5, 10, 40, 120), (1, 17, 7, 45), (6, 5, 33, 64), (2, 40, 16, 121)],
+    [
+        (5, 30, 40, 120),
+        (5, 10, 40, 120),
+        (1, 17, 7, 45),
+        (6, 5, 33, 64),
+        (2, 40, 16, 121),
+        (3, 6, 2, 6),
+    ],
 )
 def test_aligned_correlations_are_the_numpy_reference(
     views, count, rings, sectors, kernel, monkeypatch
