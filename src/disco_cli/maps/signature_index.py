@@ -396,10 +396,8 @@ class ProjectedSignatures:
         if exclude is not None:
             approx[np.broadcast_to(np.asarray(exclude, bool), (b, n))] = np.inf
         wide = min(n, max(k, 0) * PROJECTED_WIDEN)
-        rows = np.full((b, max(k, 0)), -1, np.int64)
-        dists = np.full((b, max(k, 0)), np.inf)
         if wide == 0:
-            return rows, dists
+            return np.full((b, max(k, 0)), -1, np.int64), np.full((b, max(k, 0)), np.inf)
         cand = smallest_per_row(approx, wide)  # [B, wide]
         # Rows past the limit or excluded (infinite here) are not candidates.
         cand[~np.isfinite(np.take_along_axis(approx, cand, axis=1))] = -1
