@@ -3,7 +3,8 @@ stage that uses it).
 
 Distances are Euclidean; the result is the same as a plain float64 brute force
 (ties broken by row). Two first passes find the rows that can be in the top k, and
-those are re-measured directly in float64:
+those are re-measured directly in float64 (`exact_topk`: the compiled core reads them
+in place, `src/cpp/disco/exact_search.hpp`):
 
 - small maps: one BLAS matrix product (`||q||^2 - 2 q.d + ||d||^2`) in float32, and
   every row within a proven rounding bound of the k-th is re-measured;
