@@ -228,10 +228,17 @@ def _coarse_cells(reach: float = COARSE_REACH, side: float = SIDE_REACH) -> np.n
     return np.rint((metres + LATTICE_REACH) / LATTICE_STEP).astype(np.int64)
 
 
-@lru_cache(maxsize=8)
+_coarse_flats: dict[float, tuple[np.ndarray, list[int]]] = {}
+
+
 def _coarse_flat(reach: float) -> list[int]:
-    """`_coarse_cells(reach)` as flat lattice indices."""
-    return _flat(_coarse_cells(reach)).tolist()
+    """`_coarse_cells(reach)` as flat lattice indices, kept while that grid is the one
+    `_coarse_cells` keeps (a test may change it and clear its cache)."""
+    cells = _coarse_cells(reach)
+    kept = _coarse_flats.get(reach)
+    if kept is None or kept[0] is not cells:
+        kept = _coarse_flats[reach] = (cells, _flat(cells).tolist())
+    return kept[1]
 
 
 def _padded(img: np.ndarray) -> np.ndarray:
