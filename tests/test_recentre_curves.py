@@ -201,3 +201,19 @@ def test_plain_correlations_are_the_numpy_references(shape, kernel):
     lanes = yaw_refine._lane_places(places, rings, sectors)
     got = core.recentre_nccs(table, 2 * sectors + 1, lanes, m, shifts)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+def test_searches_finish_with_room_for_few_places(monkeypatch):
+    """With room for fewer read places than one round needs, the compiled searches still
+    finish (the places a call computes are lent to it beyond the budget) and give what
+    they give with room for all."""
+    q, m = images(40, 120, seed=6)
+    m = np.random.default_rng(6).random((40, 120)).astype(np.float32)  # unrelated: checked
+    yaw_refine.forget_kept_views()
+    roomy = yaw_refine.refine_checked(q, m, MAX_RANGE)
+    monkeypatch.setattr(yaw_refine, "PLACES_KEPT_BYTES", 3 * 2 * 40 * 120 * 4)  # 3 positions
+    monkeypatch.setattr(yaw_refine, "_places_kept", {})
+    yaw_refine.forget_kept_views()
+    tight = yaw_refine.refine_checked(q, m, MAX_RANGE)
+    assert (tight[0], tight[2]) == (roomy[0], roomy[2])
+    np.testing.assert_array_equal(tight[1], roomy[1])
