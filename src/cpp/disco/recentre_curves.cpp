@@ -54,10 +54,26 @@ void resample_plain(const RecentreImage& im, const float* places, Limits lim, fl
                        o + s * im.rings_padded);
 }
 
+// The sum of 16 lanes in halves: a[l] += a[l + h] for h = 8, 4, 2, 1, then a[0] (the
+// order every level keeps).
+float tree16_scalar(float* a) {
+    for (int h = 8; h >= 1; h /= 2)
+        for (int l = 0; l < h; ++l) a[l] += a[l + h];
+    return a[0];
+}
+
+#define DISCO_TREE16_SCALAR                                 \
+    static inline float tree16(const vf* v) {               \
+        float a[16];                                        \
+        __builtin_memcpy(a, v, sizeof a);                   \
+        return tree16_scalar(a);                            \
+    }
+
 namespace plain {
 constexpr int W = 1;
 typedef float vf;
 static inline vf vsqrt(vf x) { return std::sqrt(x); }
+DISCO_TREE16_SCALAR
 static inline void resample_view(const RecentreImage& im, const float* places, Limits lim,
                                  float* o) {
     resample_plain(im, places, lim, o);
@@ -77,6 +93,7 @@ namespace sse2 {  // the x86-64 baseline: no target needed
 constexpr int W = 4;
 typedef float vf __attribute__((vector_size(16)));
 static inline vf vsqrt(vf x) { return (vf)_mm_sqrt_ps((__m128)x); }
+DISCO_TREE16_SCALAR
 static inline void resample_view(const RecentreImage& im, const float* places, Limits lim,
                                  float* o) {
     resample_plain(im, places, lim, o);
@@ -97,6 +114,7 @@ namespace avx2 {
 constexpr int W = 8;
 typedef float vf __attribute__((vector_size(32)));
 static inline vf vsqrt(vf x) { return (vf)_mm256_sqrt_ps((__m256)x); }
+DISCO_TREE16_SCALAR
 // Eight cells at once: each cell's quad is one 16-byte load, cells c and c + 4 to a
 // register, and four registers transposed within their halves give the cells' four
 // values in order. The same arithmetic as resample_cells.
@@ -176,6 +194,16 @@ namespace avx512 {
 constexpr int W = 16;
 typedef float vf __attribute__((vector_size(64)));
 static inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
+// tree16_scalar's halves in registers.
+static inline float tree16(const vf* v) {
+    const __m512 x = (__m512)v[0];
+    const __m256 h8 = _mm256_add_ps(
+        _mm512_castps512_ps256(x),
+        _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(x), 1)));
+    const __m128 h4 = _mm_add_ps(_mm256_castps256_ps128(h8), _mm256_extractf128_ps(h8, 1));
+    const __m128 h2 = _mm_add_ps(h4, _mm_movehl_ps(h4, h4));
+    return _mm_cvtss_f32(_mm_add_ss(h2, _mm_shuffle_ps(h2, h2, 1)));
+}
 // The AVX2 reads: on Zen 4 (AVX-512 in two halves) the 512-bit ones, with twice the
 // shuffles per instruction, were 15 % slower.
 static inline void resample_view(const RecentreImage& im, const float* places, Limits lim,
@@ -195,6 +223,7 @@ static inline void rfft_block(const SectorPlan& plan, const float* in, std::int6
 }
 #include "disco/recentre_curves.inc"
 }  // namespace avx512
+#undef DISCO_TREE16_SCALAR
 #pragma GCC diagnostic pop
 #pragma GCC pop_options
 #endif
