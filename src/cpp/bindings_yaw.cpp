@@ -155,8 +155,13 @@ void add_yaw(py::module_& m) {
             std::vector<double> out(places.size());
             {
                 py::gil_scoped_release release;
+                std::vector<float> sectors_first(static_cast<std::size_t>(rings * sectors));
+                for (std::int64_t r = 0; r < rings; ++r)
+                    for (std::int64_t s = 0; s < sectors; ++s)
+                        sectors_first[s * rings + r] = match.data()[r * sectors + s];
                 for (std::size_t i = 0; i < places.size(); ++i)
-                    out[i] = disco::recentre_ncc(image, places[i].data(), match.data(), shifts[i]);
+                    out[i] = disco::recentre_ncc(image, places[i].data(), sectors_first.data(),
+                                                 shifts[i]);
             }
             return out;
         },

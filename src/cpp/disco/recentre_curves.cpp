@@ -252,8 +252,8 @@ void check(const RecentreImage& image) {
 
 }  // namespace
 
-double recentre_ncc(const RecentreImage& image, const float* places, const float* match,
-                    std::int64_t shift) {
+double recentre_ncc(const RecentreImage& image, const float* places,
+                    const float* match_sectors, std::int64_t shift) {
     check(image);
     const std::int64_t R = image.rings, S = image.sectors, n = R * S;
     const Limits lim{static_cast<float>(image.rows - 1), static_cast<float>(image.width - 1)};
@@ -266,18 +266,39 @@ double recentre_ncc(const RecentreImage& image, const float* places, const float
     else
 #endif
         resample_plain(dense, places, lim, view.data());
-    double sv = 0.0, sm = 0.0;
-    for (std::int64_t i = 0; i < n; ++i) sv += view[i], sm += match[i];
-    const double mv = sv / static_cast<double>(n), mm = sm / static_cast<double>(n);
-    double aa = 0.0, bb = 0.0, ab = 0.0;
+    // Sums over the cells in four lanes (ring r in lane r mod 4; SSE2 pairs), then the
+    // lanes in order: the same values at every level, and short chains of additions.
+    typedef double v2d __attribute__((vector_size(16)));
+    v2d acc[5][2] = {};  // sum v, sum m, sum v v, sum m m, sum v m; lanes (0, 1), (2, 3)
+    double tail[5][4] = {};
     shift = ((shift % S) + S) % S;
     for (std::int64_t s = 0; s < S; ++s) {
-        const std::int64_t t = (s - shift + S) % S;  // the match's sector under view sector s
-        for (std::int64_t r = 0; r < R; ++r) {
-            const double a = view[s * R + r] - mv, b = match[r * S + t] - mm;
-            aa += a * a, bb += b * b, ab += a * b;
+        const float* v = view.data() + s * R;
+        const float* m = match_sectors + ((s - shift + S) % S) * R;  // under view sector s
+        std::int64_t r = 0;
+        for (; r + 4 <= R; r += 4)
+            for (int h = 0; h < 2; ++h) {
+                const v2d a = {v[r + 2 * h], v[r + 2 * h + 1]};
+                const v2d b = {m[r + 2 * h], m[r + 2 * h + 1]};
+                acc[0][h] += a, acc[1][h] += b, acc[2][h] += a * a, acc[3][h] += b * b;
+                acc[4][h] += a * b;
+            }
+        for (; r < R; ++r) {
+            const double a = v[r], b = m[r];
+            const std::int64_t l = r % 4;
+            tail[0][l] += a, tail[1][l] += b, tail[2][l] += a * a, tail[3][l] += b * b;
+            tail[4][l] += a * b;
         }
     }
+    double sum[5];
+    for (int q = 0; q < 5; ++q)
+        sum[q] = (((acc[q][0][0] + tail[q][0]) + (acc[q][0][1] + tail[q][1])) +
+                  (acc[q][1][0] + tail[q][2])) + (acc[q][1][1] + tail[q][3]);
+    const double tv = sum[0], tm = sum[1], tvv = sum[2], tmm = sum[3], tvm = sum[4];
+    // Centred: sum (v - v_mean)(m - m_mean) = sum v m - n v_mean m_mean, and so on.
+    const double N = static_cast<double>(n), mv = tv / N, mt = tm / N;
+    const double ab = tvm - N * mv * mt;
+    const double aa = std::max(tvv - N * mv * mv, 0.0), bb = std::max(tmm - N * mt * mt, 0.0);
     const double norm = std::sqrt(aa) * std::sqrt(bb);
     return norm > 0.0 ? ab / norm : 0.0;
 }

@@ -45,10 +45,10 @@ void recentre_curves(const RecentreImage& image, const std::vector<const float*>
                      const float* spectrum, const float* weights, float* curves);
 
 // The plain normalized correlation of one view (its places as recentre_curves') turned
-// by -shift sectors with the match [rings][sectors], both centred, in double precision:
-// yaw_refine._aligned_ncc.
-double recentre_ncc(const RecentreImage& image, const float* places, const float* match,
-                    std::int64_t shift);
+// by -shift sectors with the match, both centred, from sums in double precision:
+// yaw_refine._aligned_ncc. `match_sectors` is the match transposed, [sectors][rings].
+double recentre_ncc(const RecentreImage& image, const float* places,
+                    const float* match_sectors, std::int64_t shift);
 
 // The match's spectrum M for recentre_curves: `match` float32 [rings][sectors] in,
 // 2 (sectors / 2 + 1) rings_padded floats out (the same at every level).

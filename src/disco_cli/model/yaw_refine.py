@@ -556,12 +556,13 @@ def _refine_checked_core(views: _Views, check_below: float) -> tuple[float, np.n
     other, other_val = _second_peak_of(curve, best)
     conf = _margin(val, other_val)
     if conf < check_below:
-        windows = [(c + np.arange(-2, 3)) % sectors for c in (best, other)]
+        windows = [_window(c, sectors) for c in (best, other)]
         specs = [(w, r) for w in windows for r in (COARSE_REACH, CHECK_REACH)]
         found = views.core_searches(specs)
-        views.core_nccs([(p, _turned(c, windows[i // 2])[1]) for i, (p, _, c) in enumerate(found)])
-        v1, ncc1, _, _ = _heading(views, windows[0], found[:2])
-        v2, ncc2, pos2, curve2 = _heading(views, windows[1], found[2:])
+        turns = [_turned(c, windows[i // 2]) for i, (_, _, c) in enumerate(found)]
+        views.core_nccs([(p, shift) for (p, _, _), (_, shift) in zip(found, turns)])
+        v1, ncc1, _, _ = _heading(views, windows[0], found[:2], turns[:2])
+        v2, ncc2, pos2, curve2 = _heading(views, windows[1], found[2:], turns[2:])
         v1 = max(v1, val)
         if v2 > v1 and ncc2 > ncc1:
             pos, curve, conf = pos2, curve2, _margin(v2, v1)
@@ -605,19 +606,31 @@ def _margin(best: float, other: float) -> float:
 
 
 def _heading(
-    views: _Views, window: np.ndarray, found: list[tuple[np.ndarray, float, np.ndarray]]
+    views: _Views,
+    window: np.ndarray,
+    found: list[tuple[np.ndarray, float, np.ndarray]],
+    turns: list[tuple[np.ndarray, int]] | None = None,
 ) -> tuple[float, float, np.ndarray, np.ndarray]:
     """The evidence for one heading (the sector shifts `window`, its centre +-2) from its
     two searches `found` (as wide as the first, and reaching CHECK_REACH): (its highest
     phase-correlation peak, the higher plain correlation of their re-centred views, the
-    position and curve, peak kept in the window, of the search with that peak)."""
+    position and curve, peak kept in the window, of the search with that peak); `turns`:
+    `_turned` of each search's curve, where the caller has them."""
     best_val, best_ncc, best_pos, best_curve = -np.inf, -np.inf, None, None
-    for p, v, c in found:
-        inside, shift = _turned(c, window)
+    for n, (p, v, c) in enumerate(found):
+        inside, shift = _turned(c, window) if turns is None else turns[n]
         best_ncc = max(best_ncc, _aligned_ncc(views, p, shift))
         if v > best_val:
             best_val, best_pos, best_curve = v, p, inside
     return best_val, best_ncc, best_pos, best_curve
+
+
+@lru_cache(maxsize=1024)
+def _window(centre: int, sectors: int) -> np.ndarray:
+    """The check's window of sector shifts round `centre`: (centre + [-2, 2]) mod S."""
+    window = (centre + np.arange(-2, 3)) % sectors
+    window.flags.writeable = False
+    return window
 
 
 def _turned(curve: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, int]:
