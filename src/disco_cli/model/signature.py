@@ -12,6 +12,7 @@ sensor returns (a 16-beam and a 64-beam scan of one place then compare).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -33,11 +34,27 @@ def _window(n: int, c: int) -> slice:
     return slice(start, start + c)
 
 
+@functools.lru_cache(maxsize=16)
+def _crop_index(r: int, s: int, cr: int, cs: int) -> np.ndarray:
+    """Where each cell of the crop [cr * cs] lies in the half spectrum [r, cs // 2 + 1]
+    (flat): the crop's frequency (f1, f2), or (-f1, -f2) where f2 < 0 (a real image's
+    spectrum is conjugate-symmetric, so the magnitude is the same there)."""
+    f1 = np.arange(cr)[:, None] - cr // 2
+    f2 = np.arange(cs)[None, :] - cs // 2
+    row = np.where(f2 >= 0, f1, -f1) % r
+    col = np.abs(f2)
+    return (row * (cs // 2 + 1) + col).reshape(-1)
+
+
 def signatures(
     features: np.ndarray, crop: tuple[int, int] = DEFAULT_CROP, workers: int | None = None
 ) -> np.ndarray:
     """Signatures [B, cr * cs] float32 of feature images [B, R, S] (or one [R, S]);
-    the FFTs on `workers` threads (None: `disco_cli.get_threads()`)."""
+    the FFTs on `workers` threads (None: `disco_cli.get_threads()`).
+
+    The crop's |FFT2| comes from the half spectrum along sectors: a real FFT along
+    them, kept to the crop's cs // 2 + 1 lowest frequencies, then a complex FFT along
+    rings of those columns alone (a third of the work of the full 2-D transform)."""
     g = np.asarray(features, dtype=np.float32)
     if g.ndim == 2:
         g = g[None]
@@ -49,9 +66,9 @@ def signatures(
         return np.zeros((0, cr * cs), np.float32)
     if workers is None:
         workers = get_threads()
-    spec = fft.fft2(g, axes=(1, 2), workers=workers)
-    spec = np.fft.fftshift(spec, axes=(1, 2))[:, _window(r, cr), _window(s, cs)]
-    sig = np.abs(spec).reshape(b, -1).astype(np.float32)
+    half = fft.rfft(g, axis=2, workers=workers)[:, :, : cs // 2 + 1]
+    spec = fft.fft(half, axis=1, workers=workers).reshape(b, -1)
+    sig = np.abs(spec[:, _crop_index(r, s, cr, cs)])
     norm = np.linalg.norm(sig, axis=1, keepdims=True)
     return sig / np.maximum(norm, 1e-12)
 
