@@ -40,14 +40,26 @@ def candidates_with_views(
     r, d = r[found], d[found]
     order = np.lexsort((r, d))
     _, at = np.unique(r[order], return_index=True)
-    nearest = order[at]  # each scan once, at its nearest
-    nearest = nearest[np.lexsort((r[nearest], d[nearest]))]
+    # Each scan once, at its nearest: its first place in `order`, which is already
+    # by (distance, row), so those places in turn keep that order.
+    nearest = order[np.sort(at)]
+    own = np.sort(np.asarray(rows, np.int64))
+    own_first = np.sort(np.asarray(rows, np.int64)[:first])
     top = np.zeros(len(nearest), bool)
     top[:first] = True
-    in_first = top | np.isin(r[nearest], rows[:first])
-    rest = ~in_first & np.isin(r[nearest], rows)
+    in_first = top | _member(r[nearest], own_first)
+    rest = ~in_first & _member(r[nearest], own)
     kept = np.concatenate([nearest[in_first], nearest[rest]])
     return r[kept], d[kept], int(in_first.sum())
+
+
+def _member(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """Whether each of `values` is in `sorted_set` (ascending): np.isin for a few
+    dozen rows, without its set-up."""
+    if len(sorted_set) == 0:
+        return np.zeros(len(values), bool)
+    at = np.minimum(np.searchsorted(sorted_set, values), len(sorted_set) - 1)
+    return sorted_set[at] == values
 
 
 def views_search(
