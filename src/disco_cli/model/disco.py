@@ -288,6 +288,9 @@ class DiscoModel:
             [np.zeros(2 * len(offsets_a), np.float32), np.concatenate([offsets_a, -offsets_a])], 1
         )
         rng = self.bev_config.max_range
-        g = recentre_kept(self._g(query_features), positions, rng)
-        u = recentre_kept(self._u(query_features), positions, rng) if self.two_channel else g
+        if self.two_channel:
+            both = np.stack([self._g(query_features), self._u(query_features)])
+            g, u = recentre_kept(both, positions, rng)
+        else:
+            g = u = recentre_kept(self._g(query_features), positions, rng)
         return signatures(g, self.crop), u

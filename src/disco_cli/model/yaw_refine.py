@@ -206,17 +206,24 @@ def _lane_places(places: list, rings: int, sectors: int) -> list:
 
 def recentre_kept(image: np.ndarray, positions: np.ndarray, max_range: float) -> np.ndarray:
     """`recentre` at lattice `positions` [M, 2] (multiples of LATTICE_STEP within
-    LATTICE_REACH), where each position reads kept as the searches' are."""
+    LATTICE_REACH), where each position reads kept as the searches' are: views
+    [M, R, S] of an image [R, S], or [K, M, R, S] of a stack [K, R, S] (the reads
+    looked up once for all K)."""
     img = np.asarray(image, dtype=np.float32)
     pos = np.asarray(positions, dtype=np.float32).reshape(-1, 2)
     cells = np.rint((pos + LATTICE_REACH) / LATTICE_STEP).astype(np.int64)
-    if not (np.allclose(_metres(cells), pos) and ((cells >= 0) & (cells < _LATTICE_SIDE)).all()):
+    metres = _metres(cells)
+    # np.allclose's test, without its set-up (this runs on every query).
+    on_lattice = (np.abs(metres - pos) <= 1e-8 + 1e-5 * np.abs(pos)).all()
+    if not (on_lattice and ((cells >= 0) & (cells < _LATTICE_SIDE)).all()):
         raise ValueError(
             f"positions must lie on the {LATTICE_STEP} m lattice within {LATTICE_REACH} m"
         )
-    rings, sectors = img.shape
-    places = _places_at(rings, sectors, float(max_range), _flat(cells), _metres(cells))
-    return _resample(_padded(img), places, img.shape)
+    rings, sectors = img.shape[-2:]
+    places = _places_at(rings, sectors, float(max_range), _flat(cells), metres)
+    if img.ndim == 2:
+        return _resample(_padded(img), places, img.shape)
+    return np.stack([_resample(_padded(one), places, one.shape) for one in img])
 
 
 @lru_cache(maxsize=8)
