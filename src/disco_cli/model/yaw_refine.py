@@ -17,13 +17,10 @@ reads is kept per position, and the curves per query and match (on the NumPy pat
 the query's views and their spectra per query: its matches are searched from the same
 positions).
 
-The searches run in C++ (`_core.recentre_search`: each round's candidates, the new
-views' reads, spectra along sectors, whitened cross-power and inverse, and each search's
-best, GIL released during the arithmetic), as does the heading check's plain
-correlation (`_core.recentre_nccs`). The NumPy path (`BACKEND = "numpy"`: the reference
-the tests compare it with, and the fallback where the core lacks the kernel) reads in
-C++ (`_core.resample_views`) and transforms with pocketfft: there `refine_checked` cost
-about 2.9 ms per query of the streaming benchmark, 1.0-1.2 ms on the compiled path.
+The searches and the heading check's plain correlation run in C++
+(`_core.recentre_search`, `_core.recentre_nccs`; GIL released): 1.0-1.2 ms a query of
+the streaming benchmark. The NumPy path (`BACKEND = "numpy"`: the tests' reference, and
+the fallback without the kernels) costs about 2.9 ms.
 """
 
 from __future__ import annotations
@@ -336,8 +333,6 @@ class _QueryViews:
 # The last few queries' views (a stream refines each query's matches, then moves on).
 _QUERIES_KEPT = 2
 _queries_kept: OrderedDict = OrderedDict()
-
-
 _queries_lock = threading.Lock()  # Map.query may be called from several threads
 
 
@@ -680,10 +675,8 @@ def _wrapped(yaw: np.ndarray) -> np.ndarray:
 def query_in_match_frame(
     query: np.ndarray, match: np.ndarray, max_range: float
 ) -> tuple[float, np.ndarray]:
-    """(yaw_deg, position [2] of the query sensor in the match's frame (m)): where the
-    query was taken, seen from the match, to the accuracy of the search (median 0.26 m
-    on the suite's hits, docs/research/model-history.md); reaches 5 m (3 + 1.5 + 0.5)
-    at most."""
+    """(yaw_deg, position [2] of the query sensor in the match's frame (m)), to the
+    search's accuracy (median 0.26 m on the suite's hits, docs/research/model-history.md)."""
     yaw, position, _ = query_in_match_frame_conf(query, match, max_range)
     return yaw, position
 
@@ -702,6 +695,5 @@ def query_in_match_frame_conf(
 
 
 def refine_yaw(query: np.ndarray, matches: np.ndarray, max_range: float) -> np.ndarray:
-    """Yaw [K] in degrees, (-180, 180], of the query [R, S] relative to each match [K, R, S],
-    with the parallax of the offset between the two sensors removed."""
+    """`refine_yaw_conf`'s yaw [K] alone."""
     return refine_yaw_conf(query, matches, max_range)[0]
