@@ -72,31 +72,36 @@ def place_cues(
     signature: np.ndarray,
     poses: np.ndarray | None,
     rows: np.ndarray,
+    only: np.ndarray | None = None,
 ) -> list[PlaceCues]:
-    """The cues of each candidate (one order for every array: the candidates')."""
+    """The cues of each candidate (one order for every array: the candidates'), or of
+    the candidates `only` (indices, in that order; every candidate still counts as a
+    rival)."""
     d = np.asarray(distance, np.float64)
     n = len(d)
-    if n == 0:
+    pick = np.arange(n) if only is None else np.asarray(only, np.int64)
+    if n == 0 or len(pick) == 0:
         return []
-    far = _elsewhere(poses, np.asarray(rows), n)
+    far = _elsewhere(poses, np.asarray(rows), n, pick)
     rival = np.where(far, d[None, :], np.inf).min(axis=1)
-    lead = np.minimum(rival - d, LEAD_CAP)
-    own, best, sig = (np.asarray(a, np.float64) for a in (own, best, signature))
+    lead = np.minimum(rival - d[pick], LEAD_CAP)
+    own, best, sig = (np.asarray(a, np.float64)[pick] for a in (own, best, signature))
     return [
-        PlaceCues(float(d[j]), float(best[j]), float(own[j]), float(sig[j]), float(lead[j]))
-        for j in range(n)
+        PlaceCues(float(d[j]), float(best[i]), float(own[i]), float(sig[i]), float(lead[i]))
+        for i, j in enumerate(pick.tolist())
     ]
 
 
-def _elsewhere(poses: np.ndarray | None, rows: np.ndarray, n: int) -> np.ndarray:
-    """[n, n]: whether candidate b stands at another place than candidate a."""
-    by_rows = np.abs(rows[:, None].astype(np.int64) - rows[None, :]) > ELSEWHERE_ROWS
+def _elsewhere(poses: np.ndarray | None, rows: np.ndarray, n: int, pick: np.ndarray) -> np.ndarray:
+    """[len(pick), n]: whether candidate b stands at another place than candidate
+    pick[a]."""
+    by_rows = np.abs(rows[pick, None].astype(np.int64) - rows[None, :]) > ELSEWHERE_ROWS
     if poses is None:
         return by_rows
     xy = np.asarray(poses, np.float64)[:n, :2]
     known = np.isfinite(xy).all(axis=1)
-    apart = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1)) > ELSEWHERE_M
-    both = known[:, None] & known[None, :]
+    apart = np.hypot(*(xy[pick, None, :] - xy[None, :, :]).transpose(2, 0, 1)) > ELSEWHERE_M
+    both = known[pick, None] & known[None, :]
     return np.where(both, apart, by_rows)
 
 

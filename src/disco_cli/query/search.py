@@ -177,16 +177,6 @@ def snap_first(
     return nearest, float(wrap_deg(turned)), conf
 
 
-def _joined_rows(a: Any, b: Any) -> Any:
-    """Two `db.rows` answers (ids, paths, poses, features) as one, a's rows first."""
-    return type(a)(
-        np.concatenate([a.ids, b.ids]),
-        [*a.paths, *b.paths],
-        np.concatenate([a.poses, b.poses]),
-        np.concatenate([a.features, b.features]),
-    )
-
-
 def _query_limit(limit: Any, exclude: Any, i: int) -> tuple[Any, Any]:
     """Query i's own row limit and exclusion mask, from the batch's."""
     lim = limit if np.ndim(limit) == 0 else int(np.asarray(limit)[i])  # None: ndim 0
@@ -242,10 +232,12 @@ def _reranked(
     stored = db.rows(ids[r])
     own, best = rerank(stored.features)
     if len(rows) > len(r) and best.min() > policy.rerank_wider_above:
-        # No candidate is a good match: re-rank the next ones too.
-        more = db.rows(ids[rows[len(r) :]])
-        own_more, best_more = rerank(more.features)
-        r, stored = rows, _joined_rows(stored, more)
+        # No candidate is a good match: re-rank the next ones too. All rows are read in
+        # one answer (the first pass's come from the rows' cache), so that no joined
+        # copy of the features is made.
+        stored = db.rows(ids[rows])
+        own_more, best_more = rerank(stored.features[len(r) :])
+        r = rows
         own, best = np.concatenate([own, own_more]), np.concatenate([best, best_more])
     return r, stored, own, best, sig_d[: len(r)]
 
@@ -310,17 +302,18 @@ def match_queries(
                 snapped = (n, yaw, conf)
                 ahead = np.arange(len(r)) != n
                 order = np.lexsort((r, ahead, d))
-            cues = place_cues(d, own, best, sig_d, stored.poses, r)
+            cue_args = (d, own, best, sig_d, stored.poses, r)
         else:
             stored = db.rows(ids[r]) if len(r) else None
             order = np.arange(len(r))
-            cues = place_cues(d, d, d, d, stored.poses if stored else None, r)
+            cue_args = (d, d, d, d, stored.poses if stored else None, r)
         if max_distance is not None:
             order = order[d[order] <= max_distance]
         order = order[:k]
         if len(order) == 0:
             out.append([])
             continue
+        cues = place_cues(*cue_args, only=order)
         feats = stored.features[order]
         yaw, conf = (np.asarray(a, np.float64) for a in model.yaw_conf(features[i], feats))
         todo = np.arange(min(policy.refine_yaw, len(order)))
@@ -341,8 +334,8 @@ def match_queries(
                     yaw_deg=float(yaw[j]),
                     pose=stored.poses[o],
                     yaw_conf=float(conf[j]),
-                    confidence=place_confidence(model, cues[o], float(conf[j])),
-                    cues=cues[o],
+                    confidence=place_confidence(model, cues[j], float(conf[j])),
+                    cues=cues[j],
                 )
                 for j, o in enumerate(order)
             ]
