@@ -19,6 +19,9 @@
    same weights in the NumPy U-Net (the BLAS path) and in torch's U-Net (one torch
    thread, as queries run), interleaved in this process, and the ratios; then the C++
    U-Net at each kernel level the CPU has (AVX-512, AVX2, plain; forced).
+5. The whole match with the rows cached, with the compiled kernels and with the NumPy
+   reference of the yaw searches, the re-ranking and the plain yaw (`BACKEND = "numpy"`
+   of yaw_refine, verify and yaw), interleaved per query: the kernels' baseline.
 
 Like the `disco` command, the process first asks OpenBLAS to use one thread
 (`blas_threads.py`); `--process-defaults` leaves it as it is, for the ratio.
@@ -31,6 +34,7 @@ query process (open + load model + signatures + index + query) either way.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import resource
 import subprocess
 import sys
@@ -241,6 +245,8 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
         "views",
         "check",
         "checked_total",
+        "compiled_cached",
+        "numpy_cached",
     )
     cpu = {"total": [], "embed": []}  # process CPU time: the work, apart from waiting
     stages = {k: [] for k in keys}
@@ -291,6 +297,13 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
         td = time.perf_counter()
         match_queries(index, ids, db, model, sig, feat, 10, without["views"])
         te = time.perf_counter()
+        # The same query with the NumPy reference of the yaw searches, the re-ranking
+        # and the plain yaw (the compiled kernels' baseline), rows cached as for ta - t5.
+        with numpy_yaw_paths():
+            forget_kept_views()
+            tf = time.perf_counter()
+            match_queries(index, ids, db, model, sig, feat, 10)
+            tg = time.perf_counter()
         for k, v in zip(
             stages,
             (
@@ -306,6 +319,8 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
                 (ta - t5) - (te - td),
                 t_check,
                 (t3 - t0) + (t5_first - t4) + t_check,
+                ta - t5,
+                tg - tf,
             ),
         ):
             stages[k].append(v)
@@ -313,6 +328,23 @@ def bench_stream(model_name: str, n_map: int, n_queries: int, tmp: Path) -> dict
     out = {k: median_ms(v[2:]) for k, v in stages.items()}
     out |= {f"cpu_{k}": median_ms(v[2:]) for k, v in cpu.items()}
     return out | {"db": str(db_path), "scan": str(scans[0])}
+
+
+@contextlib.contextmanager
+def numpy_yaw_paths():
+    """The yaw searches, the re-ranking's correlations and the plain yaw on their NumPy
+    reference paths (`BACKEND = "numpy"` of yaw_refine, verify and yaw) while inside."""
+    from disco_cli.model import verify, yaw, yaw_refine
+
+    modules = (verify, yaw, yaw_refine)
+    before = [m.BACKEND for m in modules]
+    for m in modules:
+        m.BACKEND = "numpy"
+    try:
+        yield
+    finally:
+        for m, b in zip(modules, before):
+            m.BACKEND = b
 
 
 def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
@@ -628,6 +660,13 @@ def main() -> None:
             f"the best 3 rows, their scans read from disk): {s['checked_total']:.2f} ms/query "
             f"= {s['checked_total'] / s['total']:.2f}x the streaming query; the check "
             f"{s['check']:.2f} ms (medians, same queries)"
+        )
+        print(
+            f"the whole match (search, rows, re-ranking and yaw; rows cached): "
+            f"{s['compiled_cached']:.2f} ms with "
+            f"the compiled kernels vs {s['numpy_cached']:.2f} ms with the NumPy reference of "
+            "the yaw searches, the re-ranking and the plain yaw "
+            f"({s['numpy_cached'] / s['compiled_cached']:.2f}x; interleaved, medians)"
         )
         e = bench_embed(model)
         if e is not None:
