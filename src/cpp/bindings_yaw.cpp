@@ -12,6 +12,7 @@
 
 #include "disco/polar_resample.hpp"
 #include "disco/recentre_curves.hpp"
+#include "disco/recentre_places.hpp"
 #include "disco/sector_fft.hpp"
 
 #include "bindings.hpp"
@@ -288,6 +289,29 @@ void add_yaw(py::module_& m) {
         py::arg("match"), py::arg("weights"), py::arg("rings_padded"),
         py::arg("kept").noconvert(), py::arg("done").noconvert(), py::arg("coarse"), py::arg("windows"), py::arg("steps"),
         py::arg("offsets"), "The re-centring searches' rounds: (missing places, best per search)");
+
+    // --- where each re-centred view reads (src/cpp/disco/recentre_places.*) ---
+    m.def(
+        "recentre_places",
+        [](const F32& x, const F32& y, const F32& positions, float ring_scale, float ring_cap,
+           float sector_scale, float sector_shift) {
+            if (x.ndim() != 1 || y.ndim() != 1 || x.shape(0) != y.shape(0) || x.shape(0) < 1)
+                throw py::value_error("x and y must be float32 [cells], the same length");
+            if (positions.ndim() != 2 || positions.shape(1) != 2)
+                throw py::value_error("positions must be float32 [M, 2]");
+            const disco::PlacesGrid grid{x.data(), y.data(), x.shape(0), ring_scale,
+                                         ring_cap, sector_scale, sector_shift};
+            F32 out({positions.shape(0), static_cast<py::ssize_t>(2), x.shape(0)});
+            {
+                py::gil_scoped_release release;
+                disco::recentre_places(grid, positions.data(), positions.shape(0),
+                                       out.mutable_data());
+            }
+            return out;
+        },
+        py::arg("x"), py::arg("y"), py::arg("positions"), py::arg("ring_scale"),
+        py::arg("ring_cap"), py::arg("sector_scale"), py::arg("sector_shift"),
+        "Each cell's fractional ring and sector [M, 2, cells] from positions [M, 2]");
 }
 
 }  // namespace disco_bindings

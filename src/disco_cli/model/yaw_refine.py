@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from disco_cli.model import fft
+from disco_cli.model import fft, recentre_places
+from disco_cli.model.recentre_places import grid as _grid
 from disco_cli.model.yaw import (
     curves_of_cross_power,
     margin,
@@ -91,17 +92,6 @@ def _kernel() -> Any:
 
 def _padded_rings(rings: int) -> int:
     return -(-rings // _LANES) * _LANES
-
-
-@lru_cache(maxsize=8)
-def _grid(rings: int, sectors: int, max_range: float) -> tuple[np.ndarray, np.ndarray]:
-    """Cartesian centres (x, y) [R, S] of the polar cells, in m."""
-    dr = max_range / rings
-    r = (np.arange(rings) + 0.5) * dr
-    theta = (np.arange(sectors) + 0.5) * (2.0 * np.pi / sectors)
-    x = (r[:, None] * np.cos(theta)[None]).astype(np.float32)
-    y = (r[:, None] * np.sin(theta)[None]).astype(np.float32)
-    return x, y
 
 
 def recentre(image: np.ndarray, positions: np.ndarray, max_range: float) -> np.ndarray:
@@ -183,9 +173,14 @@ def _places_at(
     new = [j for j, key in enumerate(keys) if key not in kept]
     if not new:
         return [kept[key] for key in keys]
-    computed = _places(rings, sectors, max_range, positions[new])
-    if lanes:
-        computed = _lane_places(computed, rings, sectors)
+    # The compiled searches' places in C++ (NumPy's but for a sector's ulp or two); the
+    # NumPy layout's as `recentre`'s, to the bit (the query's side views are compared).
+    core = _kernel() if lanes else None
+    if core is not None and hasattr(core, "recentre_places"):
+        computed = recentre_places.compiled(core, rings, sectors, max_range, positions[new], True)
+    else:
+        computed = _places(rings, sectors, max_range, positions[new])
+        computed = _lane_places(computed, rings, sectors) if lanes else computed
     places = dict(zip((keys[j] for j in new), computed))
     out = [kept[key] if key in kept else places[key] for key in keys]
     if (len(kept) + len(places)) * computed[0].nbytes > PLACES_KEPT_BYTES:
