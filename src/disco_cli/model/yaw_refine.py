@@ -175,8 +175,9 @@ def _places_at(
         return [kept[key] for key in keys]
     # The compiled searches' places in C++ (NumPy's but for a sector's ulp or two); the
     # NumPy layout's as `recentre`'s, to the bit (the query's side views are compared).
+    # Below AVX2 the kernel's double-precision arctan2 is slower than NumPy's.
     core = _kernel() if lanes else None
-    if core is not None and hasattr(core, "recentre_places"):
+    if core is not None and hasattr(core, "recentre_places") and core._bev_kernel_level() >= 2:
         computed = recentre_places.compiled(core, rings, sectors, max_range, positions[new], True)
     else:
         computed = _places(rings, sectors, max_range, positions[new])
