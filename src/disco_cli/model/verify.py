@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from disco_cli.model import fft
+from disco_cli.model.compiled import compiled_core
 
 # Which code computes the scores: None, the compiled kernel where the core has it, else
 # NumPy; "numpy", the NumPy reference. Read at each call.
@@ -27,16 +28,7 @@ BACKEND: str | None = None
 
 def _kernel() -> Any:
     """`disco_cli._core` where BACKEND lets it compute the scores and it can, else None."""
-    if BACKEND == "numpy":
-        return None
-    if BACKEND is not None:
-        raise ValueError(f"verify.BACKEND must be None or 'numpy', not {BACKEND!r}")
-    try:
-        # deferred: the package imports without the compiled core (a GPU training box)
-        from disco_cli import _core
-    except ImportError:
-        return None
-    return _core if hasattr(_core, "aligned_correlations") else None
+    return compiled_core(BACKEND, "verify", "aligned_correlations")
 
 
 def aligned_correlation(query: np.ndarray, candidates: np.ndarray) -> np.ndarray:

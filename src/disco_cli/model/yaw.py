@@ -27,6 +27,7 @@ import numpy as np
 
 from disco_cli.io.poses.geometry import wrap_deg
 from disco_cli.model import fft
+from disco_cli.model.compiled import compiled_core
 
 # Relative floor of the cross-power normalization: keeps empty rings and empty
 # frequencies from turning into pure noise when divided by their own magnitude.
@@ -39,16 +40,7 @@ BACKEND: str | None = None
 
 def _kernel() -> Any:
     """`disco_cli._core` where BACKEND lets it compute the curves and it can, else None."""
-    if BACKEND == "numpy":
-        return None
-    if BACKEND is not None:
-        raise ValueError(f"yaw.BACKEND must be None or 'numpy', not {BACKEND!r}")
-    try:
-        # deferred: the package imports without the compiled core (a GPU training box)
-        from disco_cli import _core
-    except ImportError:
-        return None
-    return _core if hasattr(_core, "yaw_curves") and hasattr(_core, "yaw_conf") else None
+    return compiled_core(BACKEND, "yaw", "yaw_curves", "yaw_conf")
 
 
 def ring_weights(rings: int) -> np.ndarray:
@@ -58,7 +50,7 @@ def ring_weights(rings: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def _weights32(rings: int) -> np.ndarray:
+def ring_weights32(rings: int) -> np.ndarray:
     """`ring_weights` in float32 (read-only: kept between calls)."""
     w = ring_weights(rings).astype(np.float32)
     w.flags.writeable = False
@@ -86,11 +78,11 @@ def correlation_curves(query: np.ndarray, matches: np.ndarray, workers: int = 1)
     q, m = _checked(query, matches)
     core = _kernel()
     if core is not None and q.size > 0:
-        return core.yaw_curves(q, m, _weights32(q.shape[0]))
+        return core.yaw_curves(q, m, ring_weights32(q.shape[0]))
     fq = fft.rfft(q, axis=-1, workers=workers)
     fm = fft.rfft(m, axis=-1, workers=workers)
     # float32 weights keep the spectra complex64 (float64 ones doubled the work).
-    weights = _weights32(q.shape[0])
+    weights = ring_weights32(q.shape[0])
     return curves_of_cross_power(fq[None] * np.conj(fm), weights, q.shape[-1], workers)
 
 
@@ -170,7 +162,7 @@ def estimate_yaw_conf(query: np.ndarray, matches: np.ndarray) -> tuple[np.ndarra
     core = _kernel()
     if core is not None and q.size > 0:
         # The same curves, peaks and margins in C++ (the tests compare the two).
-        return core.yaw_conf(q, m, _weights32(q.shape[0]), separation_bins(q.shape[1]))
+        return core.yaw_conf(q, m, ring_weights32(q.shape[0]), separation_bins(q.shape[1]))
     curves = correlation_curves(q, m)
     if len(curves) == 0:
         return np.zeros(0, np.float32), np.zeros(0, np.float32)

@@ -34,12 +34,13 @@ from typing import Any
 import numpy as np
 
 from disco_cli.model import fft, recentre_places
+from disco_cli.model.compiled import compiled_core
 from disco_cli.model.recentre_places import grid as _grid
 from disco_cli.model.yaw import (
     curves_of_cross_power,
     margin,
     peak_shift,
-    ring_weights,
+    ring_weights32,
     second_peak,
     separation_bins,
     shift_to_yaw,
@@ -78,16 +79,7 @@ _LANES = 16
 
 def _kernel() -> Any:
     """`disco_cli._core` where BACKEND lets it compute the curves and it can, else None."""
-    if BACKEND == "numpy":
-        return None
-    if BACKEND is not None:
-        raise ValueError(f"yaw_refine.BACKEND must be None or 'numpy', not {BACKEND!r}")
-    try:
-        # deferred: the package imports without the compiled core (a GPU training box)
-        from disco_cli import _core
-    except ImportError:
-        return None
-    return _core if hasattr(_core, "recentre_curves") else None
+    return compiled_core(BACKEND, "yaw_refine", "recentre_curves")
 
 
 def _padded_rings(rings: int) -> int:
@@ -266,20 +258,12 @@ def _resample(padded: np.ndarray, places: list, shape: tuple[int, int]) -> np.nd
     return views.reshape(len(places), rings, sectors)
 
 
-@lru_cache(maxsize=8)
-def _weights32(rings: int) -> np.ndarray:
-    weights = ring_weights(rings).astype(np.float32)
-    weights.flags.writeable = False
-    return weights
-
-
 def _curves(spectra: np.ndarray, match_spectrum: np.ndarray, sectors: int) -> np.ndarray:
     """Phase-correlation curves [M, S] of views given by their spectra along sectors
     [M, R, S // 2 + 1] against one match's spectrum (yaw.py's curves; float32 weights
     keep the sums in single precision)."""
     cross = spectra * np.conj(match_spectrum)[None]
-    weights = ring_weights(spectra.shape[1]).astype(np.float32)
-    return curves_of_cross_power(cross, weights, sectors)
+    return curves_of_cross_power(cross, ring_weights32(spectra.shape[1]), sectors)
 
 
 class _QueryViews:
@@ -362,7 +346,7 @@ class _Views:
         if self.core is None:
             self.fm = fft.rfft(m, axis=-1)
         else:
-            self.weights = _weights32(q.shape[0])
+            self.weights = ring_weights32(q.shape[0])
             self.done_flat = np.zeros(_LATTICE_SIDE**2, np.uint8)
             self.nccs: dict[tuple, float] = {}
         self.kept = np.empty((_LATTICE_SIDE**2, q.shape[1]), np.float32)
