@@ -101,18 +101,25 @@ void add_yaw(py::module_& m) {
         },
         py::arg("padded"), py::arg("width"),
         "Each corner's four reads of a padded polar table, for recentre_curves");
+    // The arguments recentre_curves and recentre_search share: the corner table, the
+    // match's image and ring weights, the rings padded to whole vectors.
+    auto check_curve_args = [](const F32& table, std::int64_t width, const F32& match,
+                               const F32& weights, std::int64_t rings_padded) {
+        if (table.ndim() != 1 || width < 2 || table.size() % (4 * (width - 1)) != 0 ||
+            table.size() == 0)
+            throw py::value_error("table must be recentre_table's of rows of width");
+        if (match.ndim() != 2 || weights.ndim() != 1 || weights.shape(0) != match.shape(0))
+            throw py::value_error("match must be float32 [R, S] and weights float32 [R]");
+        const std::int64_t rings = match.shape(0), sectors = match.shape(1);
+        if (rings < 1 || sectors < 1 || rings_padded < rings || rings_padded % 16 != 0)
+            throw py::value_error("rings_padded must be a multiple of 16, at least R");
+    };
     m.def(
         "recentre_curves",
-        [](const F32& table, std::int64_t width, const std::vector<F32>& places,
+        [check_curve_args](const F32& table, std::int64_t width, const std::vector<F32>& places,
            const F32& match, const F32& weights, std::int64_t rings_padded) {
-            if (table.ndim() != 1 || width < 2 || table.size() % (4 * (width - 1)) != 0 ||
-                table.size() == 0)
-                throw py::value_error("table must be recentre_table's of rows of width");
-            if (match.ndim() != 2 || weights.ndim() != 1 || weights.shape(0) != match.shape(0))
-                throw py::value_error("match must be float32 [R, S] and weights float32 [R]");
+            check_curve_args(table, width, match, weights, rings_padded);
             const std::int64_t rings = match.shape(0), sectors = match.shape(1);
-            if (rings < 1 || sectors < 1 || rings_padded < rings || rings_padded % 16 != 0)
-                throw py::value_error("rings_padded must be a multiple of 16, at least R");
             std::vector<const float*> ptrs;
             ptrs.reserve(places.size());
             for (const auto& p : places) {
@@ -178,21 +185,15 @@ void add_yaw(py::module_& m) {
     // `kept`). ---
     m.def(
         "recentre_search",
-        [](const F32& table, std::int64_t width, const py::dict& kept_places,
+        [check_curve_args](const F32& table, std::int64_t width, const py::dict& kept_places,
            const py::dict& more_places, std::int64_t key_offset, const F32& match, const F32& weights,
            std::int64_t rings_padded, py::array_t<float, py::array::c_style>& kept,
            py::array_t<std::uint8_t, py::array::c_style>& done,
            const std::vector<std::vector<std::int64_t>>& coarse,
            const std::vector<py::object>& windows, const std::vector<std::int64_t>& steps,
            const std::vector<std::int64_t>& offsets) {
-            if (table.ndim() != 1 || width < 2 || table.size() % (4 * (width - 1)) != 0 ||
-                table.size() == 0)
-                throw py::value_error("table must be recentre_table's of rows of width");
-            if (match.ndim() != 2 || weights.ndim() != 1 || weights.shape(0) != match.shape(0))
-                throw py::value_error("match must be float32 [R, S] and weights float32 [R]");
+            check_curve_args(table, width, match, weights, rings_padded);
             const std::int64_t rings = match.shape(0), sectors = match.shape(1);
-            if (rings < 1 || sectors < 1 || rings_padded < rings || rings_padded % 16 != 0)
-                throw py::value_error("rings_padded must be a multiple of 16, at least R");
             const std::int64_t cells = kept.ndim() == 2 ? kept.shape(0) : -1;
             if (cells < 1 || kept.shape(1) != sectors || done.ndim() != 1 ||
                 done.shape(0) != cells || coarse.size() != windows.size())
