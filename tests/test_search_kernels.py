@@ -232,3 +232,53 @@ def test_projected_approx_same_bits_at_every_level(n: int, p: int, b: int, kerne
         _core.projected_approx(tiles, np.zeros(n + 64, np.float32), pq)
     with pytest.raises(ValueError, match="q must be"):
         _core.projected_approx(tiles, sq, np.zeros((b, p + 1), np.float32))
+
+
+def _smallest_reference(values: np.ndarray, k: int) -> np.ndarray:
+    """Each row's k smallest finite values' columns by a full sort on (value, column)."""
+    out = np.full((len(values), k), -1, np.int64)
+    for i, row in enumerate(values):
+        cols = np.flatnonzero(np.isfinite(row))
+        order = cols[np.lexsort((cols, row[cols]))][:k]
+        out[i, : len(order)] = order
+    return out
+
+
+@pytest.mark.parametrize(
+    ("n", "k"), [(1, 1), (7, 3), (10, 40), (300, 40), (10_000, 160), (40_001, 40)]
+)
+def test_compiled_smallest_per_row_equals_a_full_sort(n: int, k: int) -> None:
+    """The views' first pass keeps each row's k smallest finite values, ties to the lower
+    column, in (value, column) order; rows laid out against its sample (their lowest
+    values between the sampled columns, or exactly on them) and rows with NaN, -inf and
+    +inf (excluded rows) included."""
+    rng = np.random.default_rng(n * 7 + k)
+    cols = np.arange(n)
+    rows = [
+        rng.normal(size=n),
+        cols[::-1].astype(float),  # the smallest at the end
+        np.where(cols % 16 == 0, 0.0, 1.0) + rng.random(n) * 1e-3,  # samples lowest
+        np.where(cols % 16 == 0, 1.0, 0.0) + rng.random(n) * 1e-3,  # samples highest
+        np.round(rng.random(n) * 5),  # many ties
+        np.full(n, np.inf),
+    ]
+    values = np.stack(rows).astype(np.float32)
+    values[0, rng.integers(0, n, 5)] = np.inf
+    values[4, rng.integers(0, n, 3)] = np.nan
+    values[3, rng.integers(0, n, 3)] = -np.inf
+    got = _core.smallest_per_row(values, k)
+    np.testing.assert_array_equal(got, _smallest_reference(values, k))
+
+
+def test_finite_smallest_per_row_without_the_core_finds_the_same_sets(monkeypatch) -> None:
+    """The NumPy fallback (no compiled core) keeps the same columns, in its own order."""
+    from disco_cli.maps import signature_index
+
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=(3, 5000)).astype(np.float32)
+    values[1, :4990] = np.inf  # fewer finite values than asked for
+    want = _core.smallest_per_row(values, 40)
+    monkeypatch.delattr(_core, "smallest_per_row")
+    got = signature_index.finite_smallest_per_row(values, 40)
+    for g, w in zip(got, want):
+        assert sorted(g.tolist()) == sorted(w.tolist())

@@ -11,6 +11,7 @@
 #include "disco/exact_search.hpp"
 #include "disco/int8_search.hpp"
 #include "disco/projected_search.hpp"
+#include "disco/row_selection.hpp"
 
 #include "bindings.hpp"
 
@@ -178,6 +179,22 @@ void add_search(py::module_& m) {
         },
         py::arg("tiles"), py::arg("sq"), py::arg("q"),
         "sq[j] - 2 q[i] . x_j (float32) for every projected row x_j held in column tiles");
+    m.def(
+        "smallest_per_row",
+        [](const F32& values, std::int64_t k) {
+            if (values.ndim() != 2) throw py::value_error("values must be [b, n] float32");
+            if (k < 0) throw py::value_error("k must be >= 0");
+            const auto b = values.shape(0), n = values.shape(1);
+            py::array_t<std::int64_t> out({b, static_cast<py::ssize_t>(k)});
+            {
+                py::gil_scoped_release release;
+                disco::smallest_per_row(values.data(), b, n, k, out.mutable_data());
+            }
+            return out;
+        },
+        py::arg("values"), py::arg("k"),
+        "Per row, the columns of its k smallest finite values, ascending by (value, "
+        "column); -1 past the finite ones");
     m.def(
         "search_kernel_names",
         []() {

@@ -399,9 +399,8 @@ class ProjectedSignatures:
         wide = min(n, max(k, 0) * PROJECTED_WIDEN)
         if wide == 0:
             return np.full((b, max(k, 0)), -1, np.int64), np.full((b, max(k, 0)), np.inf)
-        cand = smallest_per_row(approx, wide)  # [B, wide]
         # Rows past the limit or excluded (infinite here) are not candidates.
-        cand[~np.isfinite(np.take_along_axis(approx, cand, axis=1))] = -1
+        cand = finite_smallest_per_row(approx, wide)  # [B, wide]
         return exact_topk(self.matrix, q, cand, k)
 
     def _approx(self, pq: np.ndarray) -> np.ndarray:
@@ -450,3 +449,19 @@ def smallest_per_row(values: np.ndarray, k: int) -> np.ndarray:
         else:
             out[i] = below[np.argpartition(values[i, below], k - 1)[:k]]
     return out
+
+
+def finite_smallest_per_row(values: np.ndarray, k: int) -> np.ndarray:
+    """Column indices [B, k] of each row's k smallest finite values, -1 in place of
+    the non-finite ones (excluded rows). The compiled core picks them with a bounded
+    heap, in (value, column) order, without the sample's second look at the row
+    (`src/cpp/disco/row_selection.hpp`); without it, `smallest_per_row` does."""
+    try:
+        from disco_cli import _core  # deferred: looked up at each call: tests replace it
+
+        kernel = _core.smallest_per_row
+    except (ImportError, AttributeError):
+        cand = smallest_per_row(values, k)
+        cand[~np.isfinite(np.take_along_axis(values, cand, axis=1))] = -1
+        return cand
+    return kernel(np.ascontiguousarray(values, np.float32), int(k))
