@@ -322,6 +322,13 @@ PYBIND11_MODULE(_core, m) {
         // C-contiguous [C_i, B, R, S] (unet_numpy.py makes them so): a copy here would
         // cost as much as the arithmetic of the small levels.
         using F32In = py::array_t<float, py::array::c_style | py::array::forcecast>;
+        const auto conv_algorithm = [](const std::string& name) {
+            if (name == "auto") return disco::ConvAlgorithm::automatic;
+            if (name == "direct") return disco::ConvAlgorithm::direct;
+            if (name == "winograd") return disco::ConvAlgorithm::winograd;
+            throw py::value_error("algorithm must be 'auto', 'direct' or 'winograd', not '" +
+                                  name + "'");
+        };
         py::class_<disco::Conv3x3>(m, "Conv3x3")
             .def(py::init([](const F32In& weight, const F32In& bias) {
                      if (weight.ndim() != 4 || weight.shape(2) != 3 || weight.shape(3) != 3 ||
@@ -338,8 +345,9 @@ PYBIND11_MODULE(_core, m) {
             .def_property_readonly("cin", &disco::Conv3x3::cin)
             .def(
                 "__call__",
-                [](const disco::Conv3x3& conv, const py::sequence& inputs, bool circular,
-                   bool relu) {
+                [conv_algorithm](const disco::Conv3x3& conv, const py::sequence& inputs,
+                                 bool circular, bool relu, const std::string& algorithm) {
+                    const auto algo = conv_algorithm(algorithm);
                     if (py::len(inputs) == 0) throw py::value_error("need at least one input");
                     std::vector<py::array> keep;  // holds the arrays while the GIL is released
                     std::vector<disco::ConvPart> parts;
@@ -367,13 +375,25 @@ PYBIND11_MODULE(_core, m) {
                     float* dst = out.mutable_data();
                     {
                         py::gil_scoped_release release;
-                        conv.run(parts, b, r, s, circular, relu, dst);
+                        conv.run(parts, b, r, s, circular, relu, dst, algo);
                     }
                     return out;
                 },
                 py::arg("inputs"), py::arg("circular"), py::arg("relu"),
+                py::arg("algorithm") = "auto",
                 "[cout, B, R, S] of inputs [C_i, B, R, S] joined along channels; sectors "
-                "padded circularly or with zeros, rings with zeros; max(0, .) with relu");
+                "padded circularly or with zeros, rings with zeros; max(0, .) with relu; "
+                "algorithm 'direct', 'winograd' or 'auto' (the one `choose` names)")
+            .def(
+                "choose",
+                [](const disco::Conv3x3& conv, py::ssize_t rings, py::ssize_t sectors) {
+                    return conv.choose(rings, sectors) == disco::ConvAlgorithm::winograd
+                               ? "winograd"
+                               : "direct";
+                },
+                py::arg("rings"), py::arg("sectors"),
+                "the algorithm 'auto' runs on rings x sectors images at the kernel level in "
+                "use: 'direct' or 'winograd'");
         using F32C = py::array_t<float, py::array::c_style>;
         m.def(
             "max_pool2",

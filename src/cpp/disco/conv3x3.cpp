@@ -1,4 +1,5 @@
-// The direct 3 x 3 convolution (conv3x3.hpp). The input parts are first copied into
+// The direct 3 x 3 convolution (conv3x3.hpp), and the choice between it and Winograd's
+// (conv3x3_winograd.cpp; prefers_winograd below). The input parts are first copied into
 // one padded buffer [cin][B][R + 2][W]: a ring of zeros (or the wrapped sectors) round
 // each image, and each row widened to W = the sectors rounded up to whole vectors, plus
 // 2, so that a vector of outputs at sector s reads its taps at s, s + 1, s + 2 of three
@@ -14,6 +15,7 @@
 #include <cstring>
 #include <stdexcept>
 
+#include "disco/conv3x3_winograd.hpp"
 #include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -269,6 +271,18 @@ int conv_level(int level) {
 #endif
 }
 
+// Winograd where it measured faster on this project's U-Net (Zen 4; direct / Winograd
+// per layer, benchmarks/bench_query.py): at AVX-512 from 10 x 30 images up (1.1 - 1.5x;
+// at 5 x 15 its 3 x 8 tiles fill vectors badly: 0.9x), at AVX2 from 5 x 15 up (1.1 -
+// 1.6x); never in plain C++, whose Winograd products the compiler vectorizes worse
+// than the direct loops (0.5 - 0.9x). Tiny images pay more for the transforms.
+bool prefers_winograd(int level, std::int64_t rings, std::int64_t sectors) {
+    const std::int64_t cells = rings * sectors;
+    if (level == 3) return cells >= 256;
+    if (level == 2) return cells >= 64;
+    return false;
+}
+
 // Sectors per vector at a level: rows are widened to whole vectors of it.
 std::int64_t vector_width(int level) { return level == 3 ? 16 : 8; }
 
@@ -288,10 +302,18 @@ Conv3x3::Conv3x3(const float* weight, const float* bias, std::int64_t cout, std:
                 packed_[static_cast<std::size_t>(((blk * cin + c) * kTaps + t) * kBlock + k)] =
                     weight[(o * cin + c) * kTaps + t];
     }
+    winograd_ = std::make_shared<const Conv3x3Winograd>(weight, bias, cout, cin);
+}
+
+ConvAlgorithm Conv3x3::choose(std::int64_t rings, std::int64_t sectors) const {
+    return prefers_winograd(conv_level(bev_kernel_level()), rings, sectors)
+               ? ConvAlgorithm::winograd
+               : ConvAlgorithm::direct;
 }
 
 void Conv3x3::run(const std::vector<ConvPart>& parts, std::int64_t batch, std::int64_t rings,
-                  std::int64_t sectors, bool circular, bool relu, float* out) const {
+                  std::int64_t sectors, bool circular, bool relu, float* out,
+                  ConvAlgorithm algorithm) const {
     std::int64_t channels = 0;
     for (const auto& p : parts) {
         if (p.channels < 0) throw std::invalid_argument("conv3x3: negative channel count");
@@ -301,6 +323,9 @@ void Conv3x3::run(const std::vector<ConvPart>& parts, std::int64_t batch, std::i
     if (batch < 0 || rings < 0 || sectors < 0)
         throw std::invalid_argument("conv3x3: negative size");
     if (batch == 0 || rings == 0 || sectors == 0) return;
+    if (algorithm == ConvAlgorithm::automatic) algorithm = choose(rings, sectors);
+    if (algorithm == ConvAlgorithm::winograd)
+        return winograd_->run(parts, batch, rings, sectors, circular, relu, out);
     const int level = conv_level(bev_kernel_level());
     const std::int64_t vw = vector_width(level);
     const std::int64_t width = (sectors + vw - 1) / vw * vw + 2;

@@ -10,12 +10,21 @@
 //   out[o, b, r, s] = bias[o] + sum_{c, dy, dx} w[o, c, dy, dx] * x[c, b, r + dy, s + dx]
 // then max(0, .) with `relu`. Sums run in float32 in an order that differs between
 // kernels (and from BLAS); the SIMD kernels fuse multiply-adds. Plain C++17.
+//
+// Where it is faster, the convolution runs as Winograd's F(2 x 2, 3 x 3) instead
+// (conv3x3_winograd.hpp: 16 multiply-adds per 2 x 2 outputs instead of 36); `choose`
+// says where, and `run` can be told which.
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 namespace disco {
+
+class Conv3x3Winograd;
+
+enum class ConvAlgorithm { automatic, direct, winograd };
 
 // One input part: `channels` channels of [B, R, S], contiguous.
 struct ConvPart {
@@ -33,10 +42,15 @@ class Conv3x3 {
     std::int64_t cin() const { return cin_; }
 
     // out [cout][batch][rings][sectors] of the parts joined along channels (their
-    // channels must add up to cin: std::invalid_argument otherwise). Safe to call from
-    // several threads at once.
+    // channels must add up to cin: std::invalid_argument otherwise), by `algorithm`
+    // (automatic: the one `choose` names). Safe to call from several threads at once.
     void run(const std::vector<ConvPart>& parts, std::int64_t batch, std::int64_t rings,
-             std::int64_t sectors, bool circular, bool relu, float* out) const;
+             std::int64_t sectors, bool circular, bool relu, float* out,
+             ConvAlgorithm algorithm = ConvAlgorithm::automatic) const;
+
+    // The algorithm `automatic` runs on rings x sectors images at the kernel level in
+    // use: direct or winograd (see conv3x3.cpp for the rule).
+    ConvAlgorithm choose(std::int64_t rings, std::int64_t sectors) const;
 
   private:
     std::int64_t cout_, cin_;
@@ -44,6 +58,7 @@ class Conv3x3 {
     // zero past cout; bias padded the same way.
     std::vector<float> packed_;
     std::vector<float> bias_;
+    std::shared_ptr<const Conv3x3Winograd> winograd_;  // its transformed weights
 };
 
 // The U-Net's other steps, on images [N][rows][cols] (N = C * B):

@@ -5,7 +5,8 @@
 about a second, more than the whole query, and torch's small convolutions and padding
 copies cost more than their arithmetic. By default each 3 x 3 convolution, pooling and
 upsampling runs in the compiled core (`_core.Conv3x3`, src/cpp/disco/conv3x3.cpp:
-direct and register-blocked AVX-512 or AVX2 kernels), about twice as fast as BLAS on
+direct and register-blocked AVX-512 or AVX2 kernels, or Winograd's F(2 x 2, 3 x 3) where
+the core measured it faster, conv3x3_winograd.cpp), about twice as fast as BLAS on
 these small images. Without the core, on a CPU with neither (the plain C++ kernel is
 slower than BLAS), or with `backend="numpy"` (the reference the tests and benchmarks
 hold it to), each is one or a few BLAS products on a padded copy of its input, made
@@ -125,6 +126,9 @@ class _Conv3x3:
         cout, cin = weight.shape[:2]
         self.cout, self.cin = cout, cin
         self.fast = None if core is None else core.Conv3x3(weight, bias)
+        # The C++ algorithm: "auto" (the core's rule), or "direct" / "winograd" forced
+        # (FrozenUNet.set_conv_algorithm: benchmarks and tests compare them).
+        self.algorithm = "auto"
         # Taps stacked on the output axis: one product of [9 * cout, cin] with the input,
         # then nine shifted sums; cheaper than unrolling the input when cin > cout.
         self.by_tap = np.ascontiguousarray(
@@ -139,7 +143,7 @@ class _Conv3x3:
     def __call__(self, inputs: list[np.ndarray], circular: bool, relu: bool) -> np.ndarray:
         """Inputs [C_i, B, R, S] (concatenated along channels) -> [cout, B, R, S]."""
         if self.fast is not None:
-            return self.fast(inputs, circular, relu)
+            return self.fast(inputs, circular, relu, self.algorithm)
         _, b, r, s = inputs[0].shape
         padded = np.zeros((self.cin, b, r + 2, s + 2), np.float32)
         c0 = 0
@@ -219,6 +223,16 @@ class FrozenUNet:
         self.last_w = w.reshape(w.shape[0], -1)[:1]
         self.last_b = np.asarray(state["unet.conv_last.bias"], np.float32).reshape(-1)[:1]
         self._up: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def set_conv_algorithm(self, algorithm: str) -> None:
+        """Run the C++ convolutions as `algorithm`: "auto" (the default: Winograd where
+        the core measured it faster than the direct kernel), "direct" or "winograd".
+        ValueError for another name; the NumPy backend ignores it."""
+        if algorithm not in ("auto", "direct", "winograd"):
+            raise ValueError(f"algorithm must be 'auto', 'direct' or 'winograd', not {algorithm!r}")
+        for convs in self.blocks.values():
+            for conv in convs:
+                conv.algorithm = algorithm
 
     def _block(self, state: Mapping[str, np.ndarray], prefix: str) -> list[_Conv3x3]:
         # torch's Sequential indices: conv, (BN), ReLU, conv, (BN), ReLU.
