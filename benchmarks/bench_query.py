@@ -351,7 +351,9 @@ def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
     """Embedding one scan with the model as loaded (the U-Net's convolutions in C++),
     with the same weights in the NumPy U-Net (`backend="numpy"`) and in torch's U-Net
     on one thread, interleaved; then the C++ U-Net at each kernel level the CPU has
-    (forced through the level cap). None for a model without a U-Net."""
+    (forced through the level cap), and at the level in use with the direct
+    convolution only vs Winograd where the core chooses it. None for a model without
+    a U-Net."""
     from disco_cli import _core
     from disco_cli.model import load_model
     from disco_cli.model.checkpoint import read_checkpoint
@@ -389,6 +391,13 @@ def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
 
         return run
 
+    def with_algorithm(algorithm: str):
+        def run():
+            model.net.set_conv_algorithm(algorithm)
+            model.features(bevs[next(it) % 4])
+
+        return run
+
     fns = {
         "cpp": lambda: model.embed(bevs[next(it) % 4]),
         "numpy": lambda: plain.embed(bevs[next(it) % 4]),
@@ -402,7 +411,14 @@ def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
         by_level = interleaved_medians_ms(
             {name: at_level(lv) for name, lv in levels.items()}, rounds, block=5
         )
+        _core._set_bev_kernel_level(cap)
+        algo = interleaved_medians_ms(
+            {"direct": with_algorithm("direct"), "auto": with_algorithm("auto")}, 2 * rounds, 5
+        )
+        model.net.set_conv_algorithm("direct")
+        sig_direct, _ = model.embed(bevs[0])
     finally:
+        model.net.set_conv_algorithm("auto")
         _core._set_bev_kernel_level(cap)
         torch.set_num_threads(threads)
     sig_t, _ = ref.embed(bevs[0])
@@ -411,6 +427,8 @@ def bench_embed(model_name: str, rounds: int = 10) -> dict | None:
     return t | {
         "kernel": _core._conv3x3_kernel_name(),
         "levels": by_level,
+        "algorithms": algo,
+        "sig_diff_direct": float(np.abs(sig_direct - sig_t).max()),
         "sig_diff": float(np.abs(sig_c - sig_t).max()),
         "sig_diff_numpy": float(np.abs(sig_n - sig_t).max()),
     }
@@ -682,6 +700,14 @@ def main() -> None:
             print(
                 "the C++ U-Net by kernel level (forced), interleaved medians: "
                 + ", ".join(f"{name} {ms:.2f} ms" for name, ms in e["levels"].items())
+            )
+            a = e["algorithms"]
+            print(
+                f"the C++ U-Net ({e['kernel']} kernel) with the direct convolution only "
+                f"{a['direct']:.3f} ms vs Winograd where chosen {a['auto']:.3f} ms "
+                f"({a['direct'] / a['auto']:.2f}x; interleaved medians); signatures differ "
+                f"from torch's by at most {e['sig_diff_direct']:.1e} (direct only) and "
+                f"{e['sig_diff']:.1e} (with Winograd)"
             )
         f = bench_first_result(s["db"], s["scan"], model)
         print(
