@@ -278,6 +278,7 @@ int conv_level(int level) {
 // than the direct loops (0.5 - 0.9x). Tiny images pay more for the transforms.
 bool prefers_winograd(int level, std::int64_t rings, std::int64_t sectors) {
     const std::int64_t cells = rings * sectors;
+    if (winograd_level(level) != level) return false;  // only its plain kernel here
     if (level == 3) return cells >= 256;
     if (level == 2) return cells >= 64;
     return false;

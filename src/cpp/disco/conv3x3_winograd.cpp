@@ -29,7 +29,8 @@
 
 #include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
 
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+// GCC only: the vector code below uses its vector extensions (see winograd_level).
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #include <immintrin.h>
 #define DISCO_WINO_X86 1
 #define DISCO_WINO_AVX512 __attribute__((target("avx512f")))
@@ -60,6 +61,20 @@ struct Lanes {
     static DISCO_WINO_INLINE vf load(const float* p) { return *reinterpret_cast<const vu*>(p); }
     static DISCO_WINO_INLINE void store(float* p, const vf& x) { *reinterpret_cast<vu*>(p) = x; }
 };
+
+// Lane l of the result: a[idx[l]], or b[idx[l] - W] from W on (W lanes a vector). GCC's
+// builtin; clang has none that takes the indices as a vector, and gets the loop.
+template <class V, class I>
+DISCO_WINO_INLINE V shuffle(V a, V b, I idx) {
+#if defined(__clang__)
+    constexpr int W = sizeof(V) / sizeof(float);
+    V r;
+    for (int l = 0; l < W; ++l) r[l] = idx[l] < W ? a[idx[l]] : b[idx[l] - W];
+    return r;
+#else
+    return __builtin_shuffle(a, b, idx);
+#endif
+}
 
 // One run of up to W neighbouring tiles in a tile row, at column `pos` of the block.
 struct Segment {
@@ -202,8 +217,8 @@ DISCO_WINO_INLINE void pad_split(const std::vector<ConvPart>& parts, const Job& 
                 std::int64_t q = 0;
                 for (; 2 * q + 2 * W <= s; q += W) {
                     const vf a = L::load(src + 2 * q), b = L::load(src + 2 * q + W);
-                    L::store(o + q, __builtin_shuffle(a, b, even));
-                    L::store(e + q + 1, __builtin_shuffle(a, b, odd));
+                    L::store(o + q, shuffle(a, b, even));
+                    L::store(e + q + 1, shuffle(a, b, odd));
                 }
                 for (std::int64_t t = q; 2 * t < s; ++t) o[t] = src[2 * t];
                 for (std::int64_t t = std::max<std::int64_t>(q, 1); 2 * t - 1 < s; ++t)
@@ -297,7 +312,7 @@ DISCO_WINO_INLINE void transform_output(const Job& j, const Segment& seg, std::i
             vf y0 = t[a][0] + t[a][1] + t[a][2] + bias[k];
             vf y1 = t[a][1] - t[a][2] - t[a][3] + bias[k];
             if (relu) y0 = y0 > 0 ? y0 : 0, y1 = y1 > 0 ? y1 : 0;
-            const vf pair[2] = {__builtin_shuffle(y0, y1, lo), __builtin_shuffle(y0, y1, hi)};
+            const vf pair[2] = {shuffle(y0, y1, lo), shuffle(y0, y1, hi)};
             float* dst = out + a * sectors;
             if (cols == 2 * W) {
                 L::store(dst, pair[0]), L::store(dst + W, pair[1]);
@@ -490,11 +505,7 @@ Conv3x3Winograd::Conv3x3Winograd(const float* weight, const float* bias, std::in
 void Conv3x3Winograd::run(const std::vector<ConvPart>& parts, std::int64_t batch,
                           std::int64_t rings, std::int64_t sectors, bool circular, bool relu,
                           float* out) const {
-#if DISCO_WINO_X86
-    const int level = bev_kernel_level() >= 3 ? 3 : bev_kernel_level() == 2 ? 2 : 0;
-#else
-    const int level = 0;
-#endif
+    const int level = winograd_level(bev_kernel_level());
     const std::int64_t w = level == 3 ? 16 : 8;
     Job job{};
     job.u = u_.data(), job.bias = bias_.data(), job.cin = cin_, job.cout = cout_;
@@ -521,6 +532,15 @@ void Conv3x3Winograd::run(const std::vector<ConvPart>& parts, std::int64_t batch
     if (level == 2) return run_avx2(parts, circular, job);
 #endif
     run_plain(parts, circular, job);
+}
+
+int winograd_level(int level) {
+#if DISCO_WINO_X86
+    return level >= 3 ? 3 : level == 2 ? 2 : 0;
+#else
+    (void)level;
+    return 0;
+#endif
 }
 
 }  // namespace disco

@@ -44,4 +44,10 @@ class Conv3x3Winograd {
     std::vector<float> bias_;  // padded to whole blocks of 8
 };
 
+// The SIMD level Conv3x3Winograd::run works at under the kernel level `level`: 3
+// (AVX-512), 2 (AVX2 + FMA) or 0 (plain C++). Its vector code is written with GCC's
+// vector extensions (__builtin_shuffle among them), so other compilers, clang
+// included, get the plain kernel at every level.
+int winograd_level(int level);
+
 }  // namespace disco
