@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from disco_cli.errors import DatabaseError
-from disco_cli.maps.database import FORMAT_VERSION, Database, ModelInfo, ScanBatch
+from disco_cli.maps.database import FORMAT_VERSION, Database, MatchRows, ModelInfo, ScanBatch
 
 INFO = ModelInfo("spectral", "abc123", {"dim": 16}, {"rings": 4, "sectors": 8})
 
@@ -335,6 +335,30 @@ def test_rows_read_again_after_a_rewrite_give_the_new_row(tmp_path: Path) -> Non
     want = new.features[0]
     assert np.all(np.abs(got - want) <= np.abs(want) * 2.0**-8 + np.abs(want).max() * 2.0**-22)
     assert db.rows([2]).paths == new.paths
+
+
+def test_rows_hand_out_the_cached_arrays_read_only_and_stack_on_demand(tmp_path: Path) -> None:
+    """`rows` gives each row's cached array (no stacked copy until `features` is asked
+    for); nobody can write into the cache through it, and the stack is a copy."""
+    rng = np.random.default_rng(4)
+    batch = _batch(0, 5, rng)
+    db = Database.create(tmp_path / "m.db", INFO, batch)
+    got = db.rows([4, 1, 4])
+    assert got.feature_rows is not None and len(got.feature_rows) == 3
+    assert got.feature_rows[0] is got.feature_rows[2]  # one cached array for scan 4
+    with pytest.raises(ValueError, match="read-only"):
+        got.feature_rows[1][...] = 0.0
+    stacked = got.features
+    np.testing.assert_array_equal(stacked, np.stack(got.feature_rows))
+    stacked[...] = 0.0  # a copy: the cache keeps its values
+    again = db.rows([1]).features[0]
+    assert np.abs(again).max() > 0
+    np.testing.assert_array_equal(db.rows([4, 1]).features_at(1), again)
+    np.testing.assert_array_equal(db.rows([4, 1, 4]).features_at([2, 1]), db.rows([4, 1]).features)
+    assert db.rows([1]).features_at(np.zeros(0, np.int64)).shape == (0, *again.shape)
+    assert db.rows([]).features.shape == (0, *again.shape)
+    with pytest.raises(ValueError, match="either features or feature_rows"):
+        MatchRows(got.ids, got.paths, got.poses)
 
 
 def test_rows_all_damaged_raise_damaged_rows(tmp_path: Path) -> None:

@@ -175,3 +175,20 @@ def test_bad_shapes_are_one_clear_error():
         core.aligned_correlations(q, np.zeros((3, 4, 9), np.float32))
     with pytest.raises(ValueError, match="weights"):
         core.yaw_curves(q[0], q, np.zeros(3, np.float32))
+
+
+def test_candidates_read_one_by_one_score_as_the_stacked_ones(kernel, monkeypatch):
+    """Rows held apart (a cache's arrays, one channel of each) score as their stack
+    does, whatever their layout; a candidate of another shape is refused in one line."""
+    q, c = scenes(3, 19, 40, 120, seed=11)
+    want = core.aligned_correlations(q, c)
+    rows = np.stack([np.zeros_like(c), c], axis=1)  # [K, 2, R, S]: the second channel
+    apart = [r[1] for r in rows]
+    np.testing.assert_array_equal(core.aligned_correlations_at(q, apart), want)
+    mixed = [x.astype(np.float64) if k % 3 == 0 else np.asfortranarray(x) for k, x in enumerate(c)]
+    np.testing.assert_array_equal(core.aligned_correlations_at(q, mixed), want)
+    np.testing.assert_array_equal(verify.aligned_correlations(q, apart), want)
+    np.testing.assert_allclose(numpy_scores(monkeypatch, q, apart), want, atol=2e-6)
+    assert core.aligned_correlations_at(q, []).shape == (3, 0)
+    with pytest.raises(ValueError, match="every candidate must be"):
+        core.aligned_correlations_at(q, [c[0], c[1][:, :60]])

@@ -5,6 +5,8 @@
 #include <pybind11/pybind11.h>
 
 #include <cstdint>
+#include <utility>
+#include <vector>
 
 #include "disco/sector_correlation.hpp"
 
@@ -63,6 +65,44 @@ void add_rerank(py::module_& m) {
         },
         py::arg("queries"), py::arg("candidates"),
         "Peak centred circular cross-correlations [V, K] along sectors, / the norms");
+
+    m.def(
+        "aligned_correlations_at",
+        [](const F32& queries, const py::sequence& candidates) {
+            if (queries.ndim() != 3 || queries.shape(1) < 1 || queries.shape(2) < 1)
+                throw py::value_error("aligned_correlations_at: queries [V, R, S], R, S >= 1");
+            const auto rings = queries.shape(1), sectors = queries.shape(2);
+            // Each candidate read where it lies when its rows are contiguous (a channel of
+            // a cached row's features is), else from a contiguous copy kept here.
+            std::vector<F32Any> held;
+            std::vector<const float*> table;
+            held.reserve(candidates.size());
+            table.reserve(candidates.size());
+            for (const auto& item : candidates) {
+                F32Any image = F32Any::ensure(item);
+                if (!image || image.ndim() != 2 || image.shape(0) != rings ||
+                    image.shape(1) != sectors)
+                    throw py::value_error(
+                        "aligned_correlations_at: every candidate must be [R, S] like the "
+                        "queries");
+                if (image.strides(1) != sizeof(float) ||
+                    image.strides(0) != sectors * static_cast<py::ssize_t>(sizeof(float)))
+                    image = F32::ensure(image);
+                table.push_back(image.data());
+                held.push_back(std::move(image));
+            }
+            const auto views = queries.shape(0);
+            const auto count = static_cast<py::ssize_t>(table.size());
+            F32 out({views, count});
+            {
+                py::gil_scoped_release release;
+                disco::aligned_correlations_at(queries.data(), views, table.data(), count, rings,
+                                               sectors, out.mutable_data());
+            }
+            return out;
+        },
+        py::arg("queries"), py::arg("candidates"),
+        "aligned_correlations of candidates given one by one ([R, S] images), read in place");
 
     // The yaw kernels' arguments checked: query [R, S], matches [K, R, S], weights [R].
     auto checked = [](const F32& query, const F32Any& matches_in, const F32& weights) {

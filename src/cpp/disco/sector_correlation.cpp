@@ -72,16 +72,33 @@ void check_shape(std::int64_t images, std::int64_t stride, std::int64_t rings,
             "sector_correlation: rings >= 1, sectors in [1, 2^20], images and stride >= 0");
 }
 
+// Where each of `count` images `stride` floats apart starts: the kernels take images
+// by address, so that rows held apart (a cache's) need no gathered copy.
+std::vector<const float*> image_table(const float* first, std::int64_t count,
+                                      std::int64_t stride) {
+    std::vector<const float*> table(static_cast<std::size_t>(count));
+    for (std::int64_t k = 0; k < count; ++k) table[static_cast<std::size_t>(k)] = first + k * stride;
+    return table;
+}
+
 }  // namespace
 
 void aligned_correlations(const float* queries, std::int64_t views, const float* candidates,
                           std::int64_t count, std::int64_t stride, std::int64_t rings,
                           std::int64_t sectors, float* scores) {
-    check_shape(views, 0, rings, sectors);
     check_shape(count, stride, rings, sectors);
+    const auto table = image_table(candidates, count, stride);
+    aligned_correlations_at(queries, views, table.data(), count, rings, sectors, scores);
+}
+
+void aligned_correlations_at(const float* queries, std::int64_t views,
+                             const float* const* candidates, std::int64_t count,
+                             std::int64_t rings, std::int64_t sectors, float* scores) {
+    check_shape(views, 0, rings, sectors);
+    check_shape(count, 0, rings, sectors);
     if (views == 0 || count == 0) return;
     const auto run = [&](auto kernel) {
-        kernel(queries, views, candidates, count, stride, rings, sectors, scores);
+        kernel(queries, views, candidates, count, rings, sectors, scores);
     };
     switch (sector_fft_level()) {
 #if DISCO_CORRELATION_X86
@@ -100,8 +117,9 @@ void yaw_any(const float* query, const float* matches, std::int64_t count, std::
              std::int64_t sep, float* yaws, float* confs) {
     check_shape(count, stride, rings, sectors);
     if (count == 0) return;
+    const auto table = image_table(matches, count, stride);
     const auto run = [&](auto kernel) {
-        kernel(query, matches, count, stride, rings, sectors, weights, curves, sep, yaws, confs);
+        kernel(query, table.data(), count, rings, sectors, weights, curves, sep, yaws, confs);
     };
     switch (sector_fft_level()) {
 #if DISCO_CORRELATION_X86

@@ -22,6 +22,12 @@ void aligned_correlations(const float* queries, std::int64_t views, const float*
                           std::int64_t count, std::int64_t stride, std::int64_t rings,
                           std::int64_t sectors, float* scores);
 
+// aligned_correlations with candidate k at candidates[k] (each [rings][sectors],
+// contiguous): rows held apart, as a cache holds them, read where they lie.
+void aligned_correlations_at(const float* queries, std::int64_t views,
+                             const float* const* candidates, std::int64_t count,
+                             std::int64_t rings, std::int64_t sectors, float* scores);
+
 // curves[k, s] (float32 [count][sectors]): the phase-correlation curve of query
 // [rings][sectors] against match k of matches [count][rings][sectors] (float32):
 //   C[r, f] = Q[r, f] conj(M_k[r, f]), Q and M_k the spectra along sectors,

@@ -204,11 +204,12 @@ class RowReader(StoreBase):
         entries = [cache[i] for i in ids]
         while len(cache) > max(_CACHED_ROWS, len(set(ids))):
             cache.popitem(last=False)
-        feats = np.stack([e[2] for e in entries]) if entries else None
-        if feats is None:
-            feats = np.empty((0, *self.feature_shape), dtype=np.float32)
         poses = np.array([e[1] for e in entries], dtype=np.float64).reshape(-1, 4)
-        return MatchRows(np.asarray(ids, dtype=np.int64), [e[0] for e in entries], poses, feats)
+        found = np.asarray(ids, dtype=np.int64), [e[0] for e in entries], poses
+        if not entries:
+            return MatchRows(*found, np.empty((0, *self.feature_shape), dtype=np.float32))
+        # The cached arrays themselves (never written to): stacked only if asked for.
+        return MatchRows(*found, feature_rows=[e[2] for e in entries])
 
     def _read_rows(self, ids: list[int]) -> None:
         """Read, verify and decode the distinct rows `ids` into the cache, or raise
@@ -261,6 +262,7 @@ class RowReader(StoreBase):
         if bad:
             self._note_damaged(bad, {i: found[i][1] for i in bad})
             raise DamagedRows(self.path, {i: self.damaged[i] for i in bad})
+        decoded.flags.writeable = False  # `rows` hands the cached arrays out as they are
         for k, rid in enumerate(order):
             row = found[rid]
             pose = tuple(np.nan if v is None else float(v) for v in row[4:8])

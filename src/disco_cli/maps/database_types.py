@@ -5,6 +5,7 @@ scans to append (`ScanBatch`), stored rows read back (`MatchRows`), and damaged 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -97,14 +98,48 @@ class ScanBatch:
             raise ValueError(f"times must be [{b}], got {self.times.shape}")
 
 
-@dataclass
 class MatchRows:
-    """Stored data of some scans, in the order asked for."""
+    """Stored data of some scans, in the order asked for: `ids`, `paths`, `poses` [K, 4]
+    (x, y, z, yaw in rad; NaN = unknown) and `features` [K, ...] float32.
 
-    ids: np.ndarray
-    paths: list[str]
-    poses: np.ndarray  # [K, 4] x, y, z, yaw (rad), NaN = unknown
-    features: np.ndarray  # [K, ...] float32
+    A store that holds each row's features apart (the rows' cache) hands them over as
+    `feature_rows`, one array per row: the query's re-ranking reads them where they lie,
+    and `features` is stacked from them only when first asked for."""
+
+    __slots__ = ("ids", "paths", "poses", "feature_rows", "_features")
+
+    def __init__(
+        self,
+        ids: np.ndarray,
+        paths: list[str],
+        poses: np.ndarray,
+        features: np.ndarray | None = None,
+        *,
+        feature_rows: Sequence[np.ndarray] | None = None,
+    ):
+        if (features is None) == (feature_rows is None):
+            raise ValueError("MatchRows takes either features or feature_rows")
+        self.ids, self.paths, self.poses = ids, paths, poses
+        self.feature_rows = None if feature_rows is None else tuple(feature_rows)
+        self._features = features
+
+    @property
+    def features(self) -> np.ndarray:
+        if self._features is None:
+            assert self.feature_rows  # an empty answer is given as `features`
+            self._features = np.stack(self.feature_rows)
+        return self._features
+
+    def features_at(self, index: Any) -> np.ndarray:
+        """`features[index]` for a position or an array of positions, without stacking
+        the rows not asked for (a single row may be the store's own, read-only array)."""
+        rows = self.feature_rows
+        if self._features is not None or rows is None:
+            return self.features[index]
+        if np.ndim(index) == 0:
+            return rows[int(index)]
+        picked = [rows[i] for i in np.asarray(index, np.int64).reshape(-1).tolist()]
+        return np.stack(picked) if picked else np.empty((0, *rows[0].shape), np.float32)
 
 
 class DamagedRows(DatabaseError):

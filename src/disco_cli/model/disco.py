@@ -264,15 +264,19 @@ class DiscoModel:
         return (1.0 - score).astype(np.float32)
 
     def rerank_distances_views(
-        self, query_features: np.ndarray, candidate_features: np.ndarray, views: np.ndarray
+        self, query_features: np.ndarray, candidate_features: Any, views: np.ndarray
     ) -> np.ndarray:
         """[1 + V, K]: `rerank_distances` of the query, then of each of its `views`
-        (`query_views`' re-rank images), from one pass over the candidates' spectra."""
-        cands = np.asarray(candidate_features)
-        if len(cands) == 0:
+        (`query_views`' re-rank images), from one pass over the candidates' spectra.
+        `candidate_features` [K, ...], or a list of K rows' features (read in place)."""
+        if len(candidate_features) == 0:
             return np.zeros((1 + len(views), 0), np.float32)
+        if isinstance(candidate_features, (list, tuple)):
+            images: Any = [self._u(f) for f in candidate_features]
+        else:
+            images = self._u(np.asarray(candidate_features))
         q = self._u(query_features)[None]
-        score = aligned_correlations(np.concatenate([q, views]), self._u(cands))
+        score = aligned_correlations(np.concatenate([q, views]), images)
         return (1.0 - score).astype(np.float32)
 
     def query_views(

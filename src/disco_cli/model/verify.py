@@ -43,12 +43,19 @@ def aligned_correlation(query: np.ndarray, candidates: np.ndarray) -> np.ndarray
     return aligned_correlations(q[None], c)[0]
 
 
-def aligned_correlations(queries: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+def aligned_correlations(queries: np.ndarray, candidates: Any) -> np.ndarray:
     """`aligned_correlation` [V, K] of several query images [V, R, S] (a query and its
-    side views) with candidates [K, R, S]: each image's spectrum along sectors is taken
-    once, and each frequency's cross-power of all pairs is one small matrix product."""
+    side views) with candidates [K, R, S], or a list of K [R, S] images (rows held apart,
+    as a cache holds them: the compiled core reads them where they lie). Each image's
+    spectrum along sectors is taken once, and each frequency's cross-power of all pairs
+    is one small matrix product."""
     # float32 is plenty: the scores are compared among a few dozen candidates.
     q = np.asarray(queries, dtype=np.float32)
+    if isinstance(candidates, (list, tuple)):
+        core = _kernel()
+        if core is not None and q.ndim == 3 and q.shape[1] > 0 and q.shape[2] > 0:
+            return core.aligned_correlations_at(q, candidates)
+        candidates = np.stack(candidates) if candidates else np.zeros((0, *q.shape[1:]))
     c = np.asarray(candidates, dtype=np.float32)
     if q.ndim != 3 or c.ndim != 3 or c.shape[1:] != q.shape[1:]:
         raise ValueError(

@@ -162,7 +162,7 @@ def snap_first(
     if not np.isfinite(pose[best, [0, 1, 3]]).all():
         return best, None, float("nan")
     yaw, estimate, conf = query_on_map_conf(
-        model, query_features, stored.features[best], pose[best], check_below
+        model, query_features, stored.features_at(best), pose[best], check_below
     )
     with np.errstate(invalid="ignore"):  # NaN poses compare False: never candidates
         near = np.hypot(*(pose[:, :2] - pose[best, :2]).T) <= radius
@@ -188,16 +188,19 @@ def _query_limit(limit: Any, exclude: Any, i: int) -> tuple[Any, Any]:
 
 
 class _Reranker:
-    """One query's re-ranking: (own, best) re-rank distances of candidate features, with
-    its views' re-rank images where it has views."""
+    """One query's re-ranking: (own, best) re-rank distances of stored rows from `start`
+    on, with its views' re-rank images where it has views."""
 
     def __init__(self, model: QueryModel, query_features: np.ndarray, images: Any, penalty: float):
         self.model, self.q, self.images, self.penalty = model, query_features, images, penalty
 
-    def __call__(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, stored: Any, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
         if self.images is None:
-            d = np.asarray(self.model.rerank_distances(self.q, features), np.float64)
+            d = np.asarray(self.model.rerank_distances(self.q, stored.features[start:]), np.float64)
             return d, d
+        # The rows' own arrays where the store keeps them apart: no stacked copy.
+        rows = getattr(stored, "feature_rows", None)
+        features = list(rows[start:]) if rows is not None else stored.features[start:]
         d = np.asarray(self.model.rerank_distances_views(self.q, features, self.images), np.float64)
         own = d[0]
         best = np.minimum(own, (d[1:] + self.penalty).min(axis=0)) if len(d) > 1 else own
@@ -230,13 +233,13 @@ def _reranked(
     rerank = _Reranker(model, query_features, images, policy.view_penalty)
     r = rows[:first]
     stored = db.rows(ids[r])
-    own, best = rerank(stored.features)
+    own, best = rerank(stored)
     if len(rows) > len(r) and best.min() > policy.rerank_wider_above:
         # No candidate is a good match: re-rank the next ones too. All rows are read in
         # one answer (the first pass's come from the rows' cache), so that no joined
         # copy of the features is made.
         stored = db.rows(ids[rows])
-        own_more, best_more = rerank(stored.features[len(r) :])
+        own_more, best_more = rerank(stored, len(r))
         r = rows
         own, best = np.concatenate([own, own_more]), np.concatenate([best, best_more])
     return r, stored, own, best, sig_d[: len(r)]
@@ -314,7 +317,7 @@ def match_queries(
             out.append([])
             continue
         cues = place_cues(*cue_args, only=order)
-        feats = stored.features[order]
+        feats = stored.features_at(order)
         yaw, conf = (np.asarray(a, np.float64) for a in model.yaw_conf(features[i], feats))
         todo = np.arange(min(policy.refine_yaw, len(order)))
         if len(todo) and snapped is not None and snapped[1] is not None and order[0] == snapped[0]:
