@@ -118,6 +118,13 @@ DISCO_TREE16_SCALAR
 // Eight cells at once: each cell's quad is one 16-byte load, cells c and c + 4 to a
 // register, and four registers transposed within their halves give the cells' four
 // values in order. The same arithmetic as resample_cells.
+// The places 2 kB ahead of p (of both streams; a prefetch past their end never faults):
+// a search reads each view's once, mostly from memory, and the hardware's prefetch alone
+// left 2-7 % of a call waiting on them (the more, the busier the machine).
+static inline void ahead(const float* p) {
+    const std::uintptr_t at = reinterpret_cast<std::uintptr_t>(p) + 2048;
+    _mm_prefetch(reinterpret_cast<const char*>(at), _MM_HINT_NTA);
+}
 static void resample_view(const RecentreImage& im, const float* places, Limits lim,
                           float* o) {
     const std::int64_t R = im.rings, cells = im.sectors * R;
@@ -131,6 +138,8 @@ static void resample_view(const RecentreImage& im, const float* places, Limits l
         float* out = o + s * im.rings_padded;
         std::int64_t c = 0;
         for (; c + 8 <= R; c += 8) {
+            ahead(ring + c);
+            ahead(sector + c);
             const __m256 rf = _mm256_loadu_ps(ring + c);
             const __m256 sf = _mm256_loadu_ps(sector + c);
             const __m256 ok = _mm256_and_ps(
