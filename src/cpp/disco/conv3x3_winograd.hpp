@@ -11,7 +11,8 @@
 // joined along channels, sectors padded circularly or with zeros, rings with zeros,
 // bias and an optional ReLU; odd R or S (partial tiles) allowed. Sums run in float32 in
 // another order than the direct kernel's and pass through the transforms, so the two
-// agree within rounding, not to the bit. Plain C++17.
+// agree within rounding, not to the bit. C++17 with the vector extensions GCC and clang
+// share (its SIMD kernels: GCC only, winograd_level).
 #pragma once
 
 #include <cstdint>
