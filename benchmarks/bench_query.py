@@ -26,9 +26,7 @@
 Like the `disco` command, the process first asks OpenBLAS to use one thread
 (`blas_threads.py`); `--process-defaults` leaves it as it is, for the ratio.
 
-With --open N...: only what the integrity check on opening costs, on maps of N
-synthetic scans: `Database.open` with and without `verify`, and a fresh one-scan
-query process (open + load model + signatures + index + query) either way.
+What opening a map and its integrity check cost: `benchmarks/bench_open.py`.
 """
 
 from __future__ import annotations
@@ -119,81 +117,6 @@ def build_synthetic_db(path: Path, model, n: int) -> None:
         else:
             db.append(batch)
     db.close()
-
-
-_FRESH_QUERY = """
-import sys, time; t0 = time.perf_counter()
-from disco_cli.maps.database import Database; from disco_cli.model import load_model
-from disco_cli.query.search import SignatureIndex, match_queries
-from disco_cli.embedding.load import load_bev
-t1 = time.perf_counter()
-db = Database.open(sys.argv[1], verify=sys.argv[4] == "1"); t2 = time.perf_counter()
-m = load_model(sys.argv[2]); ids, s = db.signatures(); ix = SignatureIndex(s)
-sig, f = m.embed(load_bev(sys.argv[3], m.bev_config)[None])
-match_queries(ix, ids, db, m, sig, f, 10)
-print(t2 - t1, time.perf_counter() - t0)
-"""
-
-
-def bench_open(model_name: str, n: int, tmp: Path, reps: int) -> dict:
-    """What `Database.open`'s integrity check costs on a map of n scans (page cache warm,
-    as right after it was written): opening alone, and a fresh one-scan query process,
-    with and without `verify`, interleaved; medians."""
-    from disco_cli.maps.database import Database
-    from disco_cli.model import load_model
-
-    db = tmp / f"open{n}.db"
-    build_synthetic_db(db, load_model(model_name), n)
-    scan = tmp / "open_q.bin"
-    synthetic_scan(7).tofile(scan)
-    opens: dict[bool, list[float]] = {True: [], False: []}
-    for _ in range(reps):
-        for v in (True, False):
-            t = time.perf_counter()
-            Database.open(db, verify=v).close()
-            opens[v].append(time.perf_counter() - t)
-    fresh: dict[bool, list[float]] = {True: [], False: []}
-    fresh_open: dict[bool, list[float]] = {True: [], False: []}
-    cli = []
-    exe = disco_command()
-    for _ in range(max(3, reps // 2)):
-        for v in (True, False):
-            args = [str(db), model_name, str(scan), "1" if v else "0"]
-            t = time.perf_counter()
-            out = subprocess.run(
-                [sys.executable, "-c", _FRESH_QUERY, *args],
-                check=True,
-                capture_output=True,
-                text=True,
-            )
-            fresh[v].append(time.perf_counter() - t)
-            fresh_open[v].append(float(out.stdout.split()[0]))
-        t = time.perf_counter()
-        subprocess.run(
-            [
-                *exe,
-                "query",
-                str(scan),
-                "--db",
-                str(db),
-                "--format",
-                "tsv",
-                "--model",
-                model_name,
-            ],
-            check=True,
-            capture_output=True,
-        )
-        cli.append(time.perf_counter() - t)
-    out = {"mib": db.stat().st_size / 2**20, "cli": median_ms(cli)}
-    for v, k in ((True, "on"), (False, "off")):
-        out |= {
-            f"open_{k}": median_ms(opens[v]),
-            f"fresh_{k}": median_ms(fresh[v]),
-            f"fresh_open_{k}": median_ms(fresh_open[v]),
-        }
-    db.unlink()
-    return out
 
 
 def polar_bev_of(model, points: np.ndarray) -> np.ndarray:
@@ -594,14 +517,6 @@ def main() -> None:
         help="only measure the yaw cost of float16 features on two sessions",
     )
     ap.add_argument(
-        "--open",
-        type=int,
-        nargs="+",
-        metavar="N",
-        help="only measure the integrity check on opening maps of N scans",
-    )
-    ap.add_argument("--reps", type=int, default=7, help="rounds for --open")
-    ap.add_argument(
         "--process-defaults",
         action="store_true",
         help="leave OpenBLAS's threads as they are (disco sets one)",
@@ -623,22 +538,6 @@ def main() -> None:
             f"{y['err32']:.3f} (float32) / {y['err16']:.3f} (float16), mean {y['mean32']:.3f} "
             f"/ {y['mean16']:.3f} deg"
         )
-        return
-    if args.open:
-        with tempfile.TemporaryDirectory() as tmp:
-            model, what = model_arg(args.model, Path(tmp))
-            for n in args.open:
-                o = bench_open(model, n, Path(tmp), args.reps)
-                print(
-                    f"opening a map of {n} scans ({o['mib']:.0f} MiB, {what}, page cache "
-                    f"warm): Database.open {o['open_on']:.1f} ms with the integrity check, "
-                    f"{o['open_off']:.1f} ms with verify=False; a fresh one-scan query process "
-                    f"(open + load model + index + query) {o['fresh_on']:.0f} ms vs "
-                    f"{o['fresh_off']:.0f} ms (its open {o['fresh_open_on']:.1f} vs "
-                    f"{o['fresh_open_off']:.1f} ms): the check is "
-                    f"{100 * (o['fresh_on'] - o['fresh_off']) / o['fresh_on']:.0f} % of it; "
-                    f"`disco query` (CLI, check on) {o['cli']:.0f} ms (medians)"
-                )
         return
 
     for n in (10_000, args.n_search):
