@@ -438,14 +438,7 @@ void resize_separable(const float* x, std::int64_t images, std::int64_t rows,
 const char* conv3x3_kernel_name(int level) {
     if (level < 0) level = bev_kernel_level();
     if (bev_kernel_name(level)[0] == '\0') return "";
-    switch (conv_level(level)) {
-        case 3:
-            return "avx512";
-        case 2:
-            return "avx2";
-        default:
-            return "plain";
-    }
+    return wide_kernel_name(conv_level(level));
 }
 
 }  // namespace disco

@@ -160,14 +160,7 @@ void exact_topk(const float* x, std::int64_t d, const float* q, std::int64_t b,
 }
 
 const char* exact_kernel_name() {
-    switch (level_now()) {
-        case 3:
-            return "avx512";
-        case 2:
-            return "avx2";
-        default:
-            return "plain";
-    }
+    return wide_kernel_name(level_now());
 }
 
 }  // namespace disco

@@ -1102,6 +1102,17 @@ const char* bev_kernel_name(int level) {
     }
 }
 
+const char* wide_kernel_name(int level) {
+    switch (level) {
+        case 3:
+            return "avx512";
+        case 2:
+            return "avx2";
+        default:
+            return "plain";
+    }
+}
+
 void polar_bev(const BEVPointsView<float>& points, const BEVConfig& config, float* out) {
     polar_bev_impl(points, config, out);
 }

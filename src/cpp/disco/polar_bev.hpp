@@ -78,5 +78,8 @@ int bev_kernel_level();
 // "avx512", "avx2", "sse2", "neon" or "plain": the kernel of `level` on this build and
 // CPU (-1: the level in use); "" for a level that does not exist here.
 const char* bev_kernel_name(int level = -1);
+// "avx512" (3), "avx2" (2) or "plain" (else): the name of a kernel with only those three
+// paths at `level`, the names the search and U-Net kernels report.
+const char* wide_kernel_name(int level);
 
 }  // namespace disco

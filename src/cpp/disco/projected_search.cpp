@@ -146,14 +146,7 @@ void projected_approx(const float* tiles, std::int64_t p, std::int64_t n, const 
 }
 
 const char* projected_kernel_name() {
-    switch (level_now()) {
-        case 3:
-            return "avx512";
-        case 2:
-            return "avx2";
-        default:
-            return "plain";
-    }
+    return wide_kernel_name(level_now());
 }
 
 }  // namespace disco
