@@ -1,8 +1,10 @@
 #include "disco/polar_resample.hpp"
 
 #include <stdexcept>
+#include <string>
 
 #include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
+#include "disco/resample_limits.hpp"
 
 #if defined(__SSE2__) && (defined(__GNUC__) || defined(__clang__))
 #include <immintrin.h>
@@ -13,17 +15,6 @@ namespace disco {
 
 namespace {
 
-// The limits that keep all four reads of a corner inside the image: ring < rows - 1 and
-// sector < width - 1. The places are checked as floats (NaN fails every comparison)
-// before any cast.
-struct Limits {
-    float ring, sector;
-};
-
-[[noreturn]] void outside() {
-    throw std::out_of_range("resample_views: a place outside the image");
-}
-
 // Cells [from, to) of one view, one at a time: the definition, and the tail of the
 // vector kernel.
 void resample_cells(const float* padded, std::int64_t width, const float* ring,
@@ -31,7 +22,7 @@ void resample_cells(const float* padded, std::int64_t width, const float* ring,
                     float* o) {
     for (std::int64_t c = from; c < to; ++c) {
         const float rf = ring[c], sf = sector[c];
-        if (!(rf >= 0.0f && rf < lim.ring && sf >= 0.0f && sf < lim.sector)) outside();
+        if (!lim.holds(rf, sf)) outside("resample_views");
         const std::int32_t r0 = static_cast<std::int32_t>(rf);
         const std::int32_t s0 = static_cast<std::int32_t>(sf);
         const float fr = rf - static_cast<float>(r0);
@@ -63,7 +54,7 @@ __attribute__((target("avx2"))) void resample_avx2(const float* padded, std::int
             _mm256_and_ps(_mm256_cmp_ps(rf, zero, _CMP_GE_OQ), _mm256_cmp_ps(rf, ring_lim, _CMP_LT_OQ)),
             _mm256_and_ps(_mm256_cmp_ps(sf, zero, _CMP_GE_OQ),
                           _mm256_cmp_ps(sf, sector_lim, _CMP_LT_OQ)));
-        if (_mm256_movemask_ps(ok) != 0xFF) outside();
+        if (_mm256_movemask_ps(ok) != 0xFF) outside("resample_views");
         const __m256i r0 = _mm256_cvttps_epi32(rf);
         const __m256i s0 = _mm256_cvttps_epi32(sf);
         const __m256 fr = _mm256_sub_ps(rf, _mm256_cvtepi32_ps(r0));
@@ -88,9 +79,13 @@ bool has_avx2() {
 
 }  // namespace
 
+void outside(const char* kernel) {
+    throw std::out_of_range(std::string(kernel) + ": a place outside the image");
+}
+
 void resample_views(const float* padded, std::int64_t padded_size, std::int64_t width,
                     const std::vector<ResamplePlaces>& places, std::int64_t cells, float* out) {
-    const Limits lim{static_cast<float>(padded_size / width - 1), static_cast<float>(width - 1)};
+    const Limits lim = Limits::of(padded_size / width, width);
 #if DISCO_RESAMPLE_AVX2
     // The AVX2 kernel where the CPU has it and the level cap that the BEV kernels share
     // (set_bev_kernel_level) allows level 2, so tests can check the plain one too.

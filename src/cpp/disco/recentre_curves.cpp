@@ -5,6 +5,7 @@
 #include <stdexcept>
 
 #include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
+#include "disco/resample_limits.hpp"
 #include "disco/sector_fft.hpp"
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
@@ -16,16 +17,6 @@ namespace disco {
 
 namespace {
 
-// The limits that keep all four reads of a corner inside the table: ring < rows - 1 and
-// sector < width - 1, checked as floats (NaN fails every comparison) before any cast.
-struct Limits {
-    float ring, sector;
-};
-
-[[noreturn]] void outside() {
-    throw std::out_of_range("recentre_curves: a place outside the image");
-}
-
 // Cells [from, to) of one view, one at a time (polar_resample.hpp's read, the same
 // operations in the same order, its four values from the corner's quad): the plain
 // levels, and the tail of the vector ones.
@@ -34,7 +25,7 @@ void resample_cells(const RecentreImage& im, const float* ring, const float* sec
     const std::int64_t rq = im.rows - 1;
     for (std::int64_t c = from; c < to; ++c) {
         const float rf = ring[c], sf = sector[c];
-        if (!(rf >= 0.0f && rf < lim.ring && sf >= 0.0f && sf < lim.sector)) outside();
+        if (!lim.holds(rf, sf)) outside("recentre_curves");
         const std::int32_t r0 = static_cast<std::int32_t>(rf);
         const std::int32_t s0 = static_cast<std::int32_t>(sf);
         const float fr = rf - static_cast<float>(r0);
@@ -147,7 +138,7 @@ static void resample_view(const RecentreImage& im, const float* places, Limits l
                               _mm256_cmp_ps(rf, ring_lim, _CMP_LT_OQ)),
                 _mm256_and_ps(_mm256_cmp_ps(sf, zero, _CMP_GE_OQ),
                               _mm256_cmp_ps(sf, sector_lim, _CMP_LT_OQ)));
-            if (_mm256_movemask_ps(ok) != 0xFF) outside();
+            if (_mm256_movemask_ps(ok) != 0xFF) outside("recentre_curves");
             const __m256i r0 = _mm256_cvttps_epi32(rf);
             const __m256i s0 = _mm256_cvttps_epi32(sf);
             const __m256 fr = _mm256_sub_ps(rf, _mm256_cvtepi32_ps(r0));
@@ -267,7 +258,7 @@ double recentre_ncc(const RecentreImage& image, const float* places,
                     const float* match_sectors, std::int64_t shift) {
     check(image);
     const std::int64_t R = image.rings, S = image.sectors, n = R * S;
-    const Limits lim{static_cast<float>(image.rows - 1), static_cast<float>(image.width - 1)};
+    const Limits lim = Limits::of(image.rows, image.width);
     std::vector<float> view(static_cast<std::size_t>(n));
     RecentreImage dense = image;
     dense.rings_padded = R;  // the view written [S][R]
