@@ -7,11 +7,7 @@
 #include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
 #include "disco/resample_limits.hpp"
 #include "disco/sector_fft.hpp"
-
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#include <immintrin.h>
-#define DISCO_RECENTRE_X86 1
-#endif
+#include "disco/simd_lanes.hpp"
 
 namespace disco {
 
@@ -61,9 +57,8 @@ float tree16_scalar(float* a) {
     }
 
 namespace plain {
-constexpr int W = 1;
-typedef float vf;
-static inline vf vsqrt(vf x) { return std::sqrt(x); }
+#define DISCO_LANES 1
+#include "disco/simd_lanes.inc"
 DISCO_TREE16_SCALAR
 static inline void resample_view(const RecentreImage& im, const float* places, Limits lim,
                                  float* o) {
@@ -77,13 +72,13 @@ static inline void rfft_block(const SectorPlan& plan, const float* in, std::int6
     rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
 }
 #include "disco/recentre_curves.inc"
+#undef DISCO_LANES
 }  // namespace plain
 
-#if DISCO_RECENTRE_X86
+#if DISCO_SIMD_X86
 namespace sse2 {  // the x86-64 baseline: no target needed
-constexpr int W = 4;
-typedef float vf __attribute__((vector_size(16)));
-static inline vf vsqrt(vf x) { return (vf)_mm_sqrt_ps((__m128)x); }
+#define DISCO_LANES 4
+#include "disco/simd_lanes.inc"
 DISCO_TREE16_SCALAR
 static inline void resample_view(const RecentreImage& im, const float* places, Limits lim,
                                  float* o) {
@@ -97,14 +92,14 @@ static inline void rfft_block(const SectorPlan& plan, const float* in, std::int6
     rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
 }
 #include "disco/recentre_curves.inc"
+#undef DISCO_LANES
 }  // namespace sse2
 
 #pragma GCC push_options
 #pragma GCC target("avx2")
 namespace avx2 {
-constexpr int W = 8;
-typedef float vf __attribute__((vector_size(32)));
-static inline vf vsqrt(vf x) { return (vf)_mm256_sqrt_ps((__m256)x); }
+#define DISCO_LANES 8
+#include "disco/simd_lanes.inc"
 DISCO_TREE16_SCALAR
 // Eight cells at once: each cell's quad is one 16-byte load, cells c and c + 4 to a
 // register, and four registers transposed within their halves give the cells' four
@@ -184,6 +179,7 @@ static inline void rfft_block(const SectorPlan& plan, const float* in, std::int6
     rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
 }
 #include "disco/recentre_curves.inc"
+#undef DISCO_LANES
 }  // namespace avx2
 #pragma GCC pop_options
 
@@ -193,9 +189,8 @@ static inline void rfft_block(const SectorPlan& plan, const float* in, std::int6
 // GCC 12 warns inside its own avx512fintrin.h (_mm512_undefined_*): a false positive.
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 namespace avx512 {
-constexpr int W = 16;
-typedef float vf __attribute__((vector_size(64)));
-static inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
+#define DISCO_LANES 16
+#include "disco/simd_lanes.inc"
 // tree16_scalar's halves in registers.
 static inline float tree16(const vf* v) {
     const __m512 x = (__m512)v[0];
@@ -224,6 +219,7 @@ static inline void rfft_block(const SectorPlan& plan, const float* in, std::int6
         rfft_lanes(plan, in, in_stride, re, im, out_stride, work);
 }
 #include "disco/recentre_curves.inc"
+#undef DISCO_LANES
 }  // namespace avx512
 #undef DISCO_TREE16_SCALAR
 #pragma GCC diagnostic pop
@@ -262,7 +258,7 @@ double recentre_ncc(const RecentreImage& image, const float* places,
     std::vector<float> view(static_cast<std::size_t>(n));
     RecentreImage dense = image;
     dense.rings_padded = R;  // the view written [S][R]
-#if DISCO_RECENTRE_X86
+#if DISCO_SIMD_X86
     if (sector_fft_level() >= 2)
         avx2::resample_view(dense, places, lim, view.data());
     else
@@ -308,7 +304,7 @@ double recentre_ncc(const RecentreImage& image, const float* places,
 void recentre_match(const RecentreImage& image, const float* match, float* spectrum) {
     check(image);
     switch (sector_fft_level()) {
-#if DISCO_RECENTRE_X86
+#if DISCO_SIMD_X86
         case 3: return avx512::match_spectrum(image, match, spectrum);
         case 2: return avx2::match_spectrum(image, match, spectrum);
         case 1: return sse2::match_spectrum(image, match, spectrum);
@@ -321,7 +317,7 @@ void recentre_curves(const RecentreImage& image, const std::vector<const float*>
                      const float* spectrum, const float* weights, float* curves) {
     check(image);
     switch (sector_fft_level()) {
-#if DISCO_RECENTRE_X86
+#if DISCO_SIMD_X86
         case 3: return avx512::run(image, places, spectrum, weights, curves);
         case 2: return avx2::run(image, places, spectrum, weights, curves);
         case 1: return sse2::run(image, places, spectrum, weights, curves);

@@ -8,62 +8,16 @@
 
 #include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
 #include "disco/sector_fft.hpp"
-
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#include <immintrin.h>
-#define DISCO_CORRELATION_X86 1
-#endif
+#include "disco/simd_lanes.hpp"
 
 namespace disco {
 
 namespace {
 
-#define DISCO_CORRELATION_SCALAR 1  // the plain level: one lane, no shuffles
-namespace plain {
-constexpr int W = 1;
-typedef float vf;
-static inline vf vsqrt(vf x) { return std::sqrt(x); }
-#include "disco/sector_fft.inc"
-#include "disco/sector_correlation.inc"
-}  // namespace plain
-#undef DISCO_CORRELATION_SCALAR
-#define DISCO_CORRELATION_SCALAR 0
-
-#if DISCO_CORRELATION_X86
-namespace sse2 {  // the x86-64 baseline: no target needed
-constexpr int W = 4;
-typedef float vf __attribute__((vector_size(16)));
-static inline vf vsqrt(vf x) { return (vf)_mm_sqrt_ps((__m128)x); }
-#include "disco/sector_fft.inc"
-#include "disco/sector_correlation.inc"
-}  // namespace sse2
-
-#pragma GCC push_options
-#pragma GCC target("avx2")
-namespace avx2 {
-constexpr int W = 8;
-typedef float vf __attribute__((vector_size(32)));
-static inline vf vsqrt(vf x) { return (vf)_mm256_sqrt_ps((__m256)x); }
-#include "disco/sector_fft.inc"
-#include "disco/sector_correlation.inc"
-}  // namespace avx2
-#pragma GCC pop_options
-
-#pragma GCC push_options
-#pragma GCC target("avx512f")
-#pragma GCC diagnostic push
-// GCC 12 warns inside its own avx512fintrin.h (_mm512_undefined_*): a false positive.
-#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
-namespace avx512 {
-constexpr int W = 16;
-typedef float vf __attribute__((vector_size(64)));
-static inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
-#include "disco/sector_fft.inc"
-#include "disco/sector_correlation.inc"
-}  // namespace avx512
-#pragma GCC diagnostic pop
-#pragma GCC pop_options
-#endif
+// Namespaces plain, sse2, avx2 and avx512: the body compiled at each level.
+#define DISCO_LEVELS_BODY "disco/sector_correlation.inc"
+#include "disco/simd_levels.inc"
+#undef DISCO_LEVELS_BODY
 
 void check_shape(std::int64_t images, std::int64_t stride, std::int64_t rings,
                  std::int64_t sectors) {
@@ -101,7 +55,7 @@ void aligned_correlations_at(const float* queries, std::int64_t views,
         kernel(queries, views, candidates, count, rings, sectors, scores);
     };
     switch (sector_fft_level()) {
-#if DISCO_CORRELATION_X86
+#if DISCO_SIMD_X86
         case 3: return run(avx512::aligned_run);
         case 2: return run(avx2::aligned_run);
         case 1: return run(sse2::aligned_run);
@@ -122,7 +76,7 @@ void yaw_any(const float* query, const float* matches, std::int64_t count, std::
         kernel(query, table.data(), count, rings, sectors, weights, curves, sep, yaws, confs);
     };
     switch (sector_fft_level()) {
-#if DISCO_CORRELATION_X86
+#if DISCO_SIMD_X86
         case 3: return run(avx512::yaw_run);
         case 2: return run(avx2::yaw_run);
         case 1: return run(sse2::yaw_run);

@@ -9,11 +9,7 @@
 #include <utility>
 
 #include "disco/polar_bev.hpp"  // the SIMD level cap shared by the kernels
-
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#include <immintrin.h>
-#define DISCO_FFT_X86 1
-#endif
+#include "disco/simd_lanes.hpp"
 
 namespace disco {
 
@@ -83,38 +79,10 @@ SectorPlan make_plan(int n) {
     return plan;
 }
 
-namespace plain {
-constexpr int W = 1;
-typedef float vf;
-#include "disco/sector_fft.inc"
-}  // namespace plain
-
-#if DISCO_FFT_X86
-namespace sse2 {  // the x86-64 baseline: no target needed
-constexpr int W = 4;
-typedef float vf __attribute__((vector_size(16)));
-#include "disco/sector_fft.inc"
-}  // namespace sse2
-
-#pragma GCC push_options
-#pragma GCC target("avx2")
-namespace avx2 {
-constexpr int W = 8;
-typedef float vf __attribute__((vector_size(32)));
-#include "disco/sector_fft.inc"
-}  // namespace avx2
-#pragma GCC pop_options
-
-#pragma GCC push_options
-#pragma GCC target("avx512f")
-namespace avx512 {
-constexpr int W = 16;
-typedef float vf __attribute__((vector_size(64)));
-#include "disco/sector_fft.inc"
-}  // namespace avx512
-#pragma GCC pop_options
-#endif
-
+// Namespaces plain, sse2, avx2 and avx512: the body compiled at each level.
+#define DISCO_LEVELS_BODY "disco/sector_fft.inc"
+#include "disco/simd_levels.inc"
+#undef DISCO_LEVELS_BODY
 
 void check_length(std::int64_t n, std::int64_t rows) {
     if (n < 1 || n > (1 << 20) || rows < 0)
@@ -133,7 +101,7 @@ const SectorPlan& sector_plan(int n) {
 }
 
 int sector_fft_level() {
-#if DISCO_FFT_X86
+#if DISCO_SIMD_X86
     return bev_kernel_level();  // 3 AVX-512, 2 AVX2, 1 SSE2 (x86-64's baseline), 0 plain
 #else
     return 0;
@@ -149,7 +117,7 @@ void rfft_rows(const float* in, std::int64_t rows, std::int64_t n, float* out) {
     check_length(n, rows);
     const SectorPlan& plan = sector_plan(static_cast<int>(n));
     switch (sector_fft_level()) {
-#if DISCO_FFT_X86
+#if DISCO_SIMD_X86
         case 3: return avx512::rfft_rows(plan, in, rows, out);
         case 2: return avx2::rfft_rows(plan, in, rows, out);
         case 1: return sse2::rfft_rows(plan, in, rows, out);
@@ -162,7 +130,7 @@ void irfft_rows(const float* in, std::int64_t rows, std::int64_t n, float* out) 
     check_length(n, rows);
     const SectorPlan& plan = sector_plan(static_cast<int>(n));
     switch (sector_fft_level()) {
-#if DISCO_FFT_X86
+#if DISCO_SIMD_X86
         case 3: return avx512::irfft_rows(plan, in, rows, out);
         case 2: return avx2::irfft_rows(plan, in, rows, out);
         case 1: return sse2::irfft_rows(plan, in, rows, out);
