@@ -110,7 +110,8 @@ CHECK_EIGEN = $(firstword $(wildcard $(VENV)/lib/python3*/site-packages/cmeel.pr
 check-aarch64:
 	@if ! command -v aarch64-linux-gnu-g++ >/dev/null || ! command -v qemu-aarch64 >/dev/null \
 	  || ! command -v cmake >/dev/null || [ -z "$(CHECK_EIGEN)" ]; then \
-	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+	  apt-get update -qq || echo "make: apt-get update failed; installing from the package lists there are"; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
 	    g++-aarch64-linux-gnu qemu-user cmake $(if $(CHECK_EIGEN),,libeigen3-dev) >/dev/null; fi
 	cmake -S tests/cpp -B $(CHECK)/native -DEIGEN3_INCLUDE_DIR="$(or $(CHECK_EIGEN),/usr/include/eigen3)" >/dev/null
 	cmake --build $(CHECK)/native -j 2
