@@ -7,6 +7,7 @@
 //   definition (double precision, std::atan2); each case prints a hash of its BEV.
 // - voxel_downsample, int8_encode and ray casting print hashes of their outputs,
 //   which must not depend on the CPU either (no FMA fusing, no fast-math).
+// - check_kernels.cpp (called last) checks the sector, search and convolution kernels.
 // Lines starting with '#' (the kernels this machine has) are left out of the
 // comparison. Exit status 1 on any mismatch with the reference.
 //
@@ -31,32 +32,15 @@
 #include "disco/polar_resample.hpp"
 #include "disco/raycast.hpp"
 #include "disco/voxel_grid.hpp"
+#include "check_common.hpp"
 
 namespace {
 
 int g_failures = 0;
 std::uint64_t g_checksum = 1469598103934665603ull;  // over every printed hash
 
-struct Rng {  // splitmix64: the same sequence on every platform
-    std::uint64_t s;
-    std::uint64_t next() {
-        std::uint64_t z = (s += 0x9E3779B97F4A7C15ull);
-        z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-        z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-        return z ^ (z >> 31);
-    }
-    // A multiple of 2^-16 in [lo, hi): exact in float for |value| < 256.
-    double uniform(double lo, double hi) {
-        const auto steps = static_cast<std::uint64_t>((hi - lo) * 65536.0);
-        return lo + static_cast<double>(next() % steps) / 65536.0;
-    }
-};
-
-std::uint64_t fnv1a(const void* data, std::size_t bytes, std::uint64_t h = 1469598103934665603ull) {
-    const auto* p = static_cast<const unsigned char*>(data);
-    for (std::size_t i = 0; i < bytes; ++i) h = (h ^ p[i]) * 1099511628211ull;
-    return h;
-}
+using disco_check::fnv1a;
+using disco_check::Rng;
 
 unsigned long long reported(std::uint64_t h) {
     g_checksum = fnv1a(&h, sizeof h, g_checksum);
@@ -673,6 +657,7 @@ int main(int argc, char** argv) {
     check_hostile_int8();
     check_hostile_raycast();
     check_resample();
+    g_failures += disco_check::check_kernels(&g_checksum);
     std::printf("checksum %016llx\n", static_cast<unsigned long long>(g_checksum));
     if (g_failures) {
         std::fprintf(stderr, "%d failures\n", g_failures);
