@@ -8,7 +8,9 @@ and alternating which goes first: the model as shipped, and the same model witho
 wider re-ranking pass (`rerank_wider = 0`, the baseline). Per scan that searches (past the
 50-frame exclusion window): median and 90th percentile of `add_embedded` (search,
 re-ranking, yaw of the best match; no pose), and how many scans re-ranked wider. The
-embedding itself (3-5 ms a scan) is `bench_model.py`'s.
+embedding itself (3-5 ms a scan) is `bench_model.py`'s. Both detectors leave out the
+geometric check of the best candidates (`check_candidates = 0`): it reads each scan's
+points, which this benchmark does not keep (`bench_query.py` times the check).
 """
 
 from __future__ import annotations
@@ -62,10 +64,11 @@ def main() -> None:
         shipped, baseline = load_model("default"), load_model("default")
         sigs, feats = suite.embed(shipped, lambda i: read_scan(paths[i]), len(paths), args.threads)
     counter, wider = _Counting(shipped), 0
+    unchecked = replace(shipped.query_policy, check_candidates=0)
     detectors = {
-        "shipped": LoopDetector(shipped, verify=False),
+        "shipped": LoopDetector(shipped, verify=False, policy=unchecked),
         "without the wider pass": LoopDetector(
-            baseline, verify=False, policy=replace(baseline.query_policy, rerank_wider=0)
+            baseline, verify=False, policy=replace(unchecked, rerank_wider=0)
         ),
     }
     times: dict[str, list[float]] = {k: [] for k in detectors}
