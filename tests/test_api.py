@@ -203,6 +203,14 @@ def test_loop_detector_feature_store_across_blocks() -> None:
         2,
         3,
     )
+    # Handed out in place and read-only, while the store itself takes more rows.
+    assert rows.feature_rows is not None
+    with pytest.raises(ValueError, match="read-only"):
+        rows.feature_rows[0][...] = 0.0
+    store.append(added[0] + 1.0, "one more")
+    np.testing.assert_array_equal(
+        store.rows(np.array([0, len(added)])).features, [added[0], added[0] + 1.0]
+    )
 
 
 @pytest.mark.parametrize(

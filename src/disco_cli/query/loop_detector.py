@@ -152,14 +152,18 @@ class _Features:
 
     def rows(self, ids: np.ndarray) -> Any:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        feats = [self.blocks[i // self.BLOCK][i % self.BLOCK] for i in ids]
-        shape = (0, *self.blocks[0].shape[1:]) if self.blocks else (0,)
-        return MatchRows(
-            ids,
-            [self.names[i] for i in ids],
-            np.full((len(ids), 4), np.nan),
-            np.stack(feats) if feats else np.empty(shape, np.float32),
-        )
+        found = ids, [self.names[i] for i in ids], np.full((len(ids), 4), np.nan)
+        if len(ids) == 0:
+            shape = (0, *self.blocks[0].shape[1:]) if self.blocks else (0,)
+            return MatchRows(*found, np.empty(shape, np.float32))
+        # Each row's own place in its block, as `Database.rows` hands out its cache's:
+        # read where it lies, and nobody writes into the store through it.
+        feats = []
+        for i in ids:
+            row = self.blocks[i // self.BLOCK][i % self.BLOCK]
+            row.flags.writeable = False  # this view only; the block stays writable
+            feats.append(row)
+        return MatchRows(*found, feature_rows=feats)
 
 
 class LoopDetector:
