@@ -453,9 +453,10 @@ def smallest_per_row(values: np.ndarray, k: int) -> np.ndarray:
 
 def finite_smallest_per_row(values: np.ndarray, k: int) -> np.ndarray:
     """Column indices [B, k] of each row's k smallest finite values, -1 in place of
-    the non-finite ones (excluded rows). The compiled core picks them with a bounded
-    heap, in (value, column) order, without the sample's second look at the row
-    (`src/cpp/disco/row_selection.hpp`); without it, `smallest_per_row` does."""
+    the non-finite ones (excluded rows). The compiled core picks them as
+    `smallest_per_row` does (a strided sample's threshold, then the few values under
+    it), ties to the lower column, in (value, column) order
+    (`src/cpp/disco/row_selection.hpp`); without the core, `smallest_per_row` does."""
     try:
         from disco_cli import _core  # deferred: looked up at each call: tests replace it
 

@@ -199,7 +199,7 @@ class _Reranker:
             d = np.asarray(self.model.rerank_distances(self.q, stored.features[start:]), np.float64)
             return d, d
         # The rows' own arrays where the store keeps them apart: no stacked copy.
-        rows = getattr(stored, "feature_rows", None)
+        rows = stored.feature_rows
         features = list(rows[start:]) if rows is not None else stored.features[start:]
         d = np.asarray(self.model.rerank_distances_views(self.q, features, self.images), np.float64)
         own = d[0]
